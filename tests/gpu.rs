@@ -1,0 +1,286 @@
+//! The Vulkan layer: device, errors, buffers, kernels, recorder, timers, layouts, leaks.
+
+use extranerf_gpu::kernels::{self, prims as k};
+use extranerf_gpu::{
+    fold_groups, Buffer, Context, ContextDesc, GpuError, GpuTimer, Kernel, Validation,
+};
+use extranerf_tests::{assert_no_validation_messages, desc, engine, POISON};
+
+#[test]
+fn device_info_is_sane() {
+    let e = engine();
+    let info = e.ctx.info();
+    assert!(!info.name.is_empty());
+    assert!(
+        info.subgroup_size >= 4,
+        "subgroup size {}",
+        info.subgroup_size
+    );
+    assert!(
+        info.max_storage_buffer_range >= 1 << 27,
+        "maxStorageBufferRange {}",
+        info.max_storage_buffer_range
+    );
+    assert!(info.max_workgroup_count_x >= 65535);
+    assert!(!info.heaps.is_empty());
+    assert!(
+        info.subgroup_arithmetic && info.float32_atomic_add,
+        "the primitives need subgroups and f32 atomics: {info:?}"
+    );
+    if std::env::var("EXTRANERF_VALIDATION").is_ok_and(|v| v.eq_ignore_ascii_case("required")) {
+        assert!(info.validation);
+    }
+}
+
+#[test]
+fn messenger_reaches_the_log() {
+    let e = engine();
+    if !e.ctx.info().validation {
+        eprintln!("validation layer not installed: messenger not created, nothing to check");
+        return;
+    }
+    assert!(e
+        .ctx
+        .inject_debug_message("synthetic message from the test"));
+    let msgs = e.ctx.take_validation_messages();
+    assert!(
+        msgs.iter()
+            .any(|m| m.text.contains("synthetic message") && m.severity == "ERROR"),
+        "{msgs:?}"
+    );
+    // Anything else in the log came from another test: fail rather than swallow it.
+    let others: Vec<_> = msgs
+        .iter()
+        .filter(|m| !m.text.contains("synthetic message"))
+        .collect();
+    assert!(others.is_empty(), "validation messages: {others:?}");
+}
+
+#[test]
+fn unknown_device_is_a_clear_error() {
+    let err = Context::new(&ContextDesc {
+        validation: Validation::Off,
+        device: Some("no-such-gpu-xyz".into()),
+    })
+    .unwrap_err();
+    match &err {
+        GpuError::DeviceNotFound {
+            requested,
+            available,
+        } => {
+            assert_eq!(requested, "no-such-gpu-xyz");
+            assert!(available.contains("0:"), "{available}");
+        }
+        other => panic!("expected DeviceNotFound, got {other}"),
+    }
+    let err = Context::new(&ContextDesc {
+        validation: Validation::Off,
+        device: Some("99".into()),
+    })
+    .unwrap_err();
+    assert!(matches!(err, GpuError::DeviceNotFound { .. }), "{err}");
+}
+
+#[test]
+fn device_chosen_by_index_and_name() {
+    let list = extranerf_gpu::list_devices().unwrap();
+    assert!(!list.is_empty());
+    let first = &list[0];
+    let by_index = Context::new(&ContextDesc {
+        validation: Validation::Off,
+        device: Some("0".into()),
+    })
+    .unwrap();
+    assert_eq!(by_index.info().name, first.name);
+    let part = first.name.split_whitespace().next().unwrap().to_uppercase();
+    let by_name = Context::new(&ContextDesc {
+        validation: Validation::Off,
+        device: Some(part),
+    })
+    .unwrap();
+    assert!(by_name
+        .info()
+        .name
+        .to_uppercase()
+        .contains(&first.name.split_whitespace().next().unwrap().to_uppercase()));
+}
+
+#[test]
+fn buffer_limits_and_ranges_are_errors_not_panics() {
+    let e = engine();
+    let limit = e.ctx.info().max_storage_buffer_range;
+    let err = Buffer::<u32>::new(&e.ctx, "huge table", (limit / 4 + 1) as usize).unwrap_err();
+    match &err {
+        GpuError::BufferTooLarge { name, limit: l, .. } => {
+            assert_eq!(name, "huge table");
+            assert_eq!(*l, limit);
+            assert!(err.to_string().contains("maxStorageBufferRange"));
+        }
+        other => panic!("expected BufferTooLarge, got {other}"),
+    }
+    let b = Buffer::<u32>::new(&e.ctx, "small", 10).unwrap();
+    assert!(matches!(b.write(&[1; 11]), Err(GpuError::Usage(_))));
+    assert!(matches!(b.write_at(8, &[1; 3]), Err(GpuError::Usage(_))));
+    assert!(matches!(b.read_range(5, 6), Err(GpuError::Usage(_))));
+    assert!(matches!(
+        b.read_range(usize::MAX, 2),
+        Err(GpuError::Usage(_))
+    ));
+    let empty = Buffer::<u32>::new(&e.ctx, "empty", 0).unwrap();
+    assert!(empty.read().unwrap().is_empty());
+    empty.write(&[]).unwrap();
+    assert_no_validation_messages(&e.ctx);
+}
+
+#[test]
+fn upload_readback_round_trip_and_ranges() {
+    let e = engine();
+    let data: Vec<u32> = (0..1003).map(|i| i * 7 + 1).collect();
+    let b = Buffer::from_slice(&e.ctx, "round trip", &data).unwrap();
+    assert_eq!(b.read().unwrap(), data);
+    b.write_at(500, &[POISON; 3]).unwrap();
+    assert_eq!(
+        b.read_range(499, 5).unwrap(),
+        vec![data[499], POISON, POISON, POISON, data[503]]
+    );
+    let f = Buffer::from_slice(&e.ctx, "f32", &[1.5f32, -0.0, f32::INFINITY]).unwrap();
+    let back = f.read().unwrap();
+    assert_eq!(back[0], 1.5);
+    assert!(back[1].is_sign_negative() && back[2].is_infinite());
+    assert_no_validation_messages(&e.ctx);
+}
+
+#[test]
+fn kernel_interface_mismatch_is_an_error() {
+    let e = engine();
+    let kernel = Kernel::new(&e.ctx, &k::fill::fill::DESC).unwrap();
+    let b = Buffer::<u32>::new(&e.ctx, "b", 16).unwrap();
+    let mut rec = e.ctx.recorder("mismatch").unwrap();
+    let wrong_params = k::saxpy::Params { n: 1, a: 1.0 };
+    let bad_count = rec.dispatch(
+        &kernel,
+        [b.binding(), b.binding()],
+        &k::fill::Params { n: 16, value: 0 },
+        16,
+    );
+    assert!(
+        matches!(bad_count, Err(GpuError::KernelMismatch { .. })),
+        "{bad_count:?}"
+    );
+    // Same size, different struct: allowed by size; a different size is refused.
+    let bad_size = rec.dispatch(&kernel, [b.binding()], &[0u32; 3], 16);
+    assert!(
+        matches!(bad_size, Err(GpuError::KernelMismatch { .. })),
+        "{bad_size:?}"
+    );
+    rec.dispatch(&kernel, [b.binding()], &wrong_params, 0)
+        .unwrap();
+    drop(rec);
+    assert_no_validation_messages(&e.ctx);
+}
+
+#[test]
+fn workgroup_folding() {
+    assert_eq!(fold_groups(0, 65535, 65535).unwrap(), [0, 1]);
+    assert_eq!(fold_groups(65535, 65535, 65535).unwrap(), [65535, 1]);
+    let [x, y] = fold_groups(65536, 65535, 65535).unwrap();
+    assert!(x as u64 * y as u64 >= 65536 && x <= 65535 && y == 2);
+    let [x, y] = fold_groups(4_000_000_007, 65535, 65535).unwrap();
+    assert!(x as u64 * y as u64 >= 4_000_000_007 && x <= 65535 && y <= 65535);
+    assert!(fold_groups(65535u64 * 65535 + 1, 65535, 65535).is_err());
+}
+
+#[test]
+fn timestamps_bracket_a_dispatch() {
+    let e = engine();
+    let timer = GpuTimer::new(&e.ctx, "test timer", 2).unwrap();
+    let b = Buffer::<u32>::new(&e.ctx, "timed", 1 << 20).unwrap();
+    let mut rec = e.ctx.recorder("timed").unwrap();
+    rec.reset_timer(&timer);
+    rec.timestamp(&timer, 0).unwrap();
+    e.prims.fill(&mut rec, b.binding(), 1 << 20, 3).unwrap();
+    rec.timestamp(&timer, 1).unwrap();
+    assert!(rec.timestamp(&timer, 2).is_err());
+    e.ctx.run(rec).unwrap();
+    let t = timer.read_ns(2).unwrap();
+    assert!(t[1] >= t[0] && t[1] - t[0] < 60e9, "{t:?}");
+    assert_no_validation_messages(&e.ctx);
+}
+
+#[test]
+fn every_params_twin_matches_naga_layout() {
+    assert!(!kernels::LAYOUTS.is_empty());
+    for l in kernels::LAYOUTS {
+        assert_eq!(l.naga_size as usize, l.rust_size, "{}: size", l.file);
+        for (name, naga, rust) in l.members {
+            assert_eq!(*naga as usize, *rust, "{}::{name}: offset", l.file);
+        }
+    }
+    for kd in kernels::ALL {
+        assert!(
+            kd.spirv.len() > 5 && kd.spirv[0] == 0x0723_0203,
+            "{}: not SPIR-V",
+            kd.name
+        );
+        assert!(
+            kd.spirv[1] >= 0x0001_0300,
+            "{}: SPIR-V version {:#x} < 1.3",
+            kd.name,
+            kd.spirv[1]
+        );
+        let mut seen = std::collections::BTreeSet::new();
+        assert!(
+            kd.bindings.iter().all(|b| seen.insert(b.binding)),
+            "{}: duplicate binding",
+            kd.name
+        );
+    }
+}
+
+#[test]
+fn every_kernel_builds_on_the_device() {
+    let e = engine();
+    for kd in kernels::ALL {
+        Kernel::new(&e.ctx, kd).unwrap_or_else(|err| panic!("{}: {err}", kd.name));
+    }
+    assert_no_validation_messages(&e.ctx);
+}
+
+/// Creates and drops every resource kind on a context of its own, then drops the context: the
+/// allocator must be back to zero allocations and the validation layer (which reports objects
+/// not destroyed at vkDestroyDevice / vkDestroyInstance) must stay silent.
+#[test]
+fn create_drop_every_resource_kind_leaks_nothing() {
+    let ctx = Context::new(&desc()).unwrap();
+    let log = ctx.validation_log();
+    assert_eq!(ctx.live_allocations().unwrap(), 0);
+    {
+        let prims = extranerf_prims::Prims::new(&ctx).unwrap();
+        let b = Buffer::<u32>::from_slice(&ctx, "leak check", &[1, 2, 3]).unwrap();
+        let c = Buffer::<f32>::new(&ctx, "leak check 2", 5).unwrap();
+        let timer = GpuTimer::new(&ctx, "leak timer", 4).unwrap();
+        let _scan = extranerf_prims::ScanPlan::new(&ctx, 5000).unwrap();
+        let _sort = extranerf_prims::SortPlan::new(&ctx, 5000).unwrap();
+        let unsubmitted = ctx.recorder("never submitted").unwrap();
+        drop(unsubmitted);
+        let mut rec = ctx.recorder("submitted").unwrap();
+        rec.reset_timer(&timer);
+        rec.timestamp(&timer, 0).unwrap();
+        prims.fill(&mut rec, b.binding(), 3, 9).unwrap();
+        rec.copy(b.binding(), 0, c.binding(), 0, 12).unwrap();
+        // Submit and drop everything while the GPU may still be running: deferred release.
+        let ticket = ctx.submit(rec).unwrap();
+        assert!(ctx.live_allocations().unwrap() > 0);
+        drop((b, c, timer, prims));
+        ctx.wait(ticket).unwrap();
+    }
+    ctx.wait_idle().unwrap();
+    assert_eq!(
+        ctx.live_allocations().unwrap(),
+        0,
+        "allocations left after every resource was dropped"
+    );
+    drop(ctx);
+    let msgs = log.take();
+    assert!(msgs.is_empty(), "validation messages at teardown: {msgs:?}");
+}

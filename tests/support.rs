@@ -1,0 +1,66 @@
+//! Shared helpers of the integration tests: one engine context per test binary (validation layer
+//! on when installed), and a check that no validation message was emitted.
+
+use std::sync::OnceLock;
+
+use extranerf_gpu::{Context, ContextDesc, Validation};
+use extranerf_prims::Prims;
+
+/// The test binary's context and primitives, created once.
+#[derive(Debug)]
+pub struct Engine {
+    /// Device.
+    pub ctx: Context,
+    /// Primitive kernels.
+    pub prims: Prims,
+}
+
+/// Tests run with the Khronos validation layer whenever it is installed; set
+/// `EXTRANERF_VALIDATION=required` to fail when it is not (CI does).
+pub fn desc() -> ContextDesc {
+    ContextDesc {
+        validation: Validation::from_env(Validation::IfAvailable),
+        device: None,
+    }
+}
+
+/// The shared engine; panics with the error's message when no device can be created.
+pub fn engine() -> &'static Engine {
+    static ENGINE: OnceLock<Engine> = OnceLock::new();
+    ENGINE.get_or_init(|| {
+        let ctx = Context::new(&desc())
+            .unwrap_or_else(|e| panic!("cannot create the Vulkan context: {e}"));
+        let info = ctx.info();
+        eprintln!(
+            "device: {} ({}, {} {}), validation layer: {}",
+            info.name,
+            info.device_type,
+            info.driver_name,
+            info.driver_info,
+            if info.validation {
+                "on"
+            } else {
+                "NOT INSTALLED"
+            }
+        );
+        let prims =
+            Prims::new(&ctx).unwrap_or_else(|e| panic!("cannot build the primitive kernels: {e}"));
+        Engine { ctx, prims }
+    })
+}
+
+/// Fails the test when the validation layer reported anything (warnings included).
+pub fn assert_no_validation_messages(ctx: &Context) {
+    let msgs = ctx.take_validation_messages();
+    assert!(
+        msgs.is_empty(),
+        "validation layer messages:\n{}",
+        msgs.iter()
+            .map(|m| format!("{}: {}", m.severity, m.text))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+}
+
+/// Poison for outputs: kernels must overwrite it (or, past the end, leave it alone).
+pub const POISON: u32 = 0xDEAD_BEEF;
