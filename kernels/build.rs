@@ -163,7 +163,7 @@ fn compile_file(wgsl_dir: &Path, file: &Path) -> Result<(String, Vec<String>), S
         .to_string_lossy()
         .to_string();
     let mut code = String::new();
-    let _ = writeln!(code, "/// Kernels of `wgsl/{rel}`.\npub mod {mod_name} {{\n    #[allow(unused_imports)]\n    use super::*;\n");
+    let _ = writeln!(code, "/// Kernels of `wgsl/{rel}`.\n#[allow(clippy::module_inception)]\npub mod {mod_name} {{\n    #[allow(unused_imports)]\n    use super::*;\n");
 
     // The immediate (push constant) block: the single source of truth for the host twin.
     let immediates: Vec<_> = module

@@ -1,5 +1,7 @@
 //! The Vulkan layer: device, errors, buffers, kernels, recorder, timers, layouts, leaks.
 
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
 use extranerf_gpu::kernels::{self, prims as k};
 use extranerf_gpu::{
     fold_groups, Buffer, Context, ContextDesc, GpuError, GpuTimer, Kernel, Validation,

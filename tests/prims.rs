@@ -2,6 +2,8 @@
 //! sizes 0, 1, not a multiple of the workgroup, and above 65535 workgroups where a single
 //! binding can hold that many (see each test).
 
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
 use extranerf_gpu::Buffer;
 use extranerf_prims::reference::{self as r, Rng};
 use extranerf_prims::{CompactPlan, ReducePlan, ScanPlan, ScatterMode, SortPlan};

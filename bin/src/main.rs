@@ -1,1 +1,152 @@
-fn main() {}
+//! `extranerf`: the command line of the engine.
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use clap::{Parser, Subcommand};
+use extranerf_gpu::{Context, ContextDesc, Validation};
+
+mod bench;
+
+/// extranerf: a Vulkan-native ExtraNeRF engine (neural radiance fields viewed from outside the
+/// cameras that took them). This build has the Vulkan compute core: device information and
+/// kernel microbenchmarks. Training, rendering and the diffusion stages follow.
+#[derive(Parser, Debug)]
+#[command(name = "extranerf", version, propagate_version = true)]
+struct Cli {
+    /// Vulkan device: an index from `extranerf info --list` or part of its name
+    /// (default: $EXTRANERF_DEVICE, else discrete > integrated > virtual > CPU).
+    #[arg(long, global = true, value_name = "DEV")]
+    device: Option<String>,
+    /// Load the Khronos validation layer (slow; for debugging). Also EXTRANERF_VALIDATION=1.
+    #[arg(long, global = true)]
+    validation: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Show the device, driver, Vulkan version, heaps, subgroup size and the features the
+    /// engine uses.
+    Info {
+        /// List every Vulkan device instead (index, name, kind, version).
+        #[arg(long)]
+        list: bool,
+        /// Also write the information as JSON to FILE.
+        #[arg(long, value_name = "FILE")]
+        json: Option<PathBuf>,
+    },
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        what: BenchCommand,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum BenchCommand {
+    /// Microbenchmarks of the primitive kernels: median GPU time (timestamp queries) per kernel
+    /// and size, GB/s and elements/s, and the ratio to vkCmdCopyBuffer bandwidth measured in
+    /// the same run at the same size.
+    Kernels(bench::KernelsArgs),
+}
+
+fn context(cli: &Cli) -> anyhow::Result<Context> {
+    let validation = if cli.validation { Validation::Required } else { Validation::from_env(Validation::Off) };
+    Context::new(&ContextDesc { validation, device: cli.device.clone() }).context("creating the Vulkan device")
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Err(e) = run(&cli) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: &Cli) -> anyhow::Result<()> {
+    match &cli.command {
+        Command::Info { list: true, .. } => {
+            for d in extranerf_gpu::list_devices()? {
+                println!("{}: {} ({}, Vulkan {})", d.index, d.name, d.device_type, d.api_version);
+            }
+            Ok(())
+        }
+        Command::Info { list: false, json } => {
+            let ctx = context(cli)?;
+            let info = ctx.info();
+            print!("{}", info_text(info));
+            if let Some(path) = json {
+                bench::write_json(path, &info_json(info))?;
+                println!("wrote {}", path.display());
+            }
+            Ok(())
+        }
+        Command::Bench { what: BenchCommand::Kernels(args) } => {
+            let ctx = context(cli)?;
+            bench::kernels(&ctx, args)
+        }
+    }
+}
+
+fn gib(b: u64) -> String {
+    format!("{:.1} GiB", b as f64 / (1u64 << 30) as f64)
+}
+
+fn yes(b: bool) -> &'static str {
+    if b {
+        "yes"
+    } else {
+        "no"
+    }
+}
+
+fn info_text(i: &extranerf_gpu::DeviceInfo) -> String {
+    let mut s = String::new();
+    let lavapipe = i.driver_name.to_lowercase().contains("llvmpipe") || i.name.to_lowercase().contains("llvmpipe");
+    s += &format!("device          {} [{}] (index {})\n", i.name, i.device_type, i.index);
+    s += &format!(
+        "driver          {} {}{}\n",
+        i.driver_name,
+        i.driver_info,
+        if lavapipe { "  (Mesa lavapipe: Vulkan on the CPU)" } else { "" }
+    );
+    s += &format!("vulkan          device {}, engine uses {}\n", i.api_version, i.used_api_version);
+    for (k, h) in i.heaps.iter().enumerate() {
+        s += &format!("heap {k}          {}{}\n", gib(h.size), if h.device_local { " device-local" } else { "" });
+    }
+    s += &format!("subgroup size   {} (arithmetic+ballot in compute: {})\n", i.subgroup_size, yes(i.subgroup_arithmetic));
+    s += &format!("storage binding max {} bytes ({} MiB)\n", i.max_storage_buffer_range, i.max_storage_buffer_range >> 20);
+    s += &format!("workgroups      max {} x {}, shared memory {} KiB\n", i.max_workgroup_count_x, i.max_workgroup_count_y, i.max_shared_memory / 1024);
+    s += &format!("timestamps      {} ({} ns/tick)\n", yes(i.timestamps), i.timestamp_period_ns);
+    s += &format!("f32 atomic add  {} (scatter-add kernels)\n", yes(i.float32_atomic_add));
+    s += &format!("shaderFloat16   {}, storageBuffer16BitAccess {}\n", yes(i.shader_float16), yes(i.storage_buffer_16bit));
+    s += &format!("validation      {}\n", if i.validation { "Khronos layer loaded" } else { "off" });
+    s
+}
+
+fn info_json(i: &extranerf_gpu::DeviceInfo) -> serde_json::Value {
+    serde_json::json!({
+        "index": i.index,
+        "name": i.name,
+        "device_type": i.device_type,
+        "driver_name": i.driver_name,
+        "driver_info": i.driver_info,
+        "api_version": i.api_version,
+        "used_api_version": i.used_api_version,
+        "vendor_id": i.vendor_id,
+        "heaps": i.heaps.iter().map(|h| serde_json::json!({"bytes": h.size, "device_local": h.device_local})).collect::<Vec<_>>(),
+        "subgroup_size": i.subgroup_size,
+        "subgroup_arithmetic": i.subgroup_arithmetic,
+        "max_storage_buffer_range": i.max_storage_buffer_range,
+        "max_workgroup_count": [i.max_workgroup_count_x, i.max_workgroup_count_y],
+        "max_shared_memory": i.max_shared_memory,
+        "timestamps": i.timestamps,
+        "timestamp_period_ns": i.timestamp_period_ns,
+        "float32_atomic_add": i.float32_atomic_add,
+        "shader_float16": i.shader_float16,
+        "storage_buffer_16bit": i.storage_buffer_16bit,
+        "validation": i.validation,
+    })
+}

@@ -451,6 +451,7 @@ impl Prims {
 
     /// Records `acc[indices[i]] += values[i]` for `i < n` with f32 atomics; indices at or past
     /// `acc_len` are skipped.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand; a struct would only rename them
     pub fn scatter_add<'a>(
         &self,
         rec: &mut Recorder<'a>,

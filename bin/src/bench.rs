@@ -1,0 +1,231 @@
+//! `extranerf bench kernels`: primitive microbenchmarks on GPU timestamps.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context as _;
+use extranerf_gpu::{Buffer, Context, GpuTimer, Recorder};
+use extranerf_prims::reference::Rng;
+use extranerf_prims::{CompactPlan, Prims, ReducePlan, ScanPlan, ScatterMode, SortPlan};
+
+/// Options of `extranerf bench kernels`.
+#[derive(clap::Args, Debug)]
+pub struct KernelsArgs {
+    /// Problem sizes in 32-bit elements, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = [1u64 << 16, 1 << 20, 1 << 24])]
+    sizes: Vec<u64>,
+    /// Timed repetitions per kernel and size; the median is reported (after one warm-up run).
+    #[arg(long, default_value_t = 7)]
+    repeats: u32,
+    /// Only kernels whose name contains one of these words (comma-separated), e.g. `sort,scan`.
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
+    /// Also write every measurement as JSON to FILE.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+}
+
+/// One measured kernel at one size.
+#[derive(Debug, serde::Serialize)]
+struct Row {
+    kernel: String,
+    elements: u64,
+    /// Bytes the traffic model counts for one run (minimal reads + writes).
+    bytes: u64,
+    median_ms: f64,
+    min_ms: f64,
+    gb_per_s: f64,
+    elements_per_s: f64,
+    /// vkCmdCopyBuffer bandwidth (read + write) at the same size, same run.
+    copy_gb_per_s: f64,
+    /// gb_per_s / copy_gb_per_s.
+    ratio_to_copy: f64,
+}
+
+pub fn write_json(path: &Path, value: &serde_json::Value) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    // Written next to the target and renamed, so an interrupted run leaves no half file.
+    let tmp = path.with_extension("json.tmp");
+    std::fs::write(&tmp, serde_json::to_string_pretty(value)? + "\n").with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    Ok(())
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Records `repeats` timed runs of `op` (each after an untimed `pre`) plus one warm-up, and
+/// returns the per-run GPU milliseconds.
+fn measure<'a>(
+    ctx: &Context,
+    timer: &'a GpuTimer,
+    repeats: u32,
+    mut pre: impl FnMut(&mut Recorder<'a>) -> extranerf_gpu::Result<()>,
+    mut op: impl FnMut(&mut Recorder<'a>) -> extranerf_gpu::Result<()>,
+) -> anyhow::Result<Vec<f64>> {
+    let mut rec = ctx.recorder("bench")?;
+    rec.reset_timer(timer);
+    pre(&mut rec)?;
+    op(&mut rec)?;
+    for r in 0..repeats {
+        pre(&mut rec)?;
+        rec.barrier();
+        rec.timestamp(timer, 2 * r)?;
+        op(&mut rec)?;
+        rec.timestamp(timer, 2 * r + 1)?;
+    }
+    ctx.run(rec)?;
+    let t = timer.read_ns(2 * repeats)?;
+    Ok((0..repeats as usize).map(|r| (t[2 * r + 1] - t[2 * r]) * 1e-6).collect())
+}
+
+fn none(_: &mut Recorder<'_>) -> extranerf_gpu::Result<()> {
+    Ok(())
+}
+
+struct Bench<'c> {
+    ctx: &'c Context,
+    prims: Prims,
+    repeats: u32,
+    only: Vec<String>,
+    rows: Vec<Row>,
+}
+
+impl Bench<'_> {
+    fn wanted(&self, name: &str) -> bool {
+        self.only.is_empty() || self.only.iter().any(|w| name.contains(w.as_str()))
+    }
+
+    fn push(&mut self, kernel: &str, n: u64, bytes: u64, times: Vec<f64>, copy_gbps: f64) {
+        let min_ms = times.iter().copied().fold(f64::INFINITY, f64::min);
+        let median_ms = median(times);
+        let gbps = bytes as f64 / (median_ms * 1e-3) / 1e9;
+        let row = Row {
+            kernel: kernel.into(),
+            elements: n,
+            bytes,
+            median_ms,
+            min_ms,
+            gb_per_s: gbps,
+            elements_per_s: n as f64 / (median_ms * 1e-3),
+            copy_gb_per_s: copy_gbps,
+            ratio_to_copy: if copy_gbps > 0.0 { gbps / copy_gbps } else { 0.0 },
+        };
+        println!(
+            "{:<34} {:>10} {:>11.4} {:>9.2} {:>10.1} {:>8.2}",
+            row.kernel,
+            row.elements,
+            row.median_ms,
+            row.gb_per_s,
+            row.elements_per_s / 1e6,
+            row.ratio_to_copy
+        );
+        self.rows.push(row);
+    }
+
+    fn size(&mut self, n: u64, rng: &mut Rng) -> anyhow::Result<()> {
+        let ctx = self.ctx;
+        let reps = self.repeats;
+        let timer = GpuTimer::new(ctx, "bench timer", 2 * reps)?;
+        let nu = n as usize;
+        let bytes = 4 * n;
+        let a = Buffer::<u32>::from_slice(ctx, "bench a", &(0..nu).map(|_| rng.next_u32()).collect::<Vec<_>>())?;
+        let b = Buffer::<u32>::new(ctx, "bench b", nu)?;
+        let xf = Buffer::<f32>::from_slice(ctx, "bench x", &(0..nu).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>())?;
+        let yf = Buffer::<f32>::from_slice(ctx, "bench y", &(0..nu).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>())?;
+
+        // The reference: a plain buffer copy, counted as read + write.
+        let t = measure(ctx, &timer, reps, none, |r| r.copy(a.binding(), 0, b.binding(), 0, bytes))?;
+        let copy_gbps = 2.0 * bytes as f64 / (median(t.clone()) * 1e-3) / 1e9;
+        self.push("copy (vkCmdCopyBuffer, reference)", n, 2 * bytes, t, copy_gbps);
+
+        if self.wanted("fill") {
+            let t = measure(ctx, &timer, reps, none, |r| r.fill_words(b.binding(), n, 7))?;
+            self.push("fill (vkCmdFillBuffer)", n, bytes, t, copy_gbps);
+            let t = measure(ctx, &timer, reps, none, |r| self.prims.fill(r, b.binding(), n, 7))?;
+            self.push("fill (kernel, vec4)", n, bytes, t, copy_gbps);
+        }
+        if self.wanted("saxpy") {
+            let t = measure(ctx, &timer, reps, none, |r| self.prims.saxpy(r, 0.5, xf.binding(), yf.binding(), n))?;
+            self.push("saxpy (vec4)", n, 3 * bytes, t, copy_gbps);
+        }
+        if self.wanted("reduce") {
+            let plan = ReducePlan::new(ctx)?;
+            let out = Buffer::<f32>::new(ctx, "bench sum", 1)?;
+            let t = measure(ctx, &timer, reps, none, |r| self.prims.reduce_sum(r, &plan, xf.binding(), n, out.binding()))?;
+            self.push("reduce-sum f32", n, bytes, t, copy_gbps);
+        }
+        if self.wanted("scan") {
+            let plan = ScanPlan::new(ctx, n)?;
+            let t = measure(ctx, &timer, reps, none, |r| self.prims.exclusive_scan(r, &plan, a.binding(), b.binding(), n, false))?;
+            self.push("exclusive scan u32", n, 2 * bytes, t, copy_gbps);
+        }
+        if self.wanted("compact") {
+            let plan = CompactPlan::new(ctx, n)?;
+            let flags = Buffer::<u32>::from_slice(ctx, "bench flags", &(0..nu).map(|_| rng.below(2)).collect::<Vec<_>>())?;
+            let t = measure(ctx, &timer, reps, none, |r| self.prims.compact(r, &plan, flags.binding(), Some(a.binding()), b.binding(), n))?;
+            // flags + values read, about half written.
+            self.push("compact (50% kept)", n, 2 * bytes + bytes / 2, t, copy_gbps);
+        }
+        if self.wanted("sort") {
+            let plan = SortPlan::new(ctx, n)?;
+            let keys = Buffer::<u32>::new(ctx, "bench keys", nu)?;
+            let vals = Buffer::<u32>::new(ctx, "bench vals", nu)?;
+            let t = measure(ctx, &timer, reps, |r| r.copy(a.binding(), 0, keys.binding(), 0, bytes), |r| self.prims.radix_sort(r, &plan, keys.binding(), vals.binding(), n, 32))?;
+            // 8 passes, each reading and writing keys and values.
+            self.push("radix sort k/v 32-bit (8 passes)", n, 8 * 4 * bytes, t, copy_gbps);
+        }
+        if self.wanted("scatter") {
+            let distinct = Buffer::<u32>::from_slice(ctx, "bench distinct idx", &(0..n as u32).collect::<Vec<_>>())?;
+            let same = Buffer::<u32>::from_slice(ctx, "bench same idx", &vec![3u32; nu])?;
+            let acc = Buffer::<f32>::new(ctx, "bench acc", nu)?;
+            for (label, idx) in [("distinct", &distinct), ("all equal", &same)] {
+                for (mname, mode) in [("direct", ScatterMode::Direct), ("subgroup", ScatterMode::SubgroupPreReduce)] {
+                    let t = measure(ctx, &timer, reps, none, |r| self.prims.scatter_add(r, idx.binding(), xf.binding(), acc.binding(), n, n, mode))?;
+                    self.push(&format!("scatter-add {mname}, {label}"), n, 3 * bytes, t, copy_gbps);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+pub fn kernels(ctx: &Context, args: &KernelsArgs) -> anyhow::Result<()> {
+    if args.repeats == 0 {
+        anyhow::bail!("--repeats must be at least 1");
+    }
+    let info = ctx.info();
+    let limit = info.max_storage_buffer_range / 4;
+    for &n in &args.sizes {
+        if n == 0 || n > limit {
+            anyhow::bail!("--sizes: {n} elements is outside 1..={limit} (this device binds at most {} bytes per buffer)", info.max_storage_buffer_range);
+        }
+    }
+    println!("device: {} ({} {}), Vulkan {}", info.name, info.driver_name, info.driver_info, info.api_version);
+    println!("median of {} runs after one warm-up; GB/s from each kernel's minimal traffic; ratio = GB/s over vkCmdCopyBuffer GB/s at the same size", args.repeats);
+    println!("{:<34} {:>10} {:>11} {:>9} {:>10} {:>8}", "kernel", "elements", "median ms", "GB/s", "Melem/s", "vs copy");
+    let mut bench = Bench { ctx, prims: Prims::new(ctx)?, repeats: args.repeats, only: args.only.clone(), rows: Vec::new() };
+    let mut rng = Rng::new(0x5eed);
+    for &n in &args.sizes {
+        bench.size(n, &mut rng)?;
+    }
+    if let Some(path) = &args.json {
+        let value = serde_json::json!({
+            "device": {"name": info.name, "driver": info.driver_name, "driver_info": info.driver_info, "api_version": info.api_version, "subgroup_size": info.subgroup_size},
+            "repeats": args.repeats,
+            "command": std::env::args().collect::<Vec<_>>().join(" "),
+            "results": bench.rows,
+        });
+        write_json(path, &value)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
