@@ -218,16 +218,17 @@ fn compile_file(wgsl_dir: &Path, file: &Path) -> Result<(String, Vec<String>), S
                     g.name, rb.group
                 ));
             }
-            let read_only =
-                match g.space {
-                    naga::AddressSpace::Storage { access } => {
-                        !access.contains(naga::StorageAccess::STORE)
-                    }
-                    other => return Err(format!(
+            let read_only = match g.space {
+                naga::AddressSpace::Storage { access } => {
+                    !access.contains(naga::StorageAccess::STORE)
+                }
+                other => {
+                    return Err(format!(
                         "{rel}: binding {:?} is in {other:?}; kernels bind storage buffers only",
                         g.name
-                    )),
-                };
+                    ))
+                }
+            };
             let name = g
                 .name
                 .clone()

@@ -20,8 +20,9 @@ fn poisoned(name: &str, n: usize) -> Buffer<u32> {
 #[test]
 fn fill_all_sizes() {
     let e = engine();
-    // 64 threads x 4 words per workgroup: 4 * 64 * 65536 + 13 words need 65537 workgroups.
-    for n in [0usize, 1, 3, 4, 255, 256 * 4 + 7, 4 * 64 * 65536 + 13] {
+    // 4096 words per workgroup (64 threads x 16 vec4s): 65536 workgroups would need 1 GiB, past
+    // the 128 MiB binding limit; iota and scatter-add cross 65535 workgroups instead.
+    for n in [0usize, 1, 3, 4, 255, 4096, 4096 * 3 + 7, (1 << 24) + 13] {
         let buf = poisoned("fill out", n);
         let mut rec = e.ctx.recorder("fill").unwrap();
         e.prims
@@ -41,10 +42,39 @@ fn fill_all_sizes() {
 }
 
 #[test]
+fn iota_crosses_65535_workgroups() {
+    let e = engine();
+    // 64 threads per workgroup, one element each: 64 * 65536 + 9 elements need 65537
+    // workgroups, which the recorder folds into a 2-D grid.
+    for (n, start) in [
+        (0usize, 0u32),
+        (1, 5),
+        (63, 0),
+        (65, 7),
+        (64 * 65536 + 9, u32::MAX - 100),
+    ] {
+        let buf = poisoned("iota out", n);
+        let mut rec = e.ctx.recorder("iota").unwrap();
+        e.prims
+            .iota(&mut rec, buf.binding(), n as u64, start)
+            .unwrap();
+        e.ctx.run(rec).unwrap();
+        let got = buf.read().unwrap();
+        assert!(got[..n] == r::iota(n, start)[..], "iota n={n}");
+        assert!(
+            got[n..].iter().all(|&v| v == POISON),
+            "iota n={n} wrote past n"
+        );
+    }
+    assert_no_validation_messages(&e.ctx);
+}
+
+#[test]
 fn saxpy_matches_f64_reference() {
     let e = engine();
     let mut rng = Rng::new(1);
-    for n in [0usize, 1, 5, 1000, 4 * 64 * 65536 + 6] {
+    // 4096 elements per workgroup: see fill_all_sizes for why none crosses 65535 workgroups.
+    for n in [0usize, 1, 5, 1000, 4096 * 5 + 3, (1 << 24) + 6] {
         let a = rng.uniform(-3.0, 3.0);
         let x: Vec<f32> = (0..n).map(|_| rng.uniform(-10.0, 10.0)).collect();
         let mut y: Vec<f32> = (0..n).map(|_| rng.uniform(-10.0, 10.0)).collect();
@@ -180,8 +210,9 @@ fn exclusive_scan_all_lengths() {
 #[test]
 fn compaction_values_and_indices() {
     let e = engine();
-    // 256 threads per workgroup: 256 * 65536 + 5 elements need 65537 workgroups.
-    let max = 256 * 65536 + 5;
+    // 1024 elements per workgroup in every kernel involved (the binding limit keeps it below
+    // 65536 workgroups, see fill_all_sizes).
+    let max = (1 << 24) + 5;
     let plan = CompactPlan::new(&e.ctx, max as u64).unwrap();
     let mut rng = Rng::new(4);
     for (n, density) in [

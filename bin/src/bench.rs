@@ -47,8 +47,10 @@ pub fn write_json(path: &Path, value: &serde_json::Value) -> anyhow::Result<()> 
     }
     // Written next to the target and renamed, so an interrupted run leaves no half file.
     let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, serde_json::to_string_pretty(value)? + "\n").with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    std::fs::write(&tmp, serde_json::to_string_pretty(value)? + "\n")
+        .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
     Ok(())
 }
 
@@ -84,7 +86,9 @@ fn measure<'a>(
     }
     ctx.run(rec)?;
     let t = timer.read_ns(2 * repeats)?;
-    Ok((0..repeats as usize).map(|r| (t[2 * r + 1] - t[2 * r]) * 1e-6).collect())
+    Ok((0..repeats as usize)
+        .map(|r| (t[2 * r + 1] - t[2 * r]) * 1e-6)
+        .collect())
 }
 
 fn none(_: &mut Recorder<'_>) -> extranerf_gpu::Result<()> {
@@ -117,7 +121,11 @@ impl Bench<'_> {
             gb_per_s: gbps,
             elements_per_s: n as f64 / (median_ms * 1e-3),
             copy_gb_per_s: copy_gbps,
-            ratio_to_copy: if copy_gbps > 0.0 { gbps / copy_gbps } else { 0.0 },
+            ratio_to_copy: if copy_gbps > 0.0 {
+                gbps / copy_gbps
+            } else {
+                0.0
+            },
         };
         println!(
             "{:<34} {:>10} {:>11.4} {:>9.2} {:>10.1} {:>8.2}",
@@ -137,41 +145,78 @@ impl Bench<'_> {
         let timer = GpuTimer::new(ctx, "bench timer", 2 * reps)?;
         let nu = n as usize;
         let bytes = 4 * n;
-        let a = Buffer::<u32>::from_slice(ctx, "bench a", &(0..nu).map(|_| rng.next_u32()).collect::<Vec<_>>())?;
+        let a = Buffer::<u32>::from_slice(
+            ctx,
+            "bench a",
+            &(0..nu).map(|_| rng.next_u32()).collect::<Vec<_>>(),
+        )?;
         let b = Buffer::<u32>::new(ctx, "bench b", nu)?;
-        let xf = Buffer::<f32>::from_slice(ctx, "bench x", &(0..nu).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>())?;
-        let yf = Buffer::<f32>::from_slice(ctx, "bench y", &(0..nu).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>())?;
+        let xf = Buffer::<f32>::from_slice(
+            ctx,
+            "bench x",
+            &(0..nu).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>(),
+        )?;
+        let yf = Buffer::<f32>::from_slice(
+            ctx,
+            "bench y",
+            &(0..nu).map(|_| rng.uniform(-1.0, 1.0)).collect::<Vec<_>>(),
+        )?;
 
         // The reference: a plain buffer copy, counted as read + write.
-        let t = measure(ctx, &timer, reps, none, |r| r.copy(a.binding(), 0, b.binding(), 0, bytes))?;
+        let t = measure(ctx, &timer, reps, none, |r| {
+            r.copy(a.binding(), 0, b.binding(), 0, bytes)
+        })?;
         let copy_gbps = 2.0 * bytes as f64 / (median(t.clone()) * 1e-3) / 1e9;
-        self.push("copy (vkCmdCopyBuffer, reference)", n, 2 * bytes, t, copy_gbps);
+        self.push(
+            "copy (vkCmdCopyBuffer, reference)",
+            n,
+            2 * bytes,
+            t,
+            copy_gbps,
+        );
 
         if self.wanted("fill") {
             let t = measure(ctx, &timer, reps, none, |r| r.fill_words(b.binding(), n, 7))?;
             self.push("fill (vkCmdFillBuffer)", n, bytes, t, copy_gbps);
-            let t = measure(ctx, &timer, reps, none, |r| self.prims.fill(r, b.binding(), n, 7))?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                self.prims.fill(r, b.binding(), n, 7)
+            })?;
             self.push("fill (kernel, vec4)", n, bytes, t, copy_gbps);
         }
         if self.wanted("saxpy") {
-            let t = measure(ctx, &timer, reps, none, |r| self.prims.saxpy(r, 0.5, xf.binding(), yf.binding(), n))?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                self.prims.saxpy(r, 0.5, xf.binding(), yf.binding(), n)
+            })?;
             self.push("saxpy (vec4)", n, 3 * bytes, t, copy_gbps);
         }
         if self.wanted("reduce") {
             let plan = ReducePlan::new(ctx)?;
             let out = Buffer::<f32>::new(ctx, "bench sum", 1)?;
-            let t = measure(ctx, &timer, reps, none, |r| self.prims.reduce_sum(r, &plan, xf.binding(), n, out.binding()))?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                self.prims
+                    .reduce_sum(r, &plan, xf.binding(), n, out.binding())
+            })?;
             self.push("reduce-sum f32", n, bytes, t, copy_gbps);
         }
         if self.wanted("scan") {
             let plan = ScanPlan::new(ctx, n)?;
-            let t = measure(ctx, &timer, reps, none, |r| self.prims.exclusive_scan(r, &plan, a.binding(), b.binding(), n, false))?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                self.prims
+                    .exclusive_scan(r, &plan, a.binding(), b.binding(), n, false)
+            })?;
             self.push("exclusive scan u32", n, 2 * bytes, t, copy_gbps);
         }
         if self.wanted("compact") {
             let plan = CompactPlan::new(ctx, n)?;
-            let flags = Buffer::<u32>::from_slice(ctx, "bench flags", &(0..nu).map(|_| rng.below(2)).collect::<Vec<_>>())?;
-            let t = measure(ctx, &timer, reps, none, |r| self.prims.compact(r, &plan, flags.binding(), Some(a.binding()), b.binding(), n))?;
+            let flags = Buffer::<u32>::from_slice(
+                ctx,
+                "bench flags",
+                &(0..nu).map(|_| rng.below(2)).collect::<Vec<_>>(),
+            )?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                self.prims
+                    .compact(r, &plan, flags.binding(), Some(a.binding()), b.binding(), n)
+            })?;
             // flags + values read, about half written.
             self.push("compact (50% kept)", n, 2 * bytes + bytes / 2, t, copy_gbps);
         }
@@ -179,18 +224,56 @@ impl Bench<'_> {
             let plan = SortPlan::new(ctx, n)?;
             let keys = Buffer::<u32>::new(ctx, "bench keys", nu)?;
             let vals = Buffer::<u32>::new(ctx, "bench vals", nu)?;
-            let t = measure(ctx, &timer, reps, |r| r.copy(a.binding(), 0, keys.binding(), 0, bytes), |r| self.prims.radix_sort(r, &plan, keys.binding(), vals.binding(), n, 32))?;
+            let t = measure(
+                ctx,
+                &timer,
+                reps,
+                |r| r.copy(a.binding(), 0, keys.binding(), 0, bytes),
+                |r| {
+                    self.prims
+                        .radix_sort(r, &plan, keys.binding(), vals.binding(), n, 32)
+                },
+            )?;
             // 8 passes, each reading and writing keys and values.
-            self.push("radix sort k/v 32-bit (8 passes)", n, 8 * 4 * bytes, t, copy_gbps);
+            self.push(
+                "radix sort k/v 32-bit (8 passes)",
+                n,
+                8 * 4 * bytes,
+                t,
+                copy_gbps,
+            );
         }
         if self.wanted("scatter") {
-            let distinct = Buffer::<u32>::from_slice(ctx, "bench distinct idx", &(0..n as u32).collect::<Vec<_>>())?;
+            let distinct = Buffer::<u32>::from_slice(
+                ctx,
+                "bench distinct idx",
+                &(0..n as u32).collect::<Vec<_>>(),
+            )?;
             let same = Buffer::<u32>::from_slice(ctx, "bench same idx", &vec![3u32; nu])?;
             let acc = Buffer::<f32>::new(ctx, "bench acc", nu)?;
             for (label, idx) in [("distinct", &distinct), ("all equal", &same)] {
-                for (mname, mode) in [("direct", ScatterMode::Direct), ("subgroup", ScatterMode::SubgroupPreReduce)] {
-                    let t = measure(ctx, &timer, reps, none, |r| self.prims.scatter_add(r, idx.binding(), xf.binding(), acc.binding(), n, n, mode))?;
-                    self.push(&format!("scatter-add {mname}, {label}"), n, 3 * bytes, t, copy_gbps);
+                for (mname, mode) in [
+                    ("direct", ScatterMode::Direct),
+                    ("subgroup", ScatterMode::SubgroupPreReduce),
+                ] {
+                    let t = measure(ctx, &timer, reps, none, |r| {
+                        self.prims.scatter_add(
+                            r,
+                            idx.binding(),
+                            xf.binding(),
+                            acc.binding(),
+                            n,
+                            n,
+                            mode,
+                        )
+                    })?;
+                    self.push(
+                        &format!("scatter-add {mname}, {label}"),
+                        n,
+                        3 * bytes,
+                        t,
+                        copy_gbps,
+                    );
                 }
             }
         }
@@ -209,10 +292,22 @@ pub fn kernels(ctx: &Context, args: &KernelsArgs) -> anyhow::Result<()> {
             anyhow::bail!("--sizes: {n} elements is outside 1..={limit} (this device binds at most {} bytes per buffer)", info.max_storage_buffer_range);
         }
     }
-    println!("device: {} ({} {}), Vulkan {}", info.name, info.driver_name, info.driver_info, info.api_version);
+    println!(
+        "device: {} ({} {}), Vulkan {}",
+        info.name, info.driver_name, info.driver_info, info.api_version
+    );
     println!("median of {} runs after one warm-up; GB/s from each kernel's minimal traffic; ratio = GB/s over vkCmdCopyBuffer GB/s at the same size", args.repeats);
-    println!("{:<34} {:>10} {:>11} {:>9} {:>10} {:>8}", "kernel", "elements", "median ms", "GB/s", "Melem/s", "vs copy");
-    let mut bench = Bench { ctx, prims: Prims::new(ctx)?, repeats: args.repeats, only: args.only.clone(), rows: Vec::new() };
+    println!(
+        "{:<34} {:>10} {:>11} {:>9} {:>10} {:>8}",
+        "kernel", "elements", "median ms", "GB/s", "Melem/s", "vs copy"
+    );
+    let mut bench = Bench {
+        ctx,
+        prims: Prims::new(ctx)?,
+        repeats: args.repeats,
+        only: args.only.clone(),
+        rows: Vec::new(),
+    };
     let mut rng = Rng::new(0x5eed);
     for &n in &args.sizes {
         bench.size(n, &mut rng)?;

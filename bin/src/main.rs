@@ -53,8 +53,16 @@ enum BenchCommand {
 }
 
 fn context(cli: &Cli) -> anyhow::Result<Context> {
-    let validation = if cli.validation { Validation::Required } else { Validation::from_env(Validation::Off) };
-    Context::new(&ContextDesc { validation, device: cli.device.clone() }).context("creating the Vulkan device")
+    let validation = if cli.validation {
+        Validation::Required
+    } else {
+        Validation::from_env(Validation::Off)
+    };
+    Context::new(&ContextDesc {
+        validation,
+        device: cli.device.clone(),
+    })
+    .context("creating the Vulkan device")
 }
 
 fn main() {
@@ -69,7 +77,10 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
     match &cli.command {
         Command::Info { list: true, .. } => {
             for d in extranerf_gpu::list_devices()? {
-                println!("{}: {} ({}, Vulkan {})", d.index, d.name, d.device_type, d.api_version);
+                println!(
+                    "{}: {} ({}, Vulkan {})",
+                    d.index, d.name, d.device_type, d.api_version
+                );
             }
             Ok(())
         }
@@ -83,7 +94,9 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Command::Bench { what: BenchCommand::Kernels(args) } => {
+        Command::Bench {
+            what: BenchCommand::Kernels(args),
+        } => {
             let ctx = context(cli)?;
             bench::kernels(&ctx, args)
         }
@@ -104,25 +117,71 @@ fn yes(b: bool) -> &'static str {
 
 fn info_text(i: &extranerf_gpu::DeviceInfo) -> String {
     let mut s = String::new();
-    let lavapipe = i.driver_name.to_lowercase().contains("llvmpipe") || i.name.to_lowercase().contains("llvmpipe");
-    s += &format!("device          {} [{}] (index {})\n", i.name, i.device_type, i.index);
+    let lavapipe = i.driver_name.to_lowercase().contains("llvmpipe")
+        || i.name.to_lowercase().contains("llvmpipe");
+    s += &format!(
+        "device          {} [{}] (index {})\n",
+        i.name, i.device_type, i.index
+    );
     s += &format!(
         "driver          {} {}{}\n",
         i.driver_name,
         i.driver_info,
-        if lavapipe { "  (Mesa lavapipe: Vulkan on the CPU)" } else { "" }
+        if lavapipe {
+            "  (Mesa lavapipe: Vulkan on the CPU)"
+        } else {
+            ""
+        }
     );
-    s += &format!("vulkan          device {}, engine uses {}\n", i.api_version, i.used_api_version);
+    s += &format!(
+        "vulkan          device {}, engine uses {}\n",
+        i.api_version, i.used_api_version
+    );
     for (k, h) in i.heaps.iter().enumerate() {
-        s += &format!("heap {k}          {}{}\n", gib(h.size), if h.device_local { " device-local" } else { "" });
+        s += &format!(
+            "heap {k}          {}{}\n",
+            gib(h.size),
+            if h.device_local { " device-local" } else { "" }
+        );
     }
-    s += &format!("subgroup size   {} (arithmetic+ballot in compute: {})\n", i.subgroup_size, yes(i.subgroup_arithmetic));
-    s += &format!("storage binding max {} bytes ({} MiB)\n", i.max_storage_buffer_range, i.max_storage_buffer_range >> 20);
-    s += &format!("workgroups      max {} x {}, shared memory {} KiB\n", i.max_workgroup_count_x, i.max_workgroup_count_y, i.max_shared_memory / 1024);
-    s += &format!("timestamps      {} ({} ns/tick)\n", yes(i.timestamps), i.timestamp_period_ns);
-    s += &format!("f32 atomic add  {} (scatter-add kernels)\n", yes(i.float32_atomic_add));
-    s += &format!("shaderFloat16   {}, storageBuffer16BitAccess {}\n", yes(i.shader_float16), yes(i.storage_buffer_16bit));
-    s += &format!("validation      {}\n", if i.validation { "Khronos layer loaded" } else { "off" });
+    s += &format!(
+        "subgroup size   {} (arithmetic+ballot in compute: {})\n",
+        i.subgroup_size,
+        yes(i.subgroup_arithmetic)
+    );
+    s += &format!(
+        "storage binding max {} bytes ({} MiB)\n",
+        i.max_storage_buffer_range,
+        i.max_storage_buffer_range >> 20
+    );
+    s += &format!(
+        "workgroups      max {} x {}, shared memory {} KiB\n",
+        i.max_workgroup_count_x,
+        i.max_workgroup_count_y,
+        i.max_shared_memory / 1024
+    );
+    s += &format!(
+        "timestamps      {} ({} ns/tick)\n",
+        yes(i.timestamps),
+        i.timestamp_period_ns
+    );
+    s += &format!(
+        "f32 atomic add  {} (scatter-add kernels)\n",
+        yes(i.float32_atomic_add)
+    );
+    s += &format!(
+        "shaderFloat16   {}, storageBuffer16BitAccess {}\n",
+        yes(i.shader_float16),
+        yes(i.storage_buffer_16bit)
+    );
+    s += &format!(
+        "validation      {}\n",
+        if i.validation {
+            "Khronos layer loaded"
+        } else {
+            "off"
+        }
+    );
     s
 }
 

@@ -12,6 +12,8 @@ use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result
 
 /// Elements per scan / sort tile (256 threads x 4).
 pub const TILE: u64 = 1024;
+/// f32/u32 elements each thread of fill and saxpy handles (16 vec4s).
+const ELEMS_PER_THREAD: u64 = 64;
 /// Most workgroups the first reduce pass uses.
 pub const REDUCE_GROUPS: u64 = 1024;
 
@@ -29,6 +31,7 @@ pub enum ScatterMode {
 pub struct Prims {
     ctx: Context,
     fill: Kernel,
+    iota: Kernel,
     saxpy: Kernel,
     reduce: Kernel,
     scan_tiles: Kernel,
@@ -178,6 +181,7 @@ impl Prims {
         Ok(Prims {
             ctx: ctx.clone(),
             fill: Kernel::new(ctx, &k::fill::fill::DESC)?,
+            iota: Kernel::new(ctx, &k::iota::iota::DESC)?,
             saxpy: Kernel::new(ctx, &k::saxpy::saxpy::DESC)?,
             reduce: Kernel::new(ctx, &k::reduce::reduce_sum::DESC)?,
             scan_tiles: Kernel::new(ctx, &k::scan::scan_tiles::DESC)?,
@@ -212,7 +216,29 @@ impl Prims {
             &self.fill,
             k::fill::fill::Bindings { data }.into_array(),
             &params,
-            n.div_ceil(4),
+            n.div_ceil(ELEMS_PER_THREAD),
+        )
+    }
+
+    /// Records `data[i] = start + i` for `i < n` (one element per thread, so large `n` crosses
+    /// 65535 workgroups and exercises the 2-D folding).
+    pub fn iota<'a>(
+        &self,
+        rec: &mut Recorder<'a>,
+        data: Binding<'a>,
+        n: u64,
+        start: u32,
+    ) -> Result<()> {
+        data.check_fits(n, 4, "iota")?;
+        let params = k::iota::Params {
+            n: n32(n, "iota")?,
+            start,
+        };
+        rec.dispatch(
+            &self.iota,
+            k::iota::iota::Bindings { data }.into_array(),
+            &params,
+            n,
         )
     }
 
@@ -235,7 +261,7 @@ impl Prims {
             &self.saxpy,
             k::saxpy::saxpy::Bindings { x, y }.into_array(),
             &params,
-            n.div_ceil(4),
+            n.div_ceil(ELEMS_PER_THREAD),
         )
     }
 
@@ -250,7 +276,12 @@ impl Prims {
     ) -> Result<()> {
         input.check_fits(n, 4, "reduce input")?;
         out.check_fits(1, 4, "reduce output")?;
-        let groups = n.div_ceil(4).div_ceil(256).clamp(1, REDUCE_GROUPS);
+        // About 16 vec4s per thread before the tree: lavapipe pays per invocation.
+        // At least 16 workgroups when there is work for them, so small inputs still spread.
+        let groups = n
+            .div_ceil(4 * 256 * 16)
+            .max(n.div_ceil(1024).min(16))
+            .clamp(1, REDUCE_GROUPS);
         let params = k::reduce::Params {
             n: n32(n, "reduce")?,
         };
@@ -317,7 +348,7 @@ impl Prims {
                 &self.scan_tiles,
                 b.into_array(),
                 &params,
-                m.div_ceil(TILE) * 256,
+                m.div_ceil(TILE) * 64,
             )?;
         }
         let last = levels.len() - 1;
@@ -337,7 +368,12 @@ impl Prims {
                 output: target,
                 tile_offsets: plan.outs[l - 1].binding(),
             };
-            rec.dispatch(&self.add_offsets, b.into_array(), &params, m.div_ceil(4))?;
+            rec.dispatch(
+                &self.add_offsets,
+                b.into_array(),
+                &params,
+                m.div_ceil(TILE) * 64,
+            )?;
         }
         Ok(())
     }
@@ -368,7 +404,12 @@ impl Prims {
                     values,
                     out,
                 };
-                rec.dispatch(&self.compact_values, b.into_array(), &params, n)
+                rec.dispatch(
+                    &self.compact_values,
+                    b.into_array(),
+                    &params,
+                    n.div_ceil(16),
+                )
             }
             None => {
                 let b = k::compact::compact_indices::Bindings {
@@ -376,7 +417,12 @@ impl Prims {
                     offsets,
                     out,
                 };
-                rec.dispatch(&self.compact_indices, b.into_array(), &params, n)
+                rec.dispatch(
+                    &self.compact_indices,
+                    b.into_array(),
+                    &params,
+                    n.div_ceil(16),
+                )
             }
         }
     }
@@ -424,7 +470,7 @@ impl Prims {
                 keys_in: src_k,
                 hist: plan.hist.binding(),
             };
-            rec.dispatch(&self.histogram, b.into_array(), &params, ntiles * 256)?;
+            rec.dispatch(&self.histogram, b.into_array(), &params, ntiles * 64)?;
             self.exclusive_scan(
                 rec,
                 &plan.scan,
@@ -440,7 +486,7 @@ impl Prims {
                 keys_out: dst_k,
                 vals_out: dst_v,
             };
-            rec.dispatch(&self.scatter, b.into_array(), &params, ntiles * 256)?;
+            rec.dispatch(&self.scatter, b.into_array(), &params, ntiles * 64)?;
         }
         if passes % 2 == 1 {
             rec.copy(tk, 0, keys, 0, 4 * n)?;

@@ -6,6 +6,11 @@ pub fn fill(data: &mut [u32], n: usize, value: u32) {
     data[..n].iter_mut().for_each(|d| *d = value);
 }
 
+/// `start + i` for `i < n` (wrapping).
+pub fn iota(n: usize, start: u32) -> Vec<u32> {
+    (0..n as u32).map(|i| start.wrapping_add(i)).collect()
+}
+
 /// `a * x + y` per element, in f64.
 pub fn saxpy(a: f32, x: &[f32], y: &[f32]) -> Vec<f64> {
     x.iter()

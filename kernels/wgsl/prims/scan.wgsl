@@ -17,8 +17,11 @@ var<immediate> params: Params;
 @group(0) @binding(3) var<storage, read> tile_offsets: array<u32>;
 
 const TILE: u32 = 1024u;
+// 64 threads, each scanning 4 consecutive vec4s (16 elements) serially: lavapipe pays per
+// invocation, so few, full invocations; GPUs still read 64 contiguous bytes per thread.
+const V: u32 = 4u;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(64)
 fn scan_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
               @builtin(local_invocation_index) lid: u32,
               @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32,
@@ -28,28 +31,38 @@ fn scan_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     if tile >= (n + TILE - 1u) / TILE {
         return;
     }
-    let i = tile * 256u + lid;
-    let base = i * 4u;
-    var v = vec4<u32>(0u);
-    if base + 3u < n {
-        v = input[i];
-    } else if base < n {
-        for (var k = 0u; base + k < n; k += 1u) {
-            v[k] = input[i][k];
+    let first = tile * (TILE / 4u) + lid * V;
+    var v: array<vec4<u32>, 4>;
+    var run = 0u;
+    for (var k = 0u; k < V; k += 1u) {
+        let i = first + k;
+        let base = i * 4u;
+        var a = vec4<u32>(0u);
+        if base + 3u < n {
+            a = input[i];
+        } else if base < n {
+            for (var c = 0u; base + c < n; c += 1u) {
+                a[c] = input[i][c];
+            }
         }
+        if params.binarize != 0u {
+            a = min(a, vec4<u32>(1u));
+        }
+        let incl = vec4<u32>(a.x, a.x + a.y, a.x + a.y + a.z, a.x + a.y + a.z + a.w);
+        v[k] = vec4<u32>(run) + incl - a;
+        run += incl.w;
     }
-    if params.binarize != 0u {
-        v = min(v, vec4<u32>(1u));
-    }
-    let incl = vec4<u32>(v.x, v.x + v.y, v.x + v.y + v.z, v.x + v.y + v.z + v.w);
-    let s = wg_exclusive_scan(incl.w, lid, sg_id, sg_count, lane);
-    let off = s.x;
-    let r = vec4<u32>(off, off + incl.x, off + incl.y, off + incl.z);
-    if base + 3u < n {
-        output[i] = r;
-    } else if base < n {
-        for (var k = 0u; base + k < n; k += 1u) {
-            output[i][k] = r[k];
+    let s = wg_exclusive_scan(run, lid, sg_id, sg_count, lane);
+    for (var k = 0u; k < V; k += 1u) {
+        let i = first + k;
+        let base = i * 4u;
+        let r = v[k] + vec4<u32>(s.x);
+        if base + 3u < n {
+            output[i] = r;
+        } else if base < n {
+            for (var c = 0u; base + c < n; c += 1u) {
+                output[i][c] = r[c];
+            }
         }
     }
     if lid == 0u {
@@ -57,22 +70,25 @@ fn scan_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     }
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(64)
 fn add_offsets(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                @builtin(local_invocation_index) lid: u32) {
     let tile = linear_group(wid, nwg);
-    let i = tile * 256u + lid;
-    let base = i * 4u;
     let n = params.n;
-    if base >= n {
+    if tile * TILE >= n {
         return;
     }
-    let o = tile_offsets[tile];
-    if base + 3u < n {
-        output[i] += vec4<u32>(o);
-    } else {
-        for (var k = 0u; base + k < n; k += 1u) {
-            output[i][k] += o;
+    let o = vec4<u32>(tile_offsets[tile]);
+    let first = tile * (TILE / 4u) + lid * V;
+    for (var k = 0u; k < V; k += 1u) {
+        let i = first + k;
+        let base = i * 4u;
+        if base + 3u < n {
+            output[i] += o;
+        } else if base < n {
+            for (var c = 0u; base + c < n; c += 1u) {
+                output[i][c] += o.x;
+            }
         }
     }
 }
