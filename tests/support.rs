@@ -1,6 +1,7 @@
 //! Shared helpers of the integration tests: one engine context per test binary (validation layer
 //! on when installed), and a check that no validation message was emitted.
 
+use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use extranerf_gpu::{Context, ContextDesc, Validation};
@@ -64,3 +65,30 @@ pub fn assert_no_validation_messages(ctx: &Context) {
 
 /// Poison for outputs: kernels must overwrite it (or, past the end, leave it alone).
 pub const POISON: u32 = 0xDEAD_BEEF;
+
+/// The shared data folder: `$EXTRANERF_DATA`, else `../shared/data` beside the checkout. Panics
+/// with what to do when it is missing (the tests need the real scenes; they are never committed).
+pub fn shared_data() -> PathBuf {
+    let dir = match std::env::var_os("EXTRANERF_DATA") {
+        Some(d) => PathBuf::from(d),
+        None => PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("..")
+            .join("..")
+            .join("shared")
+            .join("data"),
+    };
+    assert!(
+        dir.join("llff").is_dir(),
+        "shared data not found at {}: put the project's shared/ folder beside the checkout or set EXTRANERF_DATA to its data/ folder",
+        dir.display()
+    );
+    dir
+}
+
+/// A fresh empty folder under the system temp dir for one test.
+pub fn scratch_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("extranerf-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap_or_else(|e| panic!("creating {}: {e}", d.display()));
+    d
+}

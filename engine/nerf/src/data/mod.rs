@@ -1,0 +1,180 @@
+//! Scene data: cameras in one convention, images, sparse points, and the evaluation splits.
+//!
+//! Convention: camera-to-world matrices in the OpenGL / NeRF convention (camera x right, y up,
+//! looking along -z), world units as the loader leaves them (LLFF: rescaled so the nearest
+//! bound is 1 / 0.75, as the original NeRF loader does), pixel centres at +0.5.
+//! Every error names the file and the problem.
+
+pub mod colmap;
+pub mod llff;
+pub mod npy;
+pub mod split;
+pub mod transforms;
+
+use std::path::{Path, PathBuf};
+
+use glam::{DMat4, DVec3};
+
+/// What went wrong reading scene data; always names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    /// The file or folder is missing or unreadable.
+    #[error("{path}: {source}")]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The file exists but its content is wrong.
+    #[error("{path}: {problem}")]
+    Malformed {
+        /// The path.
+        path: PathBuf,
+        /// What is wrong.
+        problem: String,
+    },
+    /// An image could not be decoded.
+    #[error("{path}: cannot decode image: {problem}")]
+    Image {
+        /// The path.
+        path: PathBuf,
+        /// The decoder's message.
+        problem: String,
+    },
+}
+
+impl DataError {
+    pub(crate) fn malformed(path: &Path, problem: impl Into<String>) -> DataError {
+        DataError::Malformed {
+            path: path.to_path_buf(),
+            problem: problem.into(),
+        }
+    }
+
+    pub(crate) fn io(path: &Path, source: std::io::Error) -> DataError {
+        DataError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
+
+/// Result alias of the data module.
+pub type Result<T, E = DataError> = std::result::Result<T, E>;
+
+/// A pinhole camera with its image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Camera {
+    /// Camera to world (OpenGL convention: x right, y up, looking along -z).
+    pub c2w: DMat4,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Focal length in pixels, x.
+    pub fx: f64,
+    /// Focal length in pixels, y.
+    pub fy: f64,
+    /// Principal point x in pixels.
+    pub cx: f64,
+    /// Principal point y in pixels.
+    pub cy: f64,
+    /// Near / far depth bounds along the viewing axis when the format gives them.
+    pub bounds: Option<(f64, f64)>,
+    /// The image file.
+    pub image: PathBuf,
+}
+
+impl Camera {
+    /// Camera centre in world coordinates.
+    pub fn centre(&self) -> DVec3 {
+        self.c2w.w_axis.truncate()
+    }
+
+    /// Projects a world point: (pixel x, pixel y, depth along the viewing axis). Depth <= 0
+    /// means the point is behind the camera.
+    pub fn project(&self, p: DVec3) -> (f64, f64, f64) {
+        let c = self.c2w.inverse().transform_point3(p);
+        let depth = -c.z;
+        (
+            self.cx + self.fx * c.x / depth,
+            self.cy - self.fy * c.y / depth,
+            depth,
+        )
+    }
+}
+
+/// A loaded scene: cameras in file order plus how the world was transformed on load.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// The folder or file it came from.
+    pub source: PathBuf,
+    /// One camera per image, in file order.
+    pub cameras: Vec<Camera>,
+    /// Maps the source's world coordinates (e.g. COLMAP points) into the scene's.
+    pub world_from_source: DMat4,
+    /// Forward-facing capture (LLFF): NDC applies; otherwise a 360 or object capture.
+    pub forward_facing: bool,
+}
+
+impl Scene {
+    /// Maps COLMAP sparse points into the scene's world and keeps their colours.
+    pub fn transform_points(&self, points: &[colmap::Point3D]) -> Vec<DVec3> {
+        points
+            .iter()
+            .map(|p| self.world_from_source.transform_point3(p.xyz))
+            .collect()
+    }
+}
+
+/// An RGB image as linear-in-file f32 values in [0, 1], row-major, 3 channels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    /// Width.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+    /// `width * height * 3` values.
+    pub rgb: Vec<f32>,
+}
+
+/// Decodes an image file (PNG or JPEG; alpha dropped, 16-bit scaled) to RGB f32.
+pub fn load_image(path: &Path) -> Result<Image> {
+    let img = image::open(path).map_err(|e| match e {
+        image::ImageError::IoError(io) => DataError::io(path, io),
+        e => DataError::Image {
+            path: path.to_path_buf(),
+            problem: e.to_string(),
+        },
+    })?;
+    let rgb = img.to_rgb32f();
+    Ok(Image {
+        width: rgb.width(),
+        height: rgb.height(),
+        rgb: rgb.into_raw(),
+    })
+}
+
+/// Reads a whole file, naming it in the error.
+pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| DataError::io(path, e))
+}
+
+/// Image files (png, jpg, jpeg; any case) in a folder, sorted by name.
+pub(crate) fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
+    let rd = std::fs::read_dir(dir).map_err(|e| DataError::io(dir, e))?;
+    let mut out = Vec::new();
+    for entry in rd {
+        let p = entry.map_err(|e| DataError::io(dir, e))?.path();
+        let ext = p
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        if matches!(ext.as_deref(), Some("png" | "jpg" | "jpeg")) {
+            out.push(p);
+        }
+    }
+    out.sort();
+    Ok(out)
+}

@@ -1,0 +1,87 @@
+//! Evaluation splits on LLFF-style scenes.
+
+use super::{Camera, DataError, Result};
+
+/// Train and test views (indices into the scene's cameras, ascending).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SplitIndices {
+    /// Training views.
+    pub train: Vec<usize>,
+    /// Held-out views.
+    pub test: Vec<usize>,
+}
+
+/// Which split to use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Split {
+    /// ExtraNeRF view extrapolation: train on the 6 views whose centres are nearest the mean
+    /// centre, test on the 8 farthest.
+    Extrapolation,
+    /// RegNeRF few-shot: test on every 8th view, train on `n` views spread evenly over the rest.
+    FewShot(usize),
+    /// Train on every view, test on none.
+    All,
+}
+
+/// Number of training views of the extrapolation protocol.
+pub const EXTRAPOLATION_TRAIN: usize = 6;
+/// Number of test views of the extrapolation protocol.
+pub const EXTRAPOLATION_TEST: usize = 8;
+
+impl Split {
+    /// Applies the split to `cameras`.
+    pub fn apply(self, cameras: &[Camera]) -> Result<SplitIndices> {
+        let n = cameras.len();
+        let err = |p: String| DataError::Malformed {
+            path: "split".into(),
+            problem: p,
+        };
+        match self {
+            Split::All => Ok(SplitIndices {
+                train: (0..n).collect(),
+                test: vec![],
+            }),
+            Split::Extrapolation => {
+                if n < EXTRAPOLATION_TRAIN + EXTRAPOLATION_TEST {
+                    return Err(err(format!(
+                        "the extrapolation split needs at least 14 views, the scene has {n}"
+                    )));
+                }
+                let mean = cameras.iter().map(Camera::centre).sum::<glam::DVec3>() / n as f64;
+                let mut order: Vec<usize> = (0..n).collect();
+                // Ties keep file order, so the split is deterministic.
+                order.sort_by(|&a, &b| {
+                    cameras[a]
+                        .centre()
+                        .distance(mean)
+                        .total_cmp(&cameras[b].centre().distance(mean))
+                        .then(a.cmp(&b))
+                });
+                let mut train = order[..EXTRAPOLATION_TRAIN].to_vec();
+                let mut test = order[n - EXTRAPOLATION_TEST..].to_vec();
+                train.sort_unstable();
+                test.sort_unstable();
+                Ok(SplitIndices { train, test })
+            }
+            Split::FewShot(k) => {
+                let test: Vec<usize> = (0..n).step_by(8).collect();
+                let rest: Vec<usize> = (0..n).filter(|i| i % 8 != 0).collect();
+                if k == 0 || k > rest.len() {
+                    return Err(err(format!("few-shot with {k} training views: choose 1 to {} for this scene of {n} views", rest.len())));
+                }
+                // RegNeRF: indices round(linspace(0, len - 1, k)) with Python's round-half-even.
+                let train = (0..k)
+                    .map(|j| {
+                        let x = if k == 1 {
+                            0.0
+                        } else {
+                            j as f64 * (rest.len() - 1) as f64 / (k - 1) as f64
+                        };
+                        rest[x.round_ties_even() as usize]
+                    })
+                    .collect();
+                Ok(SplitIndices { train, test })
+            }
+        }
+    }
+}

@@ -1,0 +1,148 @@
+//! instant-ngp / nerfstudio `transforms.json` scenes (OpenGL camera convention, as written by
+//! both tools). Lens distortion is refused rather than ignored: undistort the images first.
+
+use std::path::{Path, PathBuf};
+
+use glam::DMat4;
+use serde_json::Value;
+
+use super::{read_file, Camera, DataError, Result, Scene};
+
+const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
+
+/// Loads a `transforms.json` file; image paths are relative to its folder.
+pub fn load_transforms(path: &Path) -> Result<Scene> {
+    let bytes = read_file(path)?;
+    let root: Value = serde_json::from_slice(&bytes)
+        .map_err(|e| DataError::malformed(path, format!("invalid JSON: {e}")))?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let frames = root
+        .get("frames")
+        .and_then(Value::as_array)
+        .ok_or_else(|| DataError::malformed(path, "no `frames` array"))?;
+    if frames.is_empty() {
+        return Err(DataError::malformed(path, "`frames` is empty"));
+    }
+    let mut cameras = Vec::with_capacity(frames.len());
+    for (i, f) in frames.iter().enumerate() {
+        let bad = |p: String| DataError::malformed(path, format!("frame {i}: {p}"));
+        // Per-frame intrinsics override the top-level ones (nerfstudio allows both).
+        let num = |key: &str| -> Result<Option<f64>> {
+            match f.get(key).or_else(|| root.get(key)) {
+                None | Some(Value::Null) => Ok(None),
+                Some(v) => v
+                    .as_f64()
+                    .filter(|x| x.is_finite())
+                    .map(Some)
+                    .ok_or_else(|| bad(format!("`{key}` is not a finite number"))),
+            }
+        };
+        for k in DISTORTION {
+            if num(k)?.is_some_and(|v| v != 0.0) {
+                return Err(bad(format!(
+                    "lens distortion `{k}` is not supported; undistort the images first"
+                )));
+            }
+        }
+        let file = f
+            .get("file_path")
+            .and_then(Value::as_str)
+            .ok_or_else(|| bad("no `file_path` string".into()))?;
+        let mut image = dir.join(file);
+        if image.extension().is_none() {
+            // NeRF's synthetic scenes omit the extension.
+            image = PathBuf::from(format!("{}.png", image.display()));
+        }
+        let m = f
+            .get("transform_matrix")
+            .and_then(Value::as_array)
+            .ok_or_else(|| bad("no `transform_matrix`".into()))?;
+        let rows: Vec<Vec<f64>> = m
+            .iter()
+            .map(|r| {
+                r.as_array()
+                    .map(|r| r.iter().filter_map(Value::as_f64).collect())
+                    .unwrap_or_default()
+            })
+            .collect();
+        if rows.len() < 3
+            || rows.iter().take(4).any(|r| r.len() != 4)
+            || rows.iter().flatten().any(|v| !v.is_finite())
+        {
+            return Err(bad(
+                "`transform_matrix` must be 4 rows of 4 finite numbers (3 rows accepted)".into(),
+            ));
+        }
+        let at = |r: usize, c: usize| {
+            if r < rows.len() {
+                rows[r][c]
+            } else if c == 3 {
+                1.0
+            } else {
+                0.0
+            }
+        };
+        let c2w = DMat4::from_cols_array_2d(&[
+            [at(0, 0), at(1, 0), at(2, 0), at(3, 0)],
+            [at(0, 1), at(1, 1), at(2, 1), at(3, 1)],
+            [at(0, 2), at(1, 2), at(2, 2), at(3, 2)],
+            [at(0, 3), at(1, 3), at(2, 3), at(3, 3)],
+        ]);
+        if c2w.determinant().abs() < 1e-12 {
+            return Err(bad("`transform_matrix` is singular".into()));
+        }
+        let (width, height) = match (num("w")?, num("h")?) {
+            (Some(w), Some(h)) if w >= 1.0 && h >= 1.0 => (w as u32, h as u32),
+            (Some(_), Some(_)) => return Err(bad("`w` and `h` must be at least 1".into())),
+            _ => image::image_dimensions(&image).map_err(|e| match e {
+                image::ImageError::IoError(io) => DataError::io(&image, io),
+                e => DataError::Image {
+                    path: image.clone(),
+                    problem: e.to_string(),
+                },
+            })?,
+        };
+        let fx = match (num("fl_x")?, num("camera_angle_x")?) {
+            (Some(fx), _) => fx,
+            (None, Some(a)) if a > 0.0 && a < std::f64::consts::PI => {
+                0.5 * width as f64 / (0.5 * a).tan()
+            }
+            _ => {
+                return Err(bad(
+                    "no focal length: give `fl_x` or `camera_angle_x` (0 < angle < pi)".into(),
+                ))
+            }
+        };
+        let fy = match (num("fl_y")?, num("camera_angle_y")?) {
+            (Some(fy), _) => fy,
+            (None, Some(a)) if a > 0.0 && a < std::f64::consts::PI => {
+                0.5 * height as f64 / (0.5 * a).tan()
+            }
+            _ => fx,
+        };
+        if !(fx > 0.0 && fy > 0.0) {
+            return Err(bad(format!(
+                "focal lengths must be positive (fl_x {fx}, fl_y {fy})"
+            )));
+        }
+        let cx = num("cx")?.unwrap_or(width as f64 / 2.0);
+        let cy = num("cy")?.unwrap_or(height as f64 / 2.0);
+        cameras.push(Camera {
+            c2w,
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+            bounds: None,
+            image,
+        });
+    }
+    Ok(Scene {
+        source: path.to_path_buf(),
+        cameras,
+        world_from_source: DMat4::IDENTITY,
+        forward_facing: false,
+    })
+}

@@ -1,0 +1,332 @@
+//! Scene loaders and splits on the real fern capture, and their errors on bad input.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use std::path::Path;
+
+use extranerf_nerf::data::colmap::{read_cameras_bin, read_points3d_bin};
+use extranerf_nerf::data::llff::{load_llff, LlffOptions};
+use extranerf_nerf::data::npy::read_npy;
+use extranerf_nerf::data::split::Split;
+use extranerf_nerf::data::transforms::load_transforms;
+use extranerf_nerf::data::{load_image, DataError};
+use extranerf_tests::{scratch_dir, shared_data};
+use glam::DVec3;
+
+fn fern() -> std::path::PathBuf {
+    shared_data().join("llff").join("fern")
+}
+
+#[test]
+fn fern_llff_loads_in_the_nerf_convention() {
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    assert_eq!(scene.cameras.len(), 20);
+    let c = &scene.cameras[0];
+    assert_eq!((c.width, c.height), (504, 378));
+    assert!(
+        (c.fx - 3260.5263328805895 / 8.0).abs() < 1e-9,
+        "fx {}",
+        c.fx
+    );
+    assert!(c.image.ends_with("images_8/image000.png"));
+    // bd_factor 0.75: the nearest bound becomes 1/0.75.
+    let near = scene
+        .cameras
+        .iter()
+        .map(|c| c.bounds.unwrap().0)
+        .fold(f64::INFINITY, f64::min);
+    assert!((near - 1.0 / 0.75).abs() < 1e-9, "near {near}");
+    for c in &scene.cameras {
+        let r = glam::DMat3::from_mat4(c.c2w);
+        assert!(
+            (r.transpose() * r - glam::DMat3::IDENTITY)
+                .abs()
+                .to_cols_array()
+                .iter()
+                .all(|&v| v < 1e-6),
+            "rotation not orthonormal"
+        );
+        assert!(
+            (r.determinant() - 1.0).abs() < 1e-6,
+            "not a right-handed rotation"
+        );
+        // Forward-facing: every camera looks along about -z after recentring.
+        assert!(c.c2w.z_axis.z > 0.9, "viewing axis {:?}", c.c2w.z_axis);
+    }
+    // Recentred: the average pose is the identity.
+    let c2ws: Vec<_> = scene.cameras.iter().map(|c| c.c2w).collect();
+    let avg = extranerf_nerf::data::llff::average_pose(&c2ws);
+    assert!(avg.abs_diff_eq(glam::DMat4::IDENTITY, 1e-9), "{avg:?}");
+}
+
+#[test]
+fn fern_sparse_points_project_into_the_views_within_bounds() {
+    let sparse = fern().join("sparse").join("0");
+    let cams = read_cameras_bin(&sparse.join("cameras.bin")).unwrap();
+    assert_eq!(cams.len(), 1);
+    assert_eq!(
+        (cams[0].model, cams[0].width, cams[0].height),
+        ("SIMPLE_RADIAL", 4032, 3024)
+    );
+    let raw = read_npy(&fern().join("poses_bounds.npy")).unwrap();
+    assert!(
+        (cams[0].params[0] - raw.data[14]).abs() < 1e-6,
+        "COLMAP focal {} vs LLFF {}",
+        cams[0].params[0],
+        raw.data[14]
+    );
+    let points = read_points3d_bin(&sparse.join("points3D.bin")).unwrap();
+    assert_eq!(points.len(), 10091);
+    assert!(points.iter().all(|p| p.track.len() >= 2 && p.error >= 0.0));
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let world = scene.transform_points(&points);
+    // A correct axis conversion and scaling puts nearly every point in front of each camera,
+    // inside the depth bounds, and most of them inside the image.
+    for (i, cam) in scene.cameras.iter().enumerate() {
+        let (near, far) = cam.bounds.unwrap();
+        let mut in_bounds = 0;
+        let mut in_image = 0;
+        for &p in &world {
+            let (x, y, d) = cam.project(p);
+            if d >= near * 0.9 && d <= far * 1.1 {
+                in_bounds += 1;
+            }
+            if d > 0.0
+                && (0.0..cam.width as f64).contains(&x)
+                && (0.0..cam.height as f64).contains(&y)
+            {
+                in_image += 1;
+            }
+        }
+        let n = world.len() as f64;
+        assert!(
+            in_bounds as f64 > 0.98 * n,
+            "view {i}: {in_bounds} of {n} points within the depth bounds"
+        );
+        assert!(
+            in_image as f64 > 0.6 * n,
+            "view {i}: {in_image} of {n} points inside the image"
+        );
+    }
+}
+
+#[test]
+fn extrapolation_split_matches_raw_camera_distances() {
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let s = Split::Extrapolation.apply(&scene.cameras).unwrap();
+    assert_eq!((s.train.len(), s.test.len()), (6, 8));
+    assert!(s.train.iter().all(|i| !s.test.contains(i)));
+    // Independent check on the raw file: translation columns, no conversion (distances to the
+    // mean centre are unchanged by the rigid recentring and the uniform scale).
+    let raw = read_npy(&fern().join("poses_bounds.npy")).unwrap();
+    let centres: Vec<DVec3> = raw
+        .data
+        .chunks_exact(17)
+        .map(|r| DVec3::new(r[3], r[8], r[13]))
+        .collect();
+    let mean = centres.iter().sum::<DVec3>() / 20.0;
+    let d: Vec<f64> = centres.iter().map(|c| c.distance(mean)).collect();
+    let max_train = s.train.iter().map(|&i| d[i]).fold(0.0, f64::max);
+    let min_test = s.test.iter().map(|&i| d[i]).fold(f64::INFINITY, f64::min);
+    let others: Vec<usize> = (0..20).filter(|i| !s.train.contains(i)).collect();
+    assert!(
+        others.iter().all(|&i| d[i] >= max_train),
+        "a non-training view is nearer than a training view"
+    );
+    let non_test: Vec<usize> = (0..20).filter(|i| !s.test.contains(i)).collect();
+    assert!(
+        non_test.iter().all(|&i| d[i] <= min_test),
+        "a non-test view is farther than a test view"
+    );
+}
+
+#[test]
+fn fewshot_split_follows_regnerf() {
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let s = Split::FewShot(3).apply(&scene.cameras).unwrap();
+    assert_eq!(s.test, vec![0, 8, 16]);
+    // The 17 remaining views, linspace(0, 16, 3) = 0, 8, 16 -> views 1, 10, 19.
+    assert_eq!(s.train, vec![1, 10, 19]);
+    let s = Split::FewShot(9).apply(&scene.cameras).unwrap();
+    // linspace(0, 16, 9) = 0, 2, ..., 16 -> views 1, 3, 5, 7, 10, 12, 14, 17, 19.
+    assert_eq!(s.train, vec![1, 3, 5, 7, 10, 12, 14, 17, 19]);
+    assert!(Split::FewShot(0).apply(&scene.cameras).is_err());
+    assert!(Split::FewShot(18).apply(&scene.cameras).is_err());
+    assert!(Split::Extrapolation.apply(&scene.cameras[..13]).is_err());
+    assert_eq!(Split::All.apply(&scene.cameras).unwrap().train.len(), 20);
+}
+
+#[test]
+fn fern_images_decode() {
+    let img = load_image(&fern().join("images_8").join("image000.png")).unwrap();
+    assert_eq!(
+        (img.width, img.height, img.rgb.len()),
+        (504, 378, 504 * 378 * 3)
+    );
+    assert!(img.rgb.iter().all(|v| (0.0..=1.0).contains(v)));
+    let mean = img.rgb.iter().map(|&v| v as f64).sum::<f64>() / img.rgb.len() as f64;
+    assert!(mean > 0.05 && mean < 0.95, "mean {mean}");
+}
+
+fn copy_fern_subset(dir: &Path, images: usize) {
+    std::fs::copy(
+        fern().join("poses_bounds.npy"),
+        dir.join("poses_bounds.npy"),
+    )
+    .unwrap();
+    std::fs::create_dir_all(dir.join("images_8")).unwrap();
+    for i in 0..images {
+        let name = format!("image{i:03}.png");
+        std::fs::copy(
+            fern().join("images_8").join(&name),
+            dir.join("images_8").join(&name),
+        )
+        .unwrap();
+    }
+}
+
+fn err_text(e: DataError) -> String {
+    e.to_string()
+}
+
+#[test]
+fn bad_llff_input_gives_errors_naming_the_file() {
+    let opts = LlffOptions::default();
+    let missing = scratch_dir("llff-missing");
+    let e = err_text(load_llff(&missing, &opts).unwrap_err());
+    assert!(e.contains("poses_bounds.npy"), "{e}");
+
+    let short = scratch_dir("llff-count");
+    copy_fern_subset(&short, 19);
+    let e = err_text(load_llff(&short, &opts).unwrap_err());
+    assert!(
+        e.contains("images_8") && e.contains("19 images") && e.contains("20 poses"),
+        "{e}"
+    );
+
+    let nan = scratch_dir("llff-nan");
+    copy_fern_subset(&nan, 20);
+    let mut bytes = std::fs::read(nan.join("poses_bounds.npy")).unwrap();
+    let header = 10 + u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let at = header + (3 * 17 + 5) * 8; // row 3, column 5
+    bytes[at..at + 8].copy_from_slice(&f64::NAN.to_le_bytes());
+    std::fs::write(nan.join("poses_bounds.npy"), &bytes).unwrap();
+    let e = err_text(load_llff(&nan, &opts).unwrap_err());
+    assert!(
+        e.contains("poses_bounds.npy") && e.contains("row 3") && e.contains("non-finite"),
+        "{e}"
+    );
+
+    let wrong_shape = scratch_dir("llff-shape");
+    copy_fern_subset(&wrong_shape, 20);
+    let mut bytes = std::fs::read(wrong_shape.join("poses_bounds.npy")).unwrap();
+    let h = String::from_utf8_lossy(&bytes[10..header]).replace("(20, 17)", "(17, 20)");
+    bytes[10..header].copy_from_slice(h.as_bytes());
+    std::fs::write(wrong_shape.join("poses_bounds.npy"), &bytes).unwrap();
+    let e = err_text(load_llff(&wrong_shape, &opts).unwrap_err());
+    assert!(
+        e.contains("poses_bounds.npy") && e.contains("(N, 17)"),
+        "{e}"
+    );
+
+    let corrupt = scratch_dir("llff-image");
+    copy_fern_subset(&corrupt, 20);
+    std::fs::write(corrupt.join("images_8").join("image007.png"), b"not a png").unwrap();
+    let e = err_text(load_llff(&corrupt, &opts).unwrap_err());
+    assert!(e.contains("image007.png"), "{e}");
+
+    for d in [missing, short, nan, wrong_shape, corrupt] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+#[test]
+fn bad_colmap_input_gives_errors_naming_the_file() {
+    let dir = scratch_dir("colmap");
+    let src = std::fs::read(fern().join("sparse/0/points3D.bin")).unwrap();
+    let truncated = dir.join("points3D.bin");
+    std::fs::write(&truncated, &src[..src.len() - 5]).unwrap();
+    let e = err_text(read_points3d_bin(&truncated).unwrap_err());
+    assert!(e.contains("points3D.bin") && e.contains("truncated"), "{e}");
+    let huge = dir.join("huge.bin");
+    std::fs::write(&huge, u64::MAX.to_le_bytes()).unwrap();
+    let e = err_text(read_points3d_bin(&huge).unwrap_err());
+    assert!(e.contains("huge.bin") && e.contains("point count"), "{e}");
+    let mut cams = std::fs::read(fern().join("sparse/0/cameras.bin")).unwrap();
+    cams[12] = 42; // model id
+    let bad_model = dir.join("cameras.bin");
+    std::fs::write(&bad_model, &cams).unwrap();
+    let e = err_text(read_cameras_bin(&bad_model).unwrap_err());
+    assert!(
+        e.contains("cameras.bin") && e.contains("unknown model id 42"),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn transforms_json_loads_and_rejects_bad_input() {
+    let dir = scratch_dir("transforms");
+    let json = r#"{
+        "camera_angle_x": 0.6911112070083618,
+        "w": 800, "h": 600,
+        "frames": [
+            {"file_path": "./train/r_0", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]},
+            {"file_path": "img.png", "fl_x": 500, "cx": 410,
+             "transform_matrix": [[0,0,1,4],[1,0,0,0],[0,1,0,0],[0,0,0,1]]}
+        ]
+    }"#;
+    let path = dir.join("transforms.json");
+    std::fs::write(&path, json).unwrap();
+    let scene = load_transforms(&path).unwrap();
+    assert_eq!(scene.cameras.len(), 2);
+    let c = &scene.cameras[0];
+    assert!((c.fx - 400.0 / (0.5f64 * 0.6911112070083618).tan()).abs() < 1e-9);
+    assert!(c.image.ends_with("train/r_0.png"));
+    assert_eq!(c.centre(), DVec3::new(0.0, 0.0, 4.0));
+    assert_eq!(
+        (
+            scene.cameras[1].fx,
+            scene.cameras[1].cx,
+            scene.cameras[1].cy
+        ),
+        (500.0, 410.0, 300.0)
+    );
+    // A point at the origin is 4 units in front of camera 0, at the image centre.
+    let (x, y, d) = c.project(DVec3::ZERO);
+    assert_eq!((x, y, d), (400.0, 300.0, 4.0));
+
+    let cases = [
+        ("{", "invalid JSON"),
+        (r#"{"frames": []}"#, "empty"),
+        (
+            r#"{"w": 8, "h": 8, "fl_x": 5, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}"#,
+            "file_path",
+        ),
+        (
+            r#"{"w": 8, "h": 8, "fl_x": 5, "frames": [{"file_path": "a.png", "transform_matrix": [[1,0,0],[0,1,0],[0,0,1]]}]}"#,
+            "4 rows of 4",
+        ),
+        (
+            r#"{"w": 8, "h": 8, "frames": [{"file_path": "a.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}"#,
+            "no focal length",
+        ),
+        (
+            r#"{"w": 8, "h": 8, "fl_x": 5, "k1": 0.1, "frames": [{"file_path": "a.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}"#,
+            "distortion",
+        ),
+        (
+            r#"{"w": 8, "h": 8, "fl_x": 5, "frames": [{"file_path": "a.png", "transform_matrix": [[0,0,0,0],[0,0,0,0],[0,0,0,0]]}]}"#,
+            "singular",
+        ),
+    ];
+    for (text, want) in cases {
+        std::fs::write(&path, text).unwrap();
+        let e = err_text(load_transforms(&path).unwrap_err());
+        assert!(
+            e.contains("transforms.json") && e.contains(want),
+            "{want}: {e}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}
