@@ -55,12 +55,14 @@ fn main() {
             current_dir = Some(dir.clone());
         }
         match compile_file(&wgsl_dir, file) {
-            Ok((module_code, entries)) => {
+            Ok((module_code, entries, twins)) => {
                 out.push_str(&module_code);
-                layouts.push(format!(
-                    "{dir}::{}",
-                    file.file_stem().expect("file name").to_string_lossy()
-                ));
+                let stem = file
+                    .file_stem()
+                    .expect("file name")
+                    .to_string_lossy()
+                    .to_string();
+                layouts.extend(twins.into_iter().map(|t| (format!("{dir}::{stem}"), t)));
                 all.extend(entries.into_iter().map(|e| format!("{dir}::{e}")));
             }
             Err(e) => failures.push(e),
@@ -78,9 +80,10 @@ fn main() {
             failures.len()
         );
     }
-    out.push_str("/// Every generated `Params` twin: (file, naga size, Rust size, members).\npub const LAYOUTS: &[ParamsLayout] = &[\n");
-    for m in &layouts {
-        let _ = writeln!(out, "    ParamsLayout {{ file: \"{m}\", naga_size: {m}::PARAMS_SIZE, rust_size: core::mem::size_of::<{m}::Params>(), members: {m}::PARAMS_LAYOUT }},");
+    out.push_str("/// Every generated struct twin: (file::struct, naga size, Rust size, members).\npub const LAYOUTS: &[ParamsLayout] = &[\n");
+    for (m, t) in &layouts {
+        let u = screaming(t);
+        let _ = writeln!(out, "    ParamsLayout {{ file: \"{m}::{t}\", naga_size: {m}::{u}_SIZE, rust_size: core::mem::size_of::<{m}::{t}>(), members: {m}::{u}_LAYOUT }},");
     }
     out.push_str("];\n");
     out.push_str(
@@ -133,7 +136,10 @@ fn preprocess(
     Ok(out)
 }
 
-fn compile_file(wgsl_dir: &Path, file: &Path) -> Result<(String, Vec<String>), String> {
+fn compile_file(
+    wgsl_dir: &Path,
+    file: &Path,
+) -> Result<(String, Vec<String>, Vec<String>), String> {
     let rel = file
         .strip_prefix(wgsl_dir)
         .expect("under wgsl/")
@@ -174,17 +180,39 @@ fn compile_file(wgsl_dir: &Path, file: &Path) -> Result<(String, Vec<String>), S
     if immediates.len() > 1 {
         return Err(format!("{rel}: at most one var<immediate> block per file"));
     }
+    let mut twins = Vec::new();
     let params_size = match immediates.first() {
         Some((_, g)) => {
-            let (rust, size) = params_struct(&module, g.ty, &rel)?;
+            if module.types[g.ty].name.as_deref() != Some("Params") {
+                return Err(format!(
+                    "{rel}: the var<immediate> block's type must be named `Params`"
+                ));
+            }
+            let (rust, size) = struct_twin(&module, g.ty, "Params")
+                .map_err(|e| format!("{rel}: {e}"))?
+                .ok_or_else(|| format!("{rel}: a Params member has a type the host twin cannot mirror; use u32/i32/f32, vec2 or vec4 of them, or arrays (no vec3)"))?;
             code.push_str(&rust);
+            twins.push("Params".to_string());
             size
         }
         None => {
-            code.push_str("    /// This file's kernels take no parameters.\n    #[repr(C)]\n    #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]\n    pub struct Params {}\n    /// No members.\n    pub const PARAMS_LAYOUT: &[(&str, u32, usize)] = &[];\n    /// No block.\n    pub const PARAMS_SIZE: u32 = 0;\n");
+            code.push_str("    /// This file's kernels take no parameters.\n    #[repr(C)]\n    #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]\n    pub struct Params {}\n");
             0
         }
     };
+    // Other structs that storage buffers hold (e.g. per-level tables) get twins too.
+    for (h, t) in module.types.iter() {
+        let Some(name) = t.name.as_deref() else {
+            continue;
+        };
+        if name == "Params" || !matches!(t.inner, naga::TypeInner::Struct { .. }) {
+            continue;
+        }
+        if let Some((rust, _)) = struct_twin(&module, h, name).map_err(|e| format!("{rel}: {e}"))? {
+            code.push_str(&rust);
+            twins.push(name.to_string());
+        }
+    }
 
     let uses_f32_atomic = module.types.iter().any(|(_, t)| {
         matches!(
@@ -278,31 +306,43 @@ fn compile_file(wgsl_dir: &Path, file: &Path) -> Result<(String, Vec<String>), S
         entries.push(format!("{mod_name}::{ep_mod}"));
     }
     code.push_str("}\n\n");
-    Ok((code, entries))
+    Ok((code, entries, twins))
 }
 
-/// Generates the `#[repr(C)]` twin of the immediate block, with explicit padding, and the list
-/// of naga's offsets for the layout test. Returns the Rust code and the block size.
-fn params_struct(
+fn screaming(name: &str) -> String {
+    let mut out = String::new();
+    for (i, c) in name.chars().enumerate() {
+        if c.is_uppercase() && i > 0 {
+            out.push('_');
+        }
+        out.push(c.to_ascii_uppercase());
+    }
+    out
+}
+
+/// Generates the `#[repr(C)]` twin of a WGSL struct, with explicit padding, plus naga's offsets
+/// (`NAME_LAYOUT`, `NAME_SIZE`) for the layout test. `Ok(None)` when a member cannot be
+/// mirrored (vec3, matrices, nested structs): such structs are not shared with the host.
+fn struct_twin(
     module: &naga::Module,
     ty: naga::Handle<naga::Type>,
-    rel: &str,
-) -> Result<(String, u32), String> {
+    name: &str,
+) -> Result<Option<(String, u32)>, String> {
     let naga::TypeInner::Struct { members, span } = &module.types[ty].inner else {
-        return Err(format!("{rel}: the var<immediate> block must be a struct"));
+        return Err(format!("`{name}` must be a struct"));
     };
     let mut fields = String::new();
     let mut layout = String::new();
     let mut at = 0u32;
     let mut pad = 0;
     for m in members {
-        let name = m
+        let field = m
             .name
             .clone()
-            .ok_or_else(|| format!("{rel}: unnamed Params member"))?;
-        let (rust_ty, size) = rust_type(module, m.ty).ok_or_else(|| {
-            format!("{rel}: Params member `{name}` has a type the host twin cannot mirror; use u32/i32/f32, vec2 or vec4 of them, or arrays (no vec3)")
-        })?;
+            .ok_or_else(|| format!("unnamed member in `{name}`"))?;
+        let Some((rust_ty, size)) = rust_type(module, m.ty) else {
+            return Ok(None);
+        };
         if m.offset > at {
             let _ = writeln!(
                 fields,
@@ -311,10 +351,10 @@ fn params_struct(
             );
             pad += 1;
         }
-        let _ = writeln!(fields, "        pub {name}: {rust_ty},");
+        let _ = writeln!(fields, "        pub {field}: {rust_ty},");
         let _ = writeln!(
             layout,
-            "        (\"{name}\", {}, core::mem::offset_of!(Params, {name})),",
+            "        (\"{field}\", {}, core::mem::offset_of!({name}, {field})),",
             m.offset
         );
         at = m.offset + size;
@@ -326,10 +366,11 @@ fn params_struct(
             (span - at) / 4
         );
     }
+    let upper = screaming(name);
     let code = format!(
-        "    /// Host twin of the WGSL `Params` immediate block (generated; offsets asserted).\n    #[repr(C)]\n    #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]\n    pub struct Params {{\n{fields}    }}\n    const _: () = assert!(core::mem::size_of::<Params>() == {span});\n    /// (member, naga offset, Rust offset) for every member.\n    pub const PARAMS_LAYOUT: &[(&str, u32, usize)] = &[\n{layout}    ];\n    /// Size of the block as naga lays it out.\n    pub const PARAMS_SIZE: u32 = {span};\n"
+        "    /// Host twin of the WGSL struct `{name}` (generated; size and offsets asserted).\n    #[repr(C)]\n    #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]\n    pub struct {name} {{\n{fields}    }}\n    const _: () = assert!(core::mem::size_of::<{name}>() == {span});\n    /// (member, naga offset, Rust offset) for every member of `{name}`.\n    pub const {upper}_LAYOUT: &[(&str, u32, usize)] = &[\n{layout}    ];\n    /// Size of `{name}` as naga lays it out.\n    pub const {upper}_SIZE: u32 = {span};\n"
     );
-    Ok((code, *span))
+    Ok(Some((code, *span)))
 }
 
 fn rust_type(module: &naga::Module, ty: naga::Handle<naga::Type>) -> Option<(String, u32)> {

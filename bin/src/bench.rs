@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use extranerf_gpu::{Buffer, Context, GpuTimer, Recorder};
+use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
 use extranerf_prims::reference::Rng;
 use extranerf_prims::{CompactPlan, Prims, ReducePlan, ScanPlan, ScatterMode, SortPlan};
 
@@ -101,6 +102,7 @@ struct Bench<'c> {
     repeats: u32,
     only: Vec<String>,
     rows: Vec<Row>,
+    notes: Vec<String>,
 }
 
 impl Bench<'_> {
@@ -243,6 +245,101 @@ impl Bench<'_> {
                 copy_gbps,
             );
         }
+        if self.wanted("hash") {
+            // The paper's grid (16 levels x 2 features x 2^19 entries, N 16..2048) on n / 16
+            // points (at 2^24 the features fill one 128 MiB binding).
+            let cfg = HashGridConfig::default();
+            let grid = HashGrid::new(ctx, cfg)?;
+            let pts = n / 16;
+            let table = Buffer::<f32>::from_slice(
+                ctx,
+                "bench table",
+                &(0..cfg.param_count())
+                    .map(|_| rng.uniform(-1e-4, 1e-4))
+                    .collect::<Vec<_>>(),
+            )?;
+            let pos = Buffer::<f32>::from_slice(
+                ctx,
+                "bench positions",
+                &(0..3 * pts)
+                    .map(|_| rng.uniform(0.0, 1.0))
+                    .collect::<Vec<_>>(),
+            )?;
+            let width = cfg.output_dim() as u64;
+            let enc = Buffer::<f32>::new(ctx, "bench encoded", (pts * width) as usize)?;
+            let grad = Buffer::<f32>::new(ctx, "bench d_table", cfg.param_count() as usize)?;
+            // Per point and level: 8 corners x F floats read, F written, plus the position.
+            let f = cfg.features as u64;
+            let bytes = pts * (12 + cfg.levels as u64 * (8 * f * 4 + f * 4));
+            let t = measure(ctx, &timer, reps, none, |r| {
+                grid.forward(r, pos.binding(), table.binding(), enc.binding(), pts)
+            })?;
+            let fwd_ms = median(t.clone());
+            self.push(
+                "hash grid fwd (L16 F2 T2^19), points",
+                pts,
+                bytes,
+                t,
+                copy_gbps,
+            );
+            let t = measure(ctx, &timer, reps, none, |r| {
+                grid.backward(r, pos.binding(), enc.binding(), grad.binding(), pts)
+            })?;
+            let bwd_ms = median(t.clone());
+            self.push("hash grid bwd (atomics), points", pts, bytes, t, copy_gbps);
+            // Ray-coherent points, as a march produces them: 256 samples 1/512 apart along each
+            // random ray (random points above are the cache-hostile worst case).
+            let mut coherent = Vec::with_capacity(3 * pts as usize);
+            while coherent.len() < 3 * pts as usize {
+                let o = [
+                    rng.uniform(0.2, 0.8),
+                    rng.uniform(0.2, 0.8),
+                    rng.uniform(0.2, 0.8),
+                ];
+                let d = [
+                    rng.uniform(-1.0, 1.0),
+                    rng.uniform(-1.0, 1.0),
+                    rng.uniform(-1.0, 1.0),
+                ];
+                let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+                for s in 0..256 {
+                    let t = (s as f32 - 128.0) / 512.0 / len;
+                    coherent.extend([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+                }
+            }
+            coherent.truncate(3 * pts as usize);
+            let pos_c = Buffer::<f32>::from_slice(ctx, "bench ray points", &coherent)?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                grid.forward(r, pos_c.binding(), table.binding(), enc.binding(), pts)
+            })?;
+            let fwd_c = median(t.clone());
+            self.push(
+                "hash grid fwd, ray-coherent points",
+                pts,
+                bytes,
+                t,
+                copy_gbps,
+            );
+            let t = measure(ctx, &timer, reps, none, |r| {
+                grid.backward(r, pos_c.binding(), enc.binding(), grad.binding(), pts)
+            })?;
+            let bwd_c = median(t.clone());
+            self.push(
+                "hash grid bwd, ray-coherent points",
+                pts,
+                bytes,
+                t,
+                copy_gbps,
+            );
+            self.notes.push(format!(
+                "hash grid fwd+bwd at {pts} ray-coherent points: {:.3} us/point",
+                (fwd_c + bwd_c) * 1e3 / pts as f64
+            ));
+            self.notes.push(format!(
+                "hash grid fwd+bwd at {pts} random points: {:.3} us/point (the guide's pure-PyTorch hash grid: 8.2 us/point on this machine class, not measured in this run)",
+                (fwd_ms + bwd_ms) * 1e3 / pts as f64
+            ));
+        }
         if self.wanted("scatter") {
             let distinct = Buffer::<u32>::from_slice(
                 ctx,
@@ -307,13 +404,18 @@ pub fn kernels(ctx: &Context, args: &KernelsArgs) -> anyhow::Result<()> {
         repeats: args.repeats,
         only: args.only.clone(),
         rows: Vec::new(),
+        notes: Vec::new(),
     };
     let mut rng = Rng::new(0x5eed);
     for &n in &args.sizes {
         bench.size(n, &mut rng)?;
     }
+    for note in &bench.notes {
+        println!("{note}");
+    }
     if let Some(path) = &args.json {
         let value = serde_json::json!({
+            "notes": bench.notes,
             "device": {"name": info.name, "driver": info.driver_name, "driver_info": info.driver_info, "api_version": info.api_version, "subgroup_size": info.subgroup_size},
             "repeats": args.repeats,
             "command": std::env::args().collect::<Vec<_>>().join(" "),

@@ -49,17 +49,18 @@ pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray> {
         .and_then(|r| r.strip_prefix('\''))
         .and_then(|r| r.split('\'').next())
         .ok_or_else(|| bad("no 'descr' in the header"))?;
-    let width =
-        match descr {
-            "<f8" | "=f8" => 8,
-            "<f4" | "=f4" => 4,
-            other => return Err(DataError::malformed(
+    let width = match descr {
+        "<f8" | "=f8" => 8,
+        "<f4" | "=f4" => 4,
+        other => {
+            return Err(DataError::malformed(
                 path,
                 format!(
                     "dtype {other} is not supported (expected little-endian float64 or float32)"
                 ),
-            )),
-        };
+            ))
+        }
+    };
     if field("fortran_order").is_some_and(|r| r.starts_with("True")) {
         return Err(DataError::malformed(
             path,

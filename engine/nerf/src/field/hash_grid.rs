@@ -1,0 +1,301 @@
+//! Multi-resolution hash encoding (Instant-NGP) on the engine's device: level layout, and the
+//! standalone forward / backward kernels. The fused march kernels share the WGSL functions.
+
+use extranerf_gpu::kernels::field::hash_grid as k;
+use extranerf_gpu::kernels::field::hash_grid_f2 as k2;
+use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+
+pub use k::HashLevel;
+
+/// Hash-grid hyperparameters (Instant-NGP's L, F, log2 T, N_min, N_max).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HashGridConfig {
+    /// Number of levels L.
+    pub levels: u32,
+    /// Features per level F (1, 2, 4 or 8).
+    pub features: u32,
+    /// log2 of the table size T per level.
+    pub log2_table: u32,
+    /// Coarsest resolution N_min.
+    pub min_res: u32,
+    /// Finest resolution N_max.
+    pub max_res: u32,
+}
+
+impl Default for HashGridConfig {
+    /// The paper's NeRF setting: 16 levels x 2 features x 2^19 entries, N_min 16, N_max 2048.
+    fn default() -> Self {
+        HashGridConfig {
+            levels: 16,
+            features: 2,
+            log2_table: 19,
+            min_res: 16,
+            max_res: 2048,
+        }
+    }
+}
+
+impl HashGridConfig {
+    /// Checks the ranges the kernels support.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(GpuError::Usage(format!("hash grid: {m}")));
+        if !matches!(self.features, 1 | 2 | 4 | 8) {
+            return bad(format!(
+                "features per level must be 1, 2, 4 or 8, not {}",
+                self.features
+            ));
+        }
+        if self.levels == 0 || self.levels > 64 {
+            return bad(format!("levels must be 1 to 64, not {}", self.levels));
+        }
+        if !(4..=26).contains(&self.log2_table) {
+            return bad(format!(
+                "log2 table size must be 4 to 26, not {}",
+                self.log2_table
+            ));
+        }
+        if self.min_res < 1 || self.max_res < self.min_res || self.max_res > 1 << 20 {
+            return bad(format!(
+                "resolutions must satisfy 1 <= N_min ({}) <= N_max ({}) <= 2^20",
+                self.min_res, self.max_res
+            ));
+        }
+        Ok(())
+    }
+
+    /// ln of the per-level growth factor b = exp((ln N_max - ln N_min) / (L - 1)).
+    pub fn ln_growth(&self) -> f64 {
+        if self.levels <= 1 {
+            return 0.0;
+        }
+        ((self.max_res as f64).ln() - (self.min_res as f64).ln()) / (self.levels - 1) as f64
+    }
+
+    /// The levels: resolution floor(N_min b^l), dense when (N_l + 1)^3 <= T, offsets in floats.
+    pub fn level_layout(&self) -> Vec<HashLevel> {
+        let t = 1u64 << self.log2_table;
+        let ln_b = self.ln_growth();
+        let mut offset = 0u64;
+        (0..self.levels)
+            .map(|l| {
+                let res = ((self.min_res as f64) * (ln_b * l as f64).exp() + 1e-9)
+                    .floor()
+                    .max(1.0) as u64;
+                let dense_size = (res + 1).pow(3);
+                let (size, dense) = if dense_size <= t {
+                    (dense_size, 1)
+                } else {
+                    (t, 0)
+                };
+                let lv = HashLevel {
+                    offset: offset as u32,
+                    res: res as u32,
+                    size: size as u32,
+                    dense,
+                };
+                offset += size * self.features as u64;
+                lv
+            })
+            .collect()
+    }
+
+    /// Floats in the flat table (all levels).
+    pub fn param_count(&self) -> u64 {
+        self.level_layout()
+            .iter()
+            .map(|l| l.size as u64 * self.features as u64)
+            .sum()
+    }
+
+    /// Output width L * F.
+    pub fn output_dim(&self) -> u32 {
+        self.levels * self.features
+    }
+}
+
+/// The encoding kernels and the level table of one configuration.
+#[derive(Debug)]
+pub struct HashGrid {
+    config: HashGridConfig,
+    levels: Buffer<HashLevel>,
+    /// Generic kernels (any F) or the F = 2 specialisation.
+    kernels: Kernels,
+}
+
+#[derive(Debug)]
+enum Kernels {
+    Generic { fwd: Kernel, bwd: Kernel },
+    F2 { fwd: Kernel, bwd: Kernel },
+}
+
+impl HashGrid {
+    /// Builds the kernels and uploads the level layout.
+    pub fn new(ctx: &Context, config: HashGridConfig) -> Result<HashGrid> {
+        config.validate()?;
+        let count = config.param_count();
+        if count * 4 > ctx.info().max_storage_buffer_range {
+            return Err(GpuError::BufferTooLarge {
+                name: "hash grid table".into(),
+                bytes: count * 4,
+                limit: ctx.info().max_storage_buffer_range,
+            });
+        }
+        Ok(HashGrid {
+            config,
+            levels: Buffer::from_slice(ctx, "hash grid levels", &config.level_layout())?,
+            kernels: if config.features == 2 {
+                Kernels::F2 {
+                    fwd: Kernel::new(ctx, &k2::encode_fwd_f2::DESC)?,
+                    bwd: Kernel::new(ctx, &k2::encode_bwd_f2::DESC)?,
+                }
+            } else {
+                Kernels::Generic {
+                    fwd: Kernel::new(ctx, &k::encode_fwd::DESC)?,
+                    bwd: Kernel::new(ctx, &k::encode_bwd::DESC)?,
+                }
+            },
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &HashGridConfig {
+        &self.config
+    }
+
+    fn threads(&self, n: u64) -> Result<u64> {
+        let threads = n * self.config.levels as u64;
+        if threads > u32::MAX as u64 {
+            return Err(GpuError::Usage(format!(
+                "hash grid: {n} points x {} levels exceed 2^32 threads",
+                self.config.levels
+            )));
+        }
+        Ok(threads)
+    }
+
+    fn check(
+        &self,
+        positions: &Binding<'_>,
+        table: &Binding<'_>,
+        enc: &Binding<'_>,
+        n: u64,
+    ) -> Result<()> {
+        positions.check_fits(3 * n, 4, "hash grid positions")?;
+        table.check_fits(self.config.param_count(), 4, "hash grid table")?;
+        enc.check_fits(n * self.config.output_dim() as u64, 4, "hash grid features")
+    }
+
+    /// Records `encoded[n, L*F]` = the encoding of `positions[n, 3]` (in [0, 1]^3, clamped;
+    /// NaN gives zeros) from `table`.
+    pub fn forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        positions: Binding<'a>,
+        table: Binding<'a>,
+        encoded: Binding<'a>,
+        n: u64,
+    ) -> Result<()> {
+        self.check(&positions, &table, &encoded, n)?;
+        let threads = self.threads(n)?;
+        let level_info = self.levels.binding();
+        match &self.kernels {
+            Kernels::F2 { fwd, .. } => {
+                let p = k2::Params {
+                    n: n as u32,
+                    levels: self.config.levels,
+                    _pad0: 0,
+                    _pad1: 0,
+                };
+                rec.dispatch(
+                    fwd,
+                    k2::encode_fwd_f2::Bindings {
+                        positions,
+                        level_info,
+                        table,
+                        encoded,
+                    }
+                    .into_array(),
+                    &p,
+                    n,
+                )
+            }
+            Kernels::Generic { fwd, .. } => {
+                let p = k::Params {
+                    n: n as u32,
+                    levels: self.config.levels,
+                    features: self.config.features,
+                    _pad: 0,
+                };
+                rec.dispatch(
+                    fwd,
+                    k::encode_fwd::Bindings {
+                        positions,
+                        level_info,
+                        table,
+                        encoded,
+                    }
+                    .into_array(),
+                    &p,
+                    threads,
+                )
+            }
+        }
+    }
+
+    /// Records `d_table += dL/dtable` given `d_encoded[n, L*F]` (f32 atomics; zero `d_table`
+    /// first for a fresh gradient).
+    pub fn backward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        positions: Binding<'a>,
+        d_encoded: Binding<'a>,
+        d_table: Binding<'a>,
+        n: u64,
+    ) -> Result<()> {
+        self.check(&positions, &d_table, &d_encoded, n)?;
+        let threads = self.threads(n)?;
+        let level_info = self.levels.binding();
+        match &self.kernels {
+            Kernels::F2 { bwd, .. } => {
+                let p = k2::Params {
+                    n: n as u32,
+                    levels: self.config.levels,
+                    _pad0: 0,
+                    _pad1: 0,
+                };
+                rec.dispatch(
+                    bwd,
+                    k2::encode_bwd_f2::Bindings {
+                        positions,
+                        level_info,
+                        d_encoded,
+                        d_table,
+                    }
+                    .into_array(),
+                    &p,
+                    n,
+                )
+            }
+            Kernels::Generic { bwd, .. } => {
+                let p = k::Params {
+                    n: n as u32,
+                    levels: self.config.levels,
+                    features: self.config.features,
+                    _pad: 0,
+                };
+                rec.dispatch(
+                    bwd,
+                    k::encode_bwd::Bindings {
+                        positions,
+                        level_info,
+                        d_encoded,
+                        d_table,
+                    }
+                    .into_array(),
+                    &p,
+                    threads,
+                )
+            }
+        }
+    }
+}

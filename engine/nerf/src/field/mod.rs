@@ -1,0 +1,3 @@
+//! The radiance field's GPU parts.
+
+pub mod hash_grid;

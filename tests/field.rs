@@ -1,0 +1,188 @@
+//! The hash-grid encoding kernels against the f64 reference: forward values and table
+//! gradients on random points, dense and hashed levels, every feature width, and the extremes
+//! (points on the boundary, far outside, NaN).
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use extranerf_gpu::{Buffer, GpuError};
+use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
+use extranerf_nerf::reference::{hash_grid_backward, hash_grid_forward};
+use extranerf_prims::reference::Rng;
+use extranerf_tests::{assert_no_validation_messages, engine, POISON};
+
+fn points(rng: &mut Rng, n: usize) -> Vec<f32> {
+    let mut p: Vec<f32> = (0..3 * n).map(|_| rng.uniform(0.0, 1.0)).collect();
+    // Extremes: corners and faces of the unit cube, outside points (clamped), far points, axis
+    // lines, and NaN (no features, no gradient).
+    let special = [
+        [0.0, 0.0, 0.0],
+        [1.0, 1.0, 1.0],
+        [1.0, 0.5, 0.0],
+        [0.5, 0.5, 0.5],
+        [-0.25, 0.3, 1.5],
+        [1e6, -1e6, 0.5],
+        [f32::MAX, f32::MIN_POSITIVE, -f32::MAX],
+        [0.125, 0.125, 0.9999999],
+        [f32::NAN, 0.5, 0.5],
+        [0.5, f32::INFINITY, 0.5],
+    ];
+    for (i, s) in special.iter().enumerate() {
+        p[3 * i..3 * i + 3].copy_from_slice(s);
+    }
+    p
+}
+
+fn check(cfg: HashGridConfig, n: usize, seed: u64) {
+    let e = engine();
+    let mut rng = Rng::new(seed);
+    let grid = HashGrid::new(&e.ctx, cfg).unwrap();
+    let count = cfg.param_count() as usize;
+    let table: Vec<f32> = (0..count).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let pos = points(&mut rng, n);
+    let out_len = n * cfg.output_dim() as usize;
+    let d: Vec<f32> = (0..out_len).map(|_| rng.uniform(-1.0, 1.0)).collect();
+
+    let tb = Buffer::from_slice(&e.ctx, "table", &table).unwrap();
+    let pb = Buffer::from_slice(&e.ctx, "positions", &pos).unwrap();
+    let enc =
+        Buffer::from_slice(&e.ctx, "encoded", &vec![f32::from_bits(POISON); out_len]).unwrap();
+    let db = Buffer::from_slice(&e.ctx, "d_encoded", &d).unwrap();
+    let grad = Buffer::<f32>::new(&e.ctx, "d_table", count).unwrap();
+    let mut rec = e.ctx.recorder("hash grid").unwrap();
+    grid.forward(
+        &mut rec,
+        pb.binding(),
+        tb.binding(),
+        enc.binding(),
+        n as u64,
+    )
+    .unwrap();
+    e.prims
+        .fill(&mut rec, grad.binding(), count as u64, 0)
+        .unwrap();
+    grid.backward(
+        &mut rec,
+        pb.binding(),
+        db.binding(),
+        grad.binding(),
+        n as u64,
+    )
+    .unwrap();
+    e.ctx.run(rec).unwrap();
+
+    let got = enc.read().unwrap();
+    let want = hash_grid_forward(&cfg, &table, &pos);
+    for (i, (&g, &w)) in got.iter().zip(&want).enumerate() {
+        // 8 products of |w| <= 1 weights and |t| <= 1 entries summed in f32.
+        assert!(
+            g.is_finite() && (g as f64 - w).abs() <= 1e-5,
+            "{cfg:?} output {i} (point {}): {g} vs {w}",
+            i / cfg.output_dim() as usize
+        );
+    }
+    let got = grad.read().unwrap();
+    let want = hash_grid_backward(&cfg, &pos, &d);
+    let d_abs: Vec<f32> = d.iter().map(|v| v.abs()).collect();
+    let mag = hash_grid_backward(&cfg, &pos, &d_abs);
+    for (i, ((&g, &w), &m)) in got.iter().zip(&want).zip(&mag).enumerate() {
+        // Atomic accumulation in any order: 1e-5 of the summed magnitudes.
+        assert!(
+            g.is_finite() && (g as f64 - w).abs() <= 1e-5 * m + 1e-7,
+            "{cfg:?} table entry {i}: {g} vs {w} (magnitude {m})"
+        );
+    }
+}
+
+#[test]
+fn hash_grid_matches_reference_dense_and_hashed() {
+    // Levels 4, 8, 16, 32: the first two dense, the rest hashed into 2^10 entries.
+    check(
+        HashGridConfig {
+            levels: 4,
+            features: 2,
+            log2_table: 10,
+            min_res: 4,
+            max_res: 32,
+        },
+        3000,
+        1,
+    );
+    assert_no_validation_messages(&engine().ctx);
+}
+
+#[test]
+fn hash_grid_every_feature_width() {
+    for (f, seed) in [(1, 2), (4, 3), (8, 4)] {
+        check(
+            HashGridConfig {
+                levels: 5,
+                features: f,
+                log2_table: 12,
+                min_res: 3,
+                max_res: 200,
+            },
+            1500,
+            seed,
+        );
+    }
+    assert_no_validation_messages(&engine().ctx);
+}
+
+#[test]
+fn hash_grid_sixteen_levels_heavy_collisions() {
+    // 16 levels up to 2048 into 2^14 entries: most levels hashed, many points per entry.
+    check(
+        HashGridConfig {
+            levels: 16,
+            features: 2,
+            log2_table: 14,
+            min_res: 16,
+            max_res: 2048,
+        },
+        20_000,
+        5,
+    );
+    assert_no_validation_messages(&engine().ctx);
+}
+
+#[test]
+fn hash_grid_sizes_and_errors() {
+    let e = engine();
+    let paper = HashGridConfig::default();
+    assert_eq!(paper.level_layout().len(), 16);
+    assert!(paper.param_count() <= 16 * 2 * (1 << 19));
+    HashGrid::new(&e.ctx, paper).unwrap();
+    let huge = HashGridConfig {
+        levels: 16,
+        features: 8,
+        log2_table: 24,
+        min_res: 16,
+        max_res: 1 << 16,
+    };
+    assert!(matches!(
+        HashGrid::new(&e.ctx, huge),
+        Err(GpuError::BufferTooLarge { .. })
+    ));
+    for bad in [
+        HashGridConfig {
+            features: 3,
+            ..paper
+        },
+        HashGridConfig { levels: 0, ..paper },
+        HashGridConfig {
+            min_res: 64,
+            max_res: 32,
+            ..paper
+        },
+        HashGridConfig {
+            log2_table: 40,
+            ..paper
+        },
+    ] {
+        assert!(
+            matches!(HashGrid::new(&e.ctx, bad), Err(GpuError::Usage(_))),
+            "{bad:?}"
+        );
+    }
+    assert_no_validation_messages(&e.ctx);
+}
