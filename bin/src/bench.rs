@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context as _;
 use extranerf_gpu::{Buffer, Context, GpuTimer, Recorder};
 use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
+use extranerf_nerf::field::mlp::{Mlp, MlpConfig};
 use extranerf_prims::reference::Rng;
 use extranerf_prims::{CompactPlan, Prims, ReducePlan, ScanPlan, ScatterMode, SortPlan};
 
@@ -337,6 +338,71 @@ impl Bench<'_> {
             ));
             self.notes.push(format!(
                 "hash grid fwd+bwd at {pts} random points: {:.3} us/point (the guide's pure-PyTorch hash grid: 8.2 us/point on this machine class, not measured in this run)",
+                (fwd_ms + bwd_ms) * 1e3 / pts as f64
+            ));
+        }
+        if self.wanted("mlp") {
+            // Instant-NGP's colour MLP (32 -> 64 -> 64 -> 3) on n / 16 points (at most 65536,
+            // the saved activations of the backward pass must fit one binding).
+            let cfg = MlpConfig {
+                dims: vec![32, 64, 64, 3],
+            };
+            let mlp = Mlp::new(ctx, cfg.clone())?;
+            let pts = (n / 16).min(65536);
+            let w = Buffer::<f32>::from_slice(
+                ctx,
+                "bench mlp w",
+                &(0..cfg.param_count())
+                    .map(|_| rng.uniform(-0.2, 0.2))
+                    .collect::<Vec<_>>(),
+            )?;
+            let x = Buffer::<f32>::from_slice(
+                ctx,
+                "bench mlp x",
+                &(0..32 * pts)
+                    .map(|_| rng.uniform(-1.0, 1.0))
+                    .collect::<Vec<_>>(),
+            )?;
+            let y = Buffer::<f32>::new(ctx, "bench mlp y", 3 * pts as usize)?;
+            let dx = Buffer::<f32>::new(ctx, "bench mlp dx", 32 * pts as usize)?;
+            let saved =
+                Buffer::<f32>::new(ctx, "bench mlp saved", pts as usize * cfg.saved_stride())?;
+            let dw = Buffer::<f32>::new(ctx, "bench mlp dw", cfg.param_count())?;
+            let flops = 2 * pts * (32 * 64 + 64 * 64 + 64 * 3);
+            let t = measure(ctx, &timer, reps, none, |r| {
+                mlp.forward(r, w.binding(), x.binding(), y.binding(), pts)
+            })?;
+            let fwd_ms = median(t.clone());
+            self.push(
+                "mlp fwd 32-64-64-3, points",
+                pts,
+                4 * pts * 35,
+                t,
+                copy_gbps,
+            );
+            let t = measure(ctx, &timer, reps, none, |r| {
+                mlp.backward(
+                    r,
+                    w.binding(),
+                    x.binding(),
+                    y.binding(),
+                    dx.binding(),
+                    saved.binding(),
+                    dw.binding(),
+                    pts,
+                )
+            })?;
+            let bwd_ms = median(t.clone());
+            self.push(
+                "mlp bwd (data + weights), points",
+                pts,
+                4 * pts * (35 + 2 * cfg.saved_stride() as u64),
+                t,
+                copy_gbps,
+            );
+            self.notes.push(format!(
+                "mlp 32-64-64-3 at {pts} points: fwd {:.2} GFLOP/s, fwd+bwd {:.3} us/point",
+                flops as f64 / (fwd_ms * 1e-3) / 1e9,
                 (fwd_ms + bwd_ms) * 1e3 / pts as f64
             ));
         }

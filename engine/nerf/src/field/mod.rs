@@ -1,3 +1,4 @@
 //! The radiance field's GPU parts.
 
 pub mod hash_grid;
+pub mod mlp;

@@ -1,0 +1,178 @@
+//! Tiny fully connected networks (hidden width <= 64, ReLU, linear output) on the device:
+//! forward, backward to the inputs, and weight gradients. The fused march kernels share the
+//! WGSL layout (`common/mlp.wgsl`).
+
+use extranerf_gpu::kernels::field::mlp as k;
+use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+
+pub use k::MlpShape;
+
+/// Layer widths: `[inputs, hidden..., outputs]`, 1 to 4 layers, every width 1..=64.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MlpConfig {
+    /// Widths.
+    pub dims: Vec<u32>,
+}
+
+/// Points per chunk of the weight-gradient reduction (one atomic per parameter per chunk).
+pub const WGRAD_CHUNK: u32 = 256;
+
+impl MlpConfig {
+    /// Checks the limits of the kernels.
+    pub fn validate(&self) -> Result<()> {
+        if !(2..=5).contains(&self.dims.len()) || self.dims.iter().any(|&d| d == 0 || d > 64) {
+            return Err(GpuError::Usage(format!(
+                "MLP widths {:?}: give 2 to 5 widths, each 1 to 64",
+                self.dims
+            )));
+        }
+        Ok(())
+    }
+
+    /// Number of layers.
+    pub fn layers(&self) -> usize {
+        self.dims.len() - 1
+    }
+
+    /// Float offset of layer `l`'s weights (its bias follows them).
+    pub fn offset(&self, l: usize) -> usize {
+        (0..l)
+            .map(|k| (self.dims[k] as usize + 1) * self.dims[k + 1] as usize)
+            .sum()
+    }
+
+    /// Weights and biases of all layers.
+    pub fn param_count(&self) -> usize {
+        self.offset(self.layers())
+    }
+
+    /// Floats per point the backward pass saves (each layer's input and output gradient).
+    pub fn saved_stride(&self) -> usize {
+        self.dims.windows(2).map(|w| (w[0] + w[1]) as usize).sum()
+    }
+
+    fn shape(&self) -> MlpShape {
+        let d = |i: usize| self.dims.get(i).copied().unwrap_or(0);
+        MlpShape {
+            dims: [d(0), d(1), d(2), d(3)],
+            dims_hi: [d(4), 0, 0, 0],
+            layers: self.layers() as u32,
+            params: self.param_count() as u32,
+            _pad0: 0,
+            _pad1: 0,
+        }
+    }
+}
+
+/// The MLP kernels for one configuration.
+#[derive(Debug)]
+pub struct Mlp {
+    config: MlpConfig,
+    shape: Buffer<MlpShape>,
+    fwd: Kernel,
+    bwd: Kernel,
+    wgrad: Kernel,
+}
+
+impl Mlp {
+    /// Builds the kernels.
+    pub fn new(ctx: &Context, config: MlpConfig) -> Result<Mlp> {
+        config.validate()?;
+        Ok(Mlp {
+            shape: Buffer::from_slice(ctx, "mlp shape", &[config.shape()])?,
+            config,
+            fwd: Kernel::new(ctx, &k::mlp_fwd::DESC)?,
+            bwd: Kernel::new(ctx, &k::mlp_bwd_data::DESC)?,
+            wgrad: Kernel::new(ctx, &k::mlp_wgrad::DESC)?,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &MlpConfig {
+        &self.config
+    }
+
+    fn params(&self, n: u64) -> Result<k::Params> {
+        let n32 = u32::try_from(n)
+            .map_err(|_| GpuError::Usage(format!("MLP: {n} points exceed 2^32")))?;
+        Ok(k::Params {
+            n: n32,
+            chunk: WGRAD_CHUNK,
+            saved_stride: self.config.saved_stride() as u32,
+            _pad: 0,
+        })
+    }
+
+    /// Records `outputs[n, out] = mlp(inputs[n, in])`.
+    pub fn forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        weights: Binding<'a>,
+        inputs: Binding<'a>,
+        outputs: Binding<'a>,
+        n: u64,
+    ) -> Result<()> {
+        let c = &self.config;
+        weights.check_fits(c.param_count() as u64, 4, "MLP weights")?;
+        inputs.check_fits(n * c.dims[0] as u64, 4, "MLP inputs")?;
+        outputs.check_fits(n * c.dims[c.layers()] as u64, 4, "MLP outputs")?;
+        let b = k::mlp_fwd::Bindings {
+            shape_buf: self.shape.binding(),
+            weights,
+            inputs,
+            outputs,
+        };
+        rec.dispatch(&self.fwd, b.into_array(), &self.params(n)?, n)
+    }
+
+    /// Records the backward pass for `d_outputs[n, out]`: writes `d_inputs[n, in]` and adds
+    /// the parameter gradient to `d_weights` (zero it first for a fresh gradient). `saved`
+    /// holds `n * saved_stride()` floats of scratch.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand of the backward pass
+    pub fn backward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        weights: Binding<'a>,
+        inputs: Binding<'a>,
+        d_outputs: Binding<'a>,
+        d_inputs: Binding<'a>,
+        saved: Binding<'a>,
+        d_weights: Binding<'a>,
+        n: u64,
+    ) -> Result<()> {
+        let c = &self.config;
+        weights.check_fits(c.param_count() as u64, 4, "MLP weights")?;
+        d_weights.check_fits(c.param_count() as u64, 4, "MLP weight gradients")?;
+        inputs.check_fits(n * c.dims[0] as u64, 4, "MLP inputs")?;
+        d_inputs.check_fits(n * c.dims[0] as u64, 4, "MLP input gradients")?;
+        d_outputs.check_fits(n * c.dims[c.layers()] as u64, 4, "MLP output gradients")?;
+        saved.check_fits(
+            n * c.saved_stride() as u64,
+            4,
+            "MLP saved activations (process fewer points per call)",
+        )?;
+        let p = self.params(n)?;
+        let shape_buf = self.shape.binding();
+        let b = k::mlp_bwd_data::Bindings {
+            shape_buf,
+            weights,
+            inputs,
+            d_outputs,
+            d_inputs,
+            saved,
+        };
+        rec.dispatch(&self.bwd, b.into_array(), &p, n)?;
+        let chunks = n.div_ceil(WGRAD_CHUNK as u64);
+        let b = k::mlp_wgrad::Bindings {
+            shape_buf,
+            saved,
+            d_weights,
+        };
+        rec.dispatch(
+            &self.wgrad,
+            b.into_array(),
+            &p,
+            c.param_count() as u64 * chunks,
+        )
+    }
+}

@@ -1,0 +1,179 @@
+// Standalone tiny-MLP kernels, one thread per point: forward; backward to the inputs (writing
+// each layer's input and pre-activation gradient for the weight-gradient pass); and the weight
+// gradient as a reduction over chunks of points with one f32 atomic per parameter per chunk.
+//!include common/dispatch.wgsl
+//!include common/mlp.wgsl
+
+struct Params {
+    n: u32,
+    // Points per chunk of the weight-gradient reduction.
+    chunk: u32,
+    // Floats per point in `saved` (sum over layers of inputs + outputs).
+    saved_stride: u32,
+    _pad: u32,
+}
+var<immediate> params: Params;
+
+@group(0) @binding(0) var<storage, read> shape_buf: array<MlpShape>;
+@group(0) @binding(1) var<storage, read> weights: array<f32>;
+@group(0) @binding(2) var<storage, read> inputs: array<f32>;
+@group(0) @binding(3) var<storage, read_write> outputs: array<f32>;
+@group(0) @binding(4) var<storage, read> d_outputs: array<f32>;
+@group(0) @binding(5) var<storage, read_write> d_inputs: array<f32>;
+@group(0) @binding(6) var<storage, read_write> saved: array<f32>;
+@group(0) @binding(7) var<storage, read_write> d_weights: array<atomic<f32>>;
+
+@compute @workgroup_size(64)
+fn mlp_fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+           @builtin(local_invocation_index) lid: u32) {
+    let p = linear_group(wid, nwg) * 64u + lid;
+    if p >= params.n {
+        return;
+    }
+    let s = shape_buf[0];
+    var a: array<f32, 64>;
+    var z: array<f32, 64>;
+    let n_in = mlp_dim(s, 0u);
+    for (var j = 0u; j < n_in; j += 1u) {
+        a[j] = inputs[p * n_in + j];
+    }
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let w = mlp_offset(s, l);
+        let last = l + 1u == s.layers;
+        for (var o = 0u; o < no; o += 1u) {
+            var acc = weights[w + no * ni + o];
+            for (var j = 0u; j < ni; j += 1u) {
+                acc = fma(weights[w + o * ni + j], a[j], acc);
+            }
+            z[o] = select(max(acc, 0.0), acc, last);
+        }
+        for (var o = 0u; o < no; o += 1u) {
+            a[o] = z[o];
+        }
+    }
+    let n_out = mlp_dim(s, s.layers);
+    for (var o = 0u; o < n_out; o += 1u) {
+        outputs[p * n_out + o] = a[o];
+    }
+}
+
+// Recomputes the forward pass, then back-propagates d_outputs: writes d_inputs and, per layer,
+// the layer's input and the gradient of its pre-activation into `saved`.
+@compute @workgroup_size(64)
+fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                @builtin(local_invocation_index) lid: u32) {
+    let p = linear_group(wid, nwg) * 64u + lid;
+    if p >= params.n {
+        return;
+    }
+    let s = shape_buf[0];
+    // Layer inputs and pre-activations go to `saved` on the way forward.
+    var a: array<f32, 64>;
+    var z: array<f32, 64>;
+    let n_in = mlp_dim(s, 0u);
+    for (var j = 0u; j < n_in; j += 1u) {
+        a[j] = inputs[p * n_in + j];
+    }
+    var at = p * params.saved_stride;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let w = mlp_offset(s, l);
+        for (var j = 0u; j < ni; j += 1u) {
+            saved[at + j] = a[j];
+        }
+        at += ni;
+        for (var o = 0u; o < no; o += 1u) {
+            var acc = weights[w + no * ni + o];
+            for (var j = 0u; j < ni; j += 1u) {
+                acc = fma(weights[w + o * ni + j], a[j], acc);
+            }
+            // Pre-activation for now; replaced by its gradient below.
+            saved[at + o] = acc;
+            z[o] = select(max(acc, 0.0), acc, l + 1u == s.layers);
+        }
+        at += no;
+        for (var o = 0u; o < no; o += 1u) {
+            a[o] = z[o];
+        }
+    }
+    // Backward: g holds dL/d(layer output); walk the layers in reverse.
+    var g: array<f32, 64>;
+    let n_out = mlp_dim(s, s.layers);
+    for (var o = 0u; o < n_out; o += 1u) {
+        g[o] = d_outputs[p * n_out + o];
+    }
+    for (var li = 0u; li < s.layers; li += 1u) {
+        let l = s.layers - 1u - li;
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let w = mlp_offset(s, l);
+        at -= no;
+        let last = l + 1u == s.layers;
+        for (var o = 0u; o < no; o += 1u) {
+            // ReLU'(pre) on hidden layers; identity on the output layer.
+            let pre = saved[at + o];
+            let d = select(select(0.0, g[o], pre > 0.0), g[o], last);
+            saved[at + o] = d;
+            z[o] = d;
+        }
+        at -= ni;
+        for (var j = 0u; j < ni; j += 1u) {
+            var acc = 0.0;
+            for (var o = 0u; o < no; o += 1u) {
+                acc = fma(weights[w + o * ni + j], z[o], acc);
+            }
+            g[j] = acc;
+        }
+    }
+    for (var j = 0u; j < n_in; j += 1u) {
+        d_inputs[p * n_in + j] = g[j];
+    }
+}
+
+// One thread per (parameter, chunk of points): d_weights[param] += sum over the chunk of
+// delta[o] * input[j] (weights) or delta[o] (biases).
+@compute @workgroup_size(64)
+fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+             @builtin(local_invocation_index) lid: u32) {
+    let t = linear_group(wid, nwg) * 64u + lid;
+    let s = shape_buf[0];
+    let chunks = (params.n + params.chunk - 1u) / params.chunk;
+    if t >= s.params * chunks {
+        return;
+    }
+    let param = t % s.params;
+    let chunk = t / s.params;
+    // Find the layer, and the (output, input) the parameter belongs to.
+    var l = 0u;
+    var off = 0u;
+    var at = 0u;
+    loop {
+        let size = (mlp_dim(s, l) + 1u) * mlp_dim(s, l + 1u);
+        if param < off + size {
+            break;
+        }
+        off += size;
+        at += mlp_dim(s, l) + mlp_dim(s, l + 1u);
+        l += 1u;
+    }
+    let ni = mlp_dim(s, l);
+    let no = mlp_dim(s, l + 1u);
+    let local = param - off;
+    let is_bias = local >= no * ni;
+    let o = select(local / ni, local - no * ni, is_bias);
+    let j = select(local % ni, 0u, is_bias);
+    let first = chunk * params.chunk;
+    let last = min(first + params.chunk, params.n);
+    var acc = 0.0;
+    for (var p = first; p < last; p += 1u) {
+        let base = p * params.saved_stride + at;
+        let d = saved[base + ni + o];
+        acc = fma(d, select(saved[base + j], 1.0, is_bias), acc);
+    }
+    if acc != 0.0 {
+        atomicAdd(&d_weights[param], acc);
+    }
+}
