@@ -340,21 +340,9 @@ impl<'a> Recorder<'a> {
         if bytes == 0 {
             return Ok(());
         }
-        self.track_copy(src.raw, dst.raw);
         self.uses.push(src.last_use);
         self.uses.push(dst.last_use);
-        let region = [vk::BufferCopy {
-            src_offset,
-            dst_offset,
-            size: bytes,
-        }];
-        // SAFETY: recording command buffer; ranges checked above; buffers alive for 'a.
-        unsafe {
-            self.ctx
-                .inner
-                .device
-                .cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region)
-        };
+        self.record_copy(src.raw, src_offset, dst.raw, dst_offset, bytes);
         Ok(())
     }
 
@@ -390,20 +378,8 @@ impl<'a> Recorder<'a> {
         dst_offset: u64,
         bytes: u64,
     ) {
-        self.track_copy(staging.raw, dst.raw);
         self.uses.push(dst.last_use);
-        let region = [vk::BufferCopy {
-            src_offset,
-            dst_offset,
-            size: bytes,
-        }];
-        // SAFETY: recording command buffer; callers check ranges; staging outlives the wait.
-        unsafe {
-            self.ctx
-                .inner
-                .device
-                .cmd_copy_buffer(self.cmd, staging.raw, dst.raw, &region)
-        };
+        self.record_copy(staging.raw, src_offset, dst.raw, dst_offset, bytes);
     }
 
     /// Readback copy into a host-visible staging buffer, made visible to the host.
@@ -414,22 +390,14 @@ impl<'a> Recorder<'a> {
         staging: &RawBuffer,
         bytes: u64,
     ) {
-        self.track_copy(src.raw, staging.raw);
         self.uses.push(src.last_use);
-        let region = [vk::BufferCopy {
-            src_offset,
-            dst_offset: 0,
-            size: bytes,
-        }];
+        self.record_copy(src.raw, src_offset, staging.raw, 0, bytes);
         let mb = [vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
             .dst_access_mask(vk::AccessFlags::HOST_READ)];
-        // SAFETY: recording command buffer; callers check ranges; staging outlives the wait.
+        // SAFETY: recording command buffer; makes the copy visible to the host read after the
+        // wait.
         unsafe {
-            self.ctx
-                .inner
-                .device
-                .cmd_copy_buffer(self.cmd, src.raw, staging.raw, &region);
             self.ctx.inner.device.cmd_pipeline_barrier(
                 self.cmd,
                 vk::PipelineStageFlags::TRANSFER,
@@ -440,6 +408,32 @@ impl<'a> Recorder<'a> {
                 &[],
             );
         }
+    }
+
+    /// Records one buffer copy after any barrier its hazards need. Callers check ranges and
+    /// keep both buffers alive until the submission completes.
+    fn record_copy(
+        &mut self,
+        src: vk::Buffer,
+        src_offset: u64,
+        dst: vk::Buffer,
+        dst_offset: u64,
+        bytes: u64,
+    ) {
+        self.track_copy(src, dst);
+        let region = [vk::BufferCopy {
+            src_offset,
+            dst_offset,
+            size: bytes,
+        }];
+        // SAFETY: recording command buffer; callers checked the ranges and keep the buffers
+        // alive until the release queue passes this submission.
+        unsafe {
+            self.ctx
+                .inner
+                .device
+                .cmd_copy_buffer(self.cmd, src, dst, &region)
+        };
     }
 
     /// Resets all queries of `timer` (record before the first timestamp).

@@ -36,8 +36,7 @@ pub struct Prims {
     reduce: Kernel,
     scan_tiles: Kernel,
     add_offsets: Kernel,
-    compact_values: Kernel,
-    compact_indices: Kernel,
+    compact: Kernel,
     histogram: Kernel,
     scatter: Kernel,
     scatter_add: Kernel,
@@ -186,8 +185,7 @@ impl Prims {
             reduce: Kernel::new(ctx, &k::reduce::reduce_sum::DESC)?,
             scan_tiles: Kernel::new(ctx, &k::scan::scan_tiles::DESC)?,
             add_offsets: Kernel::new(ctx, &k::scan::add_offsets::DESC)?,
-            compact_values: Kernel::new(ctx, &k::compact::compact_values::DESC)?,
-            compact_indices: Kernel::new(ctx, &k::compact::compact_indices::DESC)?,
+            compact: Kernel::new(ctx, &k::compact::compact::DESC)?,
             histogram: Kernel::new(ctx, &k::radix_sort::histogram::DESC)?,
             scatter: Kernel::new(ctx, &k::radix_sort::scatter::DESC)?,
             scatter_add: Kernel::new(ctx, &k::scatter_add::scatter_add::DESC)?,
@@ -392,39 +390,21 @@ impl Prims {
         out.check_fits(n, 4, "compact output")?;
         let offsets = plan.offsets.binding();
         self.exclusive_scan(rec, &plan.scan, flags, offsets, n, true)?;
+        if let Some(v) = &values {
+            v.check_fits(n, 4, "compact values")?;
+        }
         let params = k::compact::Params {
             n: n32(n, "compact")?,
+            with_values: u32::from(values.is_some()),
         };
-        match values {
-            Some(values) => {
-                values.check_fits(n, 4, "compact values")?;
-                let b = k::compact::compact_values::Bindings {
-                    flags,
-                    offsets,
-                    values,
-                    out,
-                };
-                rec.dispatch(
-                    &self.compact_values,
-                    b.into_array(),
-                    &params,
-                    n.div_ceil(16),
-                )
-            }
-            None => {
-                let b = k::compact::compact_indices::Bindings {
-                    flags,
-                    offsets,
-                    out,
-                };
-                rec.dispatch(
-                    &self.compact_indices,
-                    b.into_array(),
-                    &params,
-                    n.div_ceil(16),
-                )
-            }
-        }
+        // Without values the kernel writes indices and never reads `values`; bind the flags.
+        let b = k::compact::compact::Bindings {
+            flags,
+            offsets,
+            values: values.unwrap_or(flags),
+            out,
+        };
+        rec.dispatch(&self.compact, b.into_array(), &params, n.div_ceil(16))
     }
 
     /// Records a stable sort of `keys[0..n]` with `values[0..n]` by the low `bits` bits of the

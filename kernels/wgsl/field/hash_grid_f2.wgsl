@@ -4,11 +4,12 @@
 //!include common/dispatch.wgsl
 //!include common/hash_grid.wgsl
 
+// The same block as hash_grid.wgsl (features is always 2 here), so the host passes one struct.
 struct Params {
     n: u32,
     levels: u32,
-    _pad0: u32,
-    _pad1: u32,
+    features: u32,
+    _pad: u32,
 }
 var<immediate> params: Params;
 

@@ -162,17 +162,6 @@ impl HashGrid {
         &self.config
     }
 
-    fn threads(&self, n: u64) -> Result<u64> {
-        let threads = n * self.config.levels as u64;
-        if threads > u32::MAX as u64 {
-            return Err(GpuError::Usage(format!(
-                "hash grid: {n} points x {} levels exceed 2^32 threads",
-                self.config.levels
-            )));
-        }
-        Ok(threads)
-    }
-
     fn check(
         &self,
         positions: &Binding<'_>,
@@ -183,6 +172,30 @@ impl HashGrid {
         positions.check_fits(3 * n, 4, "hash grid positions")?;
         table.check_fits(self.config.param_count(), 4, "hash grid table")?;
         enc.check_fits(n * self.config.output_dim() as u64, 4, "hash grid features")
+    }
+
+    /// The kernel for this configuration and its thread count: the F = 2 kernels run one
+    /// thread per point, the generic ones one per (point, level). Both entry points of a pair
+    /// declare the same bindings and `Params` (checked by the test below).
+    fn pick(&self, n: u64, forward: bool) -> Result<(&Kernel, u64, k::Params)> {
+        let levels = self.config.levels as u64;
+        if n * levels > u32::MAX as u64 {
+            return Err(GpuError::Usage(format!(
+                "hash grid: {n} points x {levels} levels exceed 2^32 threads"
+            )));
+        }
+        let p = k::Params {
+            n: n as u32,
+            levels: self.config.levels,
+            features: self.config.features,
+            _pad: 0,
+        };
+        Ok(match (&self.kernels, forward) {
+            (Kernels::F2 { fwd, .. }, true) => (fwd, n, p),
+            (Kernels::F2 { bwd, .. }, false) => (bwd, n, p),
+            (Kernels::Generic { fwd, .. }, true) => (fwd, n * levels, p),
+            (Kernels::Generic { bwd, .. }, false) => (bwd, n * levels, p),
+        })
     }
 
     /// Records `encoded[n, L*F]` = the encoding of `positions[n, 3]` (in [0, 1]^3, clamped;
@@ -196,50 +209,14 @@ impl HashGrid {
         n: u64,
     ) -> Result<()> {
         self.check(&positions, &table, &encoded, n)?;
-        let threads = self.threads(n)?;
-        let level_info = self.levels.binding();
-        match &self.kernels {
-            Kernels::F2 { fwd, .. } => {
-                let p = k2::Params {
-                    n: n as u32,
-                    levels: self.config.levels,
-                    _pad0: 0,
-                    _pad1: 0,
-                };
-                rec.dispatch(
-                    fwd,
-                    k2::encode_fwd_f2::Bindings {
-                        positions,
-                        level_info,
-                        table,
-                        encoded,
-                    }
-                    .into_array(),
-                    &p,
-                    n,
-                )
-            }
-            Kernels::Generic { fwd, .. } => {
-                let p = k::Params {
-                    n: n as u32,
-                    levels: self.config.levels,
-                    features: self.config.features,
-                    _pad: 0,
-                };
-                rec.dispatch(
-                    fwd,
-                    k::encode_fwd::Bindings {
-                        positions,
-                        level_info,
-                        table,
-                        encoded,
-                    }
-                    .into_array(),
-                    &p,
-                    threads,
-                )
-            }
-        }
+        let (kernel, threads, p) = self.pick(n, true)?;
+        let b = k::encode_fwd::Bindings {
+            positions,
+            level_info: self.levels.binding(),
+            table,
+            encoded,
+        };
+        rec.dispatch(kernel, b.into_array(), &p, threads)
     }
 
     /// Records `d_table += dL/dtable` given `d_encoded[n, L*F]` (f32 atomics; zero `d_table`
@@ -253,49 +230,34 @@ impl HashGrid {
         n: u64,
     ) -> Result<()> {
         self.check(&positions, &d_table, &d_encoded, n)?;
-        let threads = self.threads(n)?;
-        let level_info = self.levels.binding();
-        match &self.kernels {
-            Kernels::F2 { bwd, .. } => {
-                let p = k2::Params {
-                    n: n as u32,
-                    levels: self.config.levels,
-                    _pad0: 0,
-                    _pad1: 0,
-                };
-                rec.dispatch(
-                    bwd,
-                    k2::encode_bwd_f2::Bindings {
-                        positions,
-                        level_info,
-                        d_encoded,
-                        d_table,
-                    }
-                    .into_array(),
-                    &p,
-                    n,
-                )
-            }
-            Kernels::Generic { bwd, .. } => {
-                let p = k::Params {
-                    n: n as u32,
-                    levels: self.config.levels,
-                    features: self.config.features,
-                    _pad: 0,
-                };
-                rec.dispatch(
-                    bwd,
-                    k::encode_bwd::Bindings {
-                        positions,
-                        level_info,
-                        d_encoded,
-                        d_table,
-                    }
-                    .into_array(),
-                    &p,
-                    threads,
-                )
-            }
-        }
+        let (kernel, threads, p) = self.pick(n, false)?;
+        let b = k::encode_bwd::Bindings {
+            positions,
+            level_info: self.levels.binding(),
+            d_encoded,
+            d_table,
+        };
+        rec.dispatch(kernel, b.into_array(), &p, threads)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The F = 2 kernels are driven with the generic kernels' Bindings and Params.
+    #[test]
+    fn f2_kernels_share_the_generic_interface() {
+        assert_eq!(
+            k::encode_fwd::DESC.bindings,
+            k2::encode_fwd_f2::DESC.bindings
+        );
+        assert_eq!(
+            k::encode_bwd::DESC.bindings,
+            k2::encode_bwd_f2::DESC.bindings
+        );
+        let names =
+            |l: &[(&str, u32, usize)]| l.iter().map(|m| (m.0.to_string(), m.1)).collect::<Vec<_>>();
+        assert_eq!(names(k::PARAMS_LAYOUT), names(k2::PARAMS_LAYOUT));
     }
 }
