@@ -10,3 +10,4 @@
 pub mod data;
 pub mod field;
 pub mod reference;
+pub mod render;

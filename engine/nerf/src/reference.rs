@@ -159,6 +159,144 @@ pub fn mlp_backward(
     (d_in, d_w)
 }
 
+/// Per-sample weights of one ray in f64: w_i = T_i (1 - exp(-sigma_i dt_i)), and the final
+/// transmittance. Non-positive sigma or dt contribute nothing.
+pub fn ray_weights(sigma: &[f32], dt: &[f32]) -> (Vec<f64>, f64) {
+    let mut tau = 0f64;
+    let w = sigma
+        .iter()
+        .zip(dt)
+        .map(|(&s, &d)| {
+            let x = if s > 0.0 && d > 0.0 {
+                s as f64 * d as f64
+            } else {
+                0.0
+            };
+            let w = (-tau).exp() * -(-x).exp_m1();
+            tau += x;
+            w
+        })
+        .collect();
+    (w, (-tau).exp())
+}
+
+/// Compositing of one ray in f64: (r, g, b, opacity, depth).
+pub fn composite_forward(
+    sigma: &[f32],
+    rgb: &[[f32; 4]],
+    t_dt: &[[f32; 2]],
+    background: [f32; 3],
+) -> [f64; 5] {
+    let dt: Vec<f32> = t_dt.iter().map(|v| v[1]).collect();
+    let (w, t_end) = ray_weights(sigma, &dt);
+    let mut out = [0f64; 5];
+    for i in 0..w.len() {
+        for c in 0..3 {
+            out[c] += w[i] * rgb[i][c] as f64;
+        }
+        out[3] += w[i];
+        out[4] += w[i] * t_dt[i][0] as f64;
+    }
+    for c in 0..3 {
+        out[c] += t_end * background[c] as f64;
+    }
+    out
+}
+
+/// Backward of [`composite_forward`] for one ray in f64: (dL/dsigma, dL/drgb) per sample, given
+/// dL/d(r, g, b, opacity), dL/ddepth and an extra dL/dweight per sample.
+pub fn composite_backward(
+    sigma: &[f32],
+    rgb: &[[f32; 4]],
+    t_dt: &[[f32; 2]],
+    background: [f32; 3],
+    d_rgba: [f32; 4],
+    d_depth: f32,
+    d_weight: &[f32],
+) -> (Vec<f64>, Vec<[f64; 3]>) {
+    let n = sigma.len();
+    let dt: Vec<f32> = t_dt.iter().map(|v| v[1]).collect();
+    let (w, t_end) = ray_weights(sigma, &dt);
+    let u: Vec<f64> = (0..n)
+        .map(|i| {
+            (0..3)
+                .map(|c| rgb[i][c] as f64 * d_rgba[c] as f64)
+                .sum::<f64>()
+                + t_dt[i][0] as f64 * d_depth as f64
+                + d_rgba[3] as f64
+                + d_weight[i] as f64
+        })
+        .collect();
+    let bg: f64 = t_end
+        * (0..3)
+            .map(|c| background[c] as f64 * d_rgba[c] as f64)
+            .sum::<f64>();
+    let mut tau = 0f64;
+    let mut d_sigma = vec![0f64; n];
+    for i in 0..n {
+        let x = if sigma[i] > 0.0 && dt[i] > 0.0 {
+            sigma[i] as f64 * dt[i] as f64
+        } else {
+            0.0
+        };
+        tau += x;
+        let suffix: f64 = (i + 1..n).map(|j| w[j] * u[j]).sum();
+        let dx = (-tau).exp() * u[i] - suffix - bg;
+        d_sigma[i] = if dt[i] > 0.0 && sigma[i] >= 0.0 {
+            dt[i] as f64 * dx
+        } else {
+            0.0
+        };
+    }
+    let d_rgb = (0..n)
+        .map(|i| {
+            [
+                w[i] * d_rgba[0] as f64,
+                w[i] * d_rgba[1] as f64,
+                w[i] * d_rgba[2] as f64,
+            ]
+        })
+        .collect();
+    (d_sigma, d_rgb)
+}
+
+/// Distortion loss of one ray from its weights, midpoints and widths (the O(N^2) definition).
+pub fn distortion_from_weights(w: &[f64], m: &[f64], ds: &[f64]) -> f64 {
+    let mut l = 0.0;
+    for i in 0..w.len() {
+        for j in 0..w.len() {
+            l += w[i] * w[j] * (m[i] - m[j]).abs();
+        }
+        l += w[i] * w[i] * ds[i] / 3.0;
+    }
+    l
+}
+
+/// Distortion loss of one ray (weights from sigma and dt) and dL/dw per sample, in f64.
+pub fn distortion(
+    sigma: &[f32],
+    t_dt: &[[f32; 2]],
+    s_ds: &[[f32; 2]],
+    lambda: f32,
+) -> (f64, Vec<f64>) {
+    let dt: Vec<f32> = t_dt.iter().map(|v| v[1]).collect();
+    let (w, _) = ray_weights(sigma, &dt);
+    let m: Vec<f64> = s_ds.iter().map(|v| v[0] as f64).collect();
+    let ds: Vec<f64> = s_ds.iter().map(|v| v[1] as f64).collect();
+    let l = lambda as f64 * distortion_from_weights(&w, &m, &ds);
+    let grad = (0..w.len())
+        .map(|i| {
+            lambda as f64
+                * (2.0
+                    * (0..w.len())
+                        .map(|j| w[j] * (m[i] - m[j]).abs())
+                        .sum::<f64>()
+                    + 2.0 / 3.0 * w[i] * ds[i])
+        })
+        .collect();
+    (l, grad)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -256,6 +394,87 @@ mod tests {
                 (fd - d_in[e]).abs() < 1e-3 * (1.0 + fd.abs()),
                 "input {e}: {fd} vs {}",
                 d_in[e]
+            );
+        }
+    }
+
+    /// Compositing backward and distortion gradient against central finite differences.
+    #[test]
+    fn composite_and_distortion_gradients_match_finite_differences() {
+        let n = 12;
+        let mut sigma: Vec<f32> = (0..n).map(|i| ((i * 7 % 11) as f32) * 0.9 + 0.05).collect();
+        sigma[3] = 0.0;
+        let rgb: Vec<[f32; 4]> = (0..n)
+            .map(|i| {
+                [
+                    ((i * 3 % 7) as f32) / 7.0,
+                    0.3,
+                    ((i * 5 % 9) as f32) / 9.0,
+                    0.0,
+                ]
+            })
+            .collect();
+        let t_dt: Vec<[f32; 2]> = (0..n).map(|i| [1.0 + 0.1 * i as f32, 0.1]).collect();
+        let bg = [0.2f32, 0.9, 0.4];
+        let g = [0.3f32, -0.7, 0.5, 0.25];
+        let gd = -0.4f32;
+        let dw: Vec<f32> = (0..n).map(|i| (i as f32 * 0.3).sin() * 0.2).collect();
+        let (d_sigma, d_rgb) = composite_backward(&sigma, &rgb, &t_dt, bg, g, gd, &dw);
+        let dt: Vec<f32> = t_dt.iter().map(|v| v[1]).collect();
+        let loss = |s: &[f32], c: &[[f32; 4]]| -> f64 {
+            let o = composite_forward(s, c, &t_dt, bg);
+            let (w, _) = ray_weights(s, &dt);
+            (0..4).map(|k| o[k] * g[k] as f64).sum::<f64>()
+                + o[4] * gd as f64
+                + w.iter().zip(&dw).map(|(a, &b)| a * b as f64).sum::<f64>()
+        };
+        let h = 1e-3f32;
+        for i in 0..n {
+            let mut s = sigma.clone();
+            s[i] = sigma[i] + h;
+            let up = loss(&s, &rgb);
+            // One-sided at sigma = 0 (the density cannot go below 0).
+            let (down, span) = if sigma[i] > h {
+                s[i] = sigma[i] - h;
+                (loss(&s, &rgb), 2.0 * h as f64)
+            } else {
+                (loss(&sigma, &rgb), h as f64)
+            };
+            let fd = (up - down) / span;
+            assert!(
+                (fd - d_sigma[i]).abs() < 1e-4,
+                "sigma {i}: {fd} vs {}",
+                d_sigma[i]
+            );
+            for c in 0..3 {
+                let mut col = rgb.clone();
+                col[i][c] += h;
+                let fd = (loss(&sigma, &col) - loss(&sigma, &rgb)) / h as f64;
+                assert!(
+                    (fd - d_rgb[i][c]).abs() < 1e-5,
+                    "rgb {i}.{c}: {fd} vs {}",
+                    d_rgb[i][c]
+                );
+            }
+        }
+        // Distortion: dL/dw by finite differences of the O(N^2) definition in w.
+        let s_ds: Vec<[f32; 2]> = (0..n).map(|i| [0.05 + 0.08 * i as f32, 0.08]).collect();
+        let (_, grad) = distortion(&sigma, &t_dt, &s_ds, 0.5);
+        let (w, _) = ray_weights(&sigma, &dt);
+        let m: Vec<f64> = s_ds.iter().map(|v| v[0] as f64).collect();
+        let ds: Vec<f64> = s_ds.iter().map(|v| v[1] as f64).collect();
+        for i in 0..n {
+            let mut wp = w.clone();
+            wp[i] += 1e-6;
+            let mut wm = w.clone();
+            wm[i] -= 1e-6;
+            let fd = 0.5
+                * (distortion_from_weights(&wp, &m, &ds) - distortion_from_weights(&wm, &m, &ds))
+                / 2e-6;
+            assert!(
+                (fd - grad[i]).abs() < 1e-6,
+                "distortion w {i}: {fd} vs {}",
+                grad[i]
             );
         }
     }

@@ -1,0 +1,173 @@
+//! Volume-rendering compositing (forward and backward) and the distortion loss, per ray.
+
+use extranerf_gpu::kernels::render::{composite as k, distortion as kd};
+use extranerf_gpu::{Binding, Context, Kernel, Recorder, Result};
+
+/// A batch of rays and their samples, as the march writes them.
+#[derive(Clone, Copy, Debug)]
+pub struct Samples<'a> {
+    /// Per ray `[u32; 2]`: first sample, sample count.
+    pub rays: Binding<'a>,
+    /// Per sample density (f32).
+    pub sigma: Binding<'a>,
+    /// Per sample colour `[f32; 4]` (rgb, unused).
+    pub rgb: Binding<'a>,
+    /// Per sample `[f32; 2]`: distance along the ray and interval length.
+    pub t_dt: Binding<'a>,
+    /// Number of rays.
+    pub n_rays: u64,
+    /// Number of samples (all rays).
+    pub n_samples: u64,
+}
+
+impl Samples<'_> {
+    fn check(&self) -> Result<()> {
+        self.rays.check_fits(2 * self.n_rays, 4, "rays")?;
+        self.sigma.check_fits(self.n_samples, 4, "sigma")?;
+        self.rgb.check_fits(4 * self.n_samples, 4, "rgb")?;
+        self.t_dt.check_fits(2 * self.n_samples, 4, "t_dt")
+    }
+}
+
+/// Per-ray gradients of the loss with respect to the rendered values.
+#[derive(Clone, Copy, Debug)]
+pub struct RayGrads<'a> {
+    /// Per ray `[f32; 4]`: dL/d(r, g, b, opacity).
+    pub d_rgba: Binding<'a>,
+    /// Per ray dL/ddepth.
+    pub d_depth: Binding<'a>,
+    /// Per sample extra dL/dweight (the distortion loss), zeros when unused.
+    pub d_weight: Binding<'a>,
+}
+
+/// The compositing kernels.
+#[derive(Debug)]
+pub struct Compositor {
+    fwd: Kernel,
+    bwd: Kernel,
+    dist: Kernel,
+}
+
+fn n32(n: u64) -> Result<u32> {
+    u32::try_from(n).map_err(|_| extranerf_gpu::GpuError::Usage(format!("{n} rays exceed 2^32")))
+}
+
+impl Compositor {
+    /// Builds the kernels.
+    pub fn new(ctx: &Context) -> Result<Compositor> {
+        Ok(Compositor {
+            fwd: Kernel::new(ctx, &k::composite_fwd::DESC)?,
+            bwd: Kernel::new(ctx, &k::composite_bwd::DESC)?,
+            dist: Kernel::new(ctx, &kd::distortion::DESC)?,
+        })
+    }
+
+    fn params(n_rays: u64, background: [f32; 3]) -> Result<k::Params> {
+        Ok(k::Params {
+            n_rays: n32(n_rays)?,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
+            background: [background[0], background[1], background[2], 0.0],
+        })
+    }
+
+    /// Records per-ray `(r, g, b, opacity)` into `out_rgba` and expected depth into
+    /// `out_depth`; the background is added with each ray's final transmittance.
+    pub fn forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        s: &Samples<'a>,
+        background: [f32; 3],
+        out_rgba: Binding<'a>,
+        out_depth: Binding<'a>,
+    ) -> Result<()> {
+        s.check()?;
+        out_rgba.check_fits(4 * s.n_rays, 4, "composited rgba")?;
+        out_depth.check_fits(s.n_rays, 4, "composited depth")?;
+        let b = k::composite_fwd::Bindings {
+            rays: s.rays,
+            sigma: s.sigma,
+            rgb: s.rgb,
+            t_dt: s.t_dt,
+            out_rgba,
+            out_depth,
+        };
+        rec.dispatch(
+            &self.fwd,
+            b.into_array(),
+            &Self::params(s.n_rays, background)?,
+            s.n_rays,
+        )
+    }
+
+    /// Records dL/dsigma and dL/drgb per sample from the per-ray gradients.
+    pub fn backward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        s: &Samples<'a>,
+        background: [f32; 3],
+        g: &RayGrads<'a>,
+        d_sigma: Binding<'a>,
+        d_rgb: Binding<'a>,
+    ) -> Result<()> {
+        s.check()?;
+        g.d_rgba.check_fits(4 * s.n_rays, 4, "dL/drgba")?;
+        g.d_depth.check_fits(s.n_rays, 4, "dL/ddepth")?;
+        g.d_weight.check_fits(s.n_samples, 4, "dL/dweight")?;
+        d_sigma.check_fits(s.n_samples, 4, "dL/dsigma")?;
+        d_rgb.check_fits(4 * s.n_samples, 4, "dL/drgb")?;
+        let b = k::composite_bwd::Bindings {
+            rays: s.rays,
+            sigma: s.sigma,
+            rgb: s.rgb,
+            t_dt: s.t_dt,
+            d_rgba: g.d_rgba,
+            d_depth: g.d_depth,
+            d_weight: g.d_weight,
+            d_sigma,
+            d_rgb,
+        };
+        rec.dispatch(
+            &self.bwd,
+            b.into_array(),
+            &Self::params(s.n_rays, background)?,
+            s.n_rays,
+        )
+    }
+
+    /// Records the distortion loss per ray (`loss`) and its gradient with respect to each
+    /// sample's weight (`d_weight`, for [`RayGrads::d_weight`]); `s_ds` holds per sample the
+    /// normalised midpoint and width, increasing along each ray.
+    pub fn distortion<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        s: &Samples<'a>,
+        s_ds: Binding<'a>,
+        lambda: f32,
+        loss: Binding<'a>,
+        d_weight: Binding<'a>,
+    ) -> Result<()> {
+        s.check()?;
+        s_ds.check_fits(2 * s.n_samples, 4, "s_ds")?;
+        loss.check_fits(s.n_rays, 4, "distortion loss")?;
+        d_weight.check_fits(s.n_samples, 4, "distortion dL/dweight")?;
+        let b = kd::distortion::Bindings {
+            rays: s.rays,
+            sigma: s.sigma,
+            t_dt: s.t_dt,
+            s_ds,
+            loss,
+            d_weight,
+        };
+        rec.dispatch(
+            &self.dist,
+            b.into_array(),
+            &kd::Params {
+                n_rays: n32(s.n_rays)?,
+                lambda,
+            },
+            s.n_rays,
+        )
+    }
+}

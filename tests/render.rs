@@ -1,0 +1,249 @@
+//! Compositing (forward, backward) and the distortion loss against the f64 reference, on
+//! random rays and at the extremes: densities from 0 to 1e8, intervals down to 1e-7, empty and
+//! opaque rays.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use extranerf_gpu::Buffer;
+use extranerf_nerf::reference::{composite_backward, composite_forward, distortion};
+use extranerf_nerf::render::composite::{Compositor, RayGrads, Samples};
+use extranerf_prims::reference::Rng;
+use extranerf_tests::{assert_no_validation_messages, engine};
+
+struct Batch {
+    rays: Vec<[u32; 2]>,
+    sigma: Vec<f32>,
+    rgb: Vec<[f32; 4]>,
+    t_dt: Vec<[f32; 2]>,
+    s_ds: Vec<[f32; 2]>,
+}
+
+fn log_uniform(rng: &mut Rng, lo: f32, hi: f32) -> f32 {
+    (rng.uniform(lo.ln(), hi.ln())).exp()
+}
+
+/// Random rays plus hand-made extremes at the front of the batch.
+fn batch(rng: &mut Rng, n_rays: usize) -> Batch {
+    let mut b = Batch {
+        rays: vec![],
+        sigma: vec![],
+        rgb: vec![],
+        t_dt: vec![],
+        s_ds: vec![],
+    };
+    let push_ray = |b: &mut Batch, samples: &[(f32, f32)], rng: &mut Rng| {
+        b.rays.push([b.sigma.len() as u32, samples.len() as u32]);
+        let mut t = 2.0f32;
+        for (i, &(sigma, dt)) in samples.iter().enumerate() {
+            b.sigma.push(sigma);
+            b.rgb.push([
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                0.0,
+            ]);
+            b.t_dt.push([t + 0.5 * dt, dt]);
+            let s = (i as f32 + 0.5) / samples.len() as f32;
+            b.s_ds.push([s, 1.0 / samples.len() as f32]);
+            t += dt;
+        }
+    };
+    push_ray(&mut b, &[], rng); // empty
+    push_ray(&mut b, &[(0.0, 0.1); 50], rng); // empty space
+    push_ray(&mut b, &[(1e8, 0.01), (1e8, 0.01), (3.0, 0.01)], rng); // opaque at once
+    push_ray(&mut b, &[(1.0, 1e-7); 100], rng); // tiny steps
+    push_ray(&mut b, &[(1e8, 1e-7); 20], rng); // huge density, tiny steps
+    push_ray(&mut b, &[(5.0, 0.0), (5.0, 0.2), (0.0, 0.0)], rng); // zero-length intervals
+    while b.rays.len() < n_rays {
+        let count = rng.below(160) as usize;
+        let samples: Vec<(f32, f32)> = (0..count)
+            .map(|_| {
+                let sigma = match rng.below(10) {
+                    0 => 0.0,
+                    1 => 1e8,
+                    _ => log_uniform(rng, 1e-4, 1e4),
+                };
+                (sigma, log_uniform(rng, 1e-7, 0.05))
+            })
+            .collect();
+        push_ray(&mut b, &samples, rng);
+    }
+    b
+}
+
+#[test]
+fn composite_and_distortion_match_reference() {
+    let e = engine();
+    let comp = Compositor::new(&e.ctx).unwrap();
+    let mut rng = Rng::new(21);
+    let b = batch(&mut rng, 400);
+    let (nr, ns) = (b.rays.len(), b.sigma.len());
+    let bg = [0.1f32, 0.5, 0.9];
+    let d_rgba: Vec<[f32; 4]> = (0..nr)
+        .map(|_| {
+            [
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            ]
+        })
+        .collect();
+    let d_depth: Vec<f32> = (0..nr).map(|_| rng.uniform(-0.1, 0.1)).collect();
+    let lambda = 0.01f32;
+
+    let flat = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let rays = Buffer::from_slice(
+        &e.ctx,
+        "rays",
+        &b.rays.iter().flatten().copied().collect::<Vec<u32>>(),
+    )
+    .unwrap();
+    let sigma = Buffer::from_slice(&e.ctx, "sigma", &b.sigma).unwrap();
+    let rgb = Buffer::from_slice(
+        &e.ctx,
+        "rgb",
+        &b.rgb.iter().flatten().copied().collect::<Vec<f32>>(),
+    )
+    .unwrap();
+    let t_dt = Buffer::from_slice(&e.ctx, "t_dt", &flat(&b.t_dt)).unwrap();
+    let s_ds = Buffer::from_slice(&e.ctx, "s_ds", &flat(&b.s_ds)).unwrap();
+    let out_rgba = Buffer::<f32>::new(&e.ctx, "out rgba", 4 * nr).unwrap();
+    let out_depth = Buffer::<f32>::new(&e.ctx, "out depth", nr).unwrap();
+    let loss = Buffer::<f32>::new(&e.ctx, "loss", nr).unwrap();
+    let d_weight = Buffer::<f32>::new(&e.ctx, "d_weight", ns).unwrap();
+    let g_rgba = Buffer::from_slice(
+        &e.ctx,
+        "d_rgba",
+        &d_rgba.iter().flatten().copied().collect::<Vec<f32>>(),
+    )
+    .unwrap();
+    let g_depth = Buffer::from_slice(&e.ctx, "d_depth", &d_depth).unwrap();
+    let d_sigma = Buffer::<f32>::new(&e.ctx, "d_sigma", ns).unwrap();
+    let d_rgb = Buffer::<f32>::new(&e.ctx, "d_rgb", 4 * ns).unwrap();
+    let s = Samples {
+        rays: rays.binding(),
+        sigma: sigma.binding(),
+        rgb: rgb.binding(),
+        t_dt: t_dt.binding(),
+        n_rays: nr as u64,
+        n_samples: ns as u64,
+    };
+    let mut rec = e.ctx.recorder("composite").unwrap();
+    comp.forward(&mut rec, &s, bg, out_rgba.binding(), out_depth.binding())
+        .unwrap();
+    comp.distortion(
+        &mut rec,
+        &s,
+        s_ds.binding(),
+        lambda,
+        loss.binding(),
+        d_weight.binding(),
+    )
+    .unwrap();
+    let g = RayGrads {
+        d_rgba: g_rgba.binding(),
+        d_depth: g_depth.binding(),
+        d_weight: d_weight.binding(),
+    };
+    comp.backward(&mut rec, &s, bg, &g, d_sigma.binding(), d_rgb.binding())
+        .unwrap();
+    e.ctx.run(rec).unwrap();
+
+    let (rgba, depth, loss, dw) = (
+        out_rgba.read().unwrap(),
+        out_depth.read().unwrap(),
+        loss.read().unwrap(),
+        d_weight.read().unwrap(),
+    );
+    let (ds, drgb) = (d_sigma.read().unwrap(), d_rgb.read().unwrap());
+    for (r, &[first, count]) in b.rays.iter().enumerate() {
+        let range = first as usize..(first + count) as usize;
+        let (sg, col, tdt, sds) = (
+            &b.sigma[range.clone()],
+            &b.rgb[range.clone()],
+            &b.t_dt[range.clone()],
+            &b.s_ds[range.clone()],
+        );
+        let want = composite_forward(sg, col, tdt, bg);
+        let t_max = tdt.last().map_or(1.0, |v| v[0] as f64);
+        // Stated tolerances: 5e-5 on colour and opacity (f32 transmittance over up to 160
+        // samples), 5e-5 of the farthest sample on depth.
+        for k in 0..4 {
+            assert!(
+                (rgba[4 * r + k] as f64 - want[k]).abs() <= 5e-5,
+                "ray {r} channel {k}: {} vs {}",
+                rgba[4 * r + k],
+                want[k]
+            );
+        }
+        assert!(
+            (depth[r] as f64 - want[4]).abs() <= 5e-5 * t_max,
+            "ray {r} depth: {} vs {}",
+            depth[r],
+            want[4]
+        );
+        let (l, gw) = distortion(sg, tdt, sds, lambda);
+        assert!(
+            (loss[r] as f64 - l).abs() <= 1e-4 * lambda as f64,
+            "ray {r} distortion: {} vs {l}",
+            loss[r]
+        );
+        for (i, &g) in gw.iter().enumerate() {
+            assert!(
+                (dw[first as usize + i] as f64 - g).abs() <= 1e-4 * lambda as f64,
+                "ray {r} sample {i} dL/dw: {} vs {g}",
+                dw[first as usize + i]
+            );
+        }
+        let dw_f32: Vec<f32> = dw[range.clone()].to_vec();
+        let (want_ds, want_drgb) =
+            composite_backward(sg, col, tdt, bg, d_rgba[r], d_depth[r], &dw_f32);
+        // |dL/dx| <= 2 max|u| + |background term|; 1e-4 of that bound, times dt.
+        let u_max = (0..sg.len())
+            .map(|i| {
+                (0..3)
+                    .map(|c| (col[i][c] * d_rgba[r][c]).abs())
+                    .sum::<f32>()
+                    + (tdt[i][0] * d_depth[r]).abs()
+                    + d_rgba[r][3].abs()
+                    + dw_f32[i].abs()
+            })
+            .fold(0.0f32, f32::max) as f64;
+        let bound = 2.0 * u_max
+            + (0..3)
+                .map(|c| (bg[c] * d_rgba[r][c]).abs() as f64)
+                .sum::<f64>();
+        for i in 0..sg.len() {
+            let s = first as usize + i;
+            let tol = 1e-4 * bound * tdt[i][1] as f64 + 1e-12;
+            assert!(
+                ds[s].is_finite() && (ds[s] as f64 - want_ds[i]).abs() <= tol,
+                "ray {r} sample {i} dL/dsigma: {} vs {} (tol {tol})",
+                ds[s],
+                want_ds[i]
+            );
+            for c in 0..3 {
+                assert!(
+                    (drgb[4 * s + c] as f64 - want_drgb[i][c]).abs() <= 5e-5,
+                    "ray {r} sample {i} dL/drgb"
+                );
+            }
+        }
+    }
+    // The extremes at the front: empty ray shows the background; opaque ray shows its first
+    // sample; no NaN anywhere.
+    assert_eq!(&rgba[0..4], &[bg[0], bg[1], bg[2], 0.0]);
+    assert!((rgba[4 * 2 + 3] - 1.0).abs() < 1e-6);
+    for c in 0..3 {
+        assert!((rgba[4 * 2 + c] - b.rgb[b.rays[2][0] as usize][c]).abs() < 1e-6);
+    }
+    assert!(rgba
+        .iter()
+        .chain(&depth)
+        .chain(&ds)
+        .chain(&drgb)
+        .chain(&dw)
+        .all(|v| v.is_finite()));
+    assert_no_validation_messages(&e.ctx);
+}
