@@ -6,6 +6,7 @@ use anyhow::Context as _;
 use extranerf_gpu::{Buffer, Context, GpuTimer, Recorder};
 use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
 use extranerf_nerf::field::mlp::{Mlp, MlpConfig};
+use extranerf_nerf::optim::{Adam, AdamConfig};
 use extranerf_prims::reference::Rng;
 use extranerf_prims::{CompactPlan, Prims, ReducePlan, ScanPlan, ScatterMode, SortPlan};
 
@@ -245,6 +246,14 @@ impl Bench<'_> {
                 t,
                 copy_gbps,
             );
+        }
+        if self.wanted("adam") {
+            let adam = Adam::new(ctx, n, AdamConfig::default())?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                adam.record_step(r, yf.binding(), xf.binding(), 1, 1.0)
+            })?;
+            // Reads parameter, gradient and both moments; writes parameter and moments.
+            self.push("adam (flat buffer), parameters", n, 7 * bytes, t, copy_gbps);
         }
         if self.wanted("hash") {
             // The paper's grid (16 levels x 2 features x 2^19 entries, N 16..2048) on n / 16

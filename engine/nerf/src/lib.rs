@@ -9,5 +9,6 @@
 
 pub mod data;
 pub mod field;
+pub mod optim;
 pub mod reference;
 pub mod render;

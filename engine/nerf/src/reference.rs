@@ -297,6 +297,36 @@ pub fn distortion(
     (l, grad)
 }
 
+/// One Adam step in f64 on (params, m, v), as the kernel defines it (non-finite gradients count
+/// as zero, weight decay added to the gradient).
+#[allow(clippy::too_many_arguments)] // mirrors the kernel's parameter block
+pub fn adam_step(
+    p: &mut [f64],
+    m: &mut [f64],
+    v: &mut [f64],
+    g: &[f32],
+    lr: f64,
+    beta1: f64,
+    beta2: f64,
+    eps: f64,
+    step: u32,
+    grad_scale: f64,
+    weight_decay: f64,
+) {
+    let (b1, b2) = (1.0 - beta1.powi(step as i32), 1.0 - beta2.powi(step as i32));
+    for i in 0..p.len() {
+        let gi = g[i] as f64 * grad_scale;
+        let gi = if gi.is_finite() && (g[i] * grad_scale as f32).is_finite() {
+            gi
+        } else {
+            0.0
+        } + weight_decay * p[i];
+        m[i] = beta1 * m[i] + (1.0 - beta1) * gi;
+        v[i] = beta2 * v[i] + (1.0 - beta2) * gi * gi;
+        p[i] -= lr * (m[i] / b1) / ((v[i] / b2).sqrt() + eps);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,137 @@
+//! Adam over the flat parameter buffer, as one kernel, with the Instant-NGP / ExtraNeRF
+//! learning-rate schedule (1e-2 decaying exponentially to 3e-4 over 5000 steps by default).
+
+use extranerf_gpu::kernels::optim::adam as k;
+use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+
+/// Adam hyperparameters and the learning-rate schedule.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamConfig {
+    /// Learning rate at step 1.
+    pub lr_start: f32,
+    /// Learning rate at `decay_steps` and after.
+    pub lr_end: f32,
+    /// Steps of the exponential decay.
+    pub decay_steps: u32,
+    /// First-moment decay.
+    pub beta1: f32,
+    /// Second-moment decay.
+    pub beta2: f32,
+    /// Denominator epsilon.
+    pub eps: f32,
+    /// L2 weight decay added to the gradient.
+    pub weight_decay: f32,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        AdamConfig {
+            lr_start: 1e-2,
+            lr_end: 3e-4,
+            decay_steps: 5000,
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-15,
+            weight_decay: 0.0,
+        }
+    }
+}
+
+impl AdamConfig {
+    /// Learning rate of step `step` (1-based): log-linear from `lr_start` to `lr_end`.
+    pub fn lr_at(&self, step: u32) -> f32 {
+        let f = if self.decay_steps <= 1 {
+            1.0
+        } else {
+            ((step.max(1) - 1) as f64 / (self.decay_steps - 1) as f64).min(1.0)
+        };
+        ((self.lr_start as f64).ln() * (1.0 - f) + (self.lr_end as f64).ln() * f).exp() as f32
+    }
+
+    fn validate(&self) -> Result<()> {
+        let ok = self.lr_start > 0.0
+            && self.lr_end > 0.0
+            && (0.0..1.0).contains(&self.beta1)
+            && (0.0..1.0).contains(&self.beta2)
+            && self.eps > 0.0
+            && self.weight_decay >= 0.0
+            && [self.lr_start, self.lr_end, self.eps, self.weight_decay]
+                .iter()
+                .all(|v| v.is_finite());
+        if ok {
+            Ok(())
+        } else {
+            Err(GpuError::Usage(format!("Adam: invalid settings {self:?} (learning rates and eps > 0, betas in [0, 1), weight decay >= 0)")))
+        }
+    }
+}
+
+/// Adam state (first and second moments) for `n` parameters.
+#[derive(Debug)]
+pub struct Adam {
+    config: AdamConfig,
+    kernel: Kernel,
+    m: Buffer<f32>,
+    v: Buffer<f32>,
+    n: u64,
+}
+
+impl Adam {
+    /// Zeroed moments for `n` parameters.
+    pub fn new(ctx: &Context, n: u64, config: AdamConfig) -> Result<Adam> {
+        config.validate()?;
+        let zeros = vec![0f32; n as usize];
+        Ok(Adam {
+            config,
+            kernel: Kernel::new(ctx, &k::adam::DESC)?,
+            m: Buffer::from_slice(ctx, "adam first moment", &zeros)?,
+            v: Buffer::from_slice(ctx, "adam second moment", &zeros)?,
+            n,
+        })
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &AdamConfig {
+        &self.config
+    }
+
+    /// Records update number `step` (1-based) of `params` with `grads * grad_scale`.
+    pub fn record_step<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        params: Binding<'a>,
+        grads: Binding<'a>,
+        step: u32,
+        grad_scale: f32,
+    ) -> Result<()> {
+        if step == 0 {
+            return Err(GpuError::Usage("Adam steps count from 1".into()));
+        }
+        params.check_fits(self.n, 4, "Adam parameters")?;
+        grads.check_fits(self.n, 4, "Adam gradients")?;
+        let c = &self.config;
+        let p = k::Params {
+            n: u32::try_from(self.n)
+                .map_err(|_| GpuError::Usage(format!("Adam: {} parameters exceed 2^32", self.n)))?,
+            lr: c.lr_at(step),
+            beta1: c.beta1,
+            beta2: c.beta2,
+            eps: c.eps,
+            bias1: (1.0 - (c.beta1 as f64).powi(step as i32)) as f32,
+            bias2: (1.0 - (c.beta2 as f64).powi(step as i32)) as f32,
+            grad_scale,
+            weight_decay: c.weight_decay,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
+        };
+        let b = k::adam::Bindings {
+            param: params,
+            grad: grads,
+            m1: self.m.binding(),
+            m2: self.v.binding(),
+        };
+        // 4 vec4s (16 parameters) per thread.
+        rec.dispatch(&self.kernel, b.into_array(), &p, self.n.div_ceil(16))
+    }
+}
