@@ -261,3 +261,87 @@ fn mlp_forward_and_gradients_match_reference() {
     ));
     assert_no_validation_messages(&engine().ctx);
 }
+
+#[test]
+fn contraction_and_sh_match_reference_at_the_extremes() {
+    use extranerf_nerf::field::encodings::{Contraction, Encodings, SceneBox};
+    use extranerf_nerf::reference::{contract, sh4};
+    let e = engine();
+    let enc = Encodings::new(&e.ctx).unwrap();
+    let mut rng = Rng::new(31);
+    let mut pts: Vec<[f32; 3]> = vec![
+        [0.0, 0.0, 0.0],
+        [1e6, 0.0, 0.0],
+        [0.0, -1e6, 0.0],
+        [1e30, 1e30, -1e30],
+        [3e38, -3e38, 1.0],
+        [f32::INFINITY, 0.0, 0.0],
+        [1e-30, 1e-30, 0.0],
+        [0.5, 0.5, 0.5],
+    ];
+    for _ in 0..2000 {
+        let scale = 10f32.powf(rng.uniform(-3.0, 6.0));
+        pts.push([
+            rng.uniform(-1.0, 1.0) * scale,
+            rng.uniform(-1.0, 1.0) * scale,
+            rng.uniform(-1.0, 1.0) * scale,
+        ]);
+    }
+    let n = pts.len();
+    let flat: Vec<f32> = pts.iter().flatten().copied().collect();
+    let pb = Buffer::from_slice(&e.ctx, "points", &flat).unwrap();
+    let out = Buffer::<f32>::new(&e.ctx, "contracted", 3 * n).unwrap();
+    let sh = Buffer::<f32>::new(&e.ctx, "sh", 16 * n).unwrap();
+    for contraction in [Contraction::None, Contraction::L2, Contraction::LInf] {
+        let scene = SceneBox {
+            center: [0.25, -0.5, 1.0],
+            radius: 1.5,
+            contraction,
+        };
+        let mut rec = e.ctx.recorder("contract").unwrap();
+        enc.contract(&mut rec, pb.binding(), out.binding(), n as u64, &scene)
+            .unwrap();
+        e.ctx.run(rec).unwrap();
+        let got = out.read().unwrap();
+        for (i, p) in pts.iter().enumerate() {
+            let want = contract(*p, &scene);
+            for d in 0..3 {
+                let g = got[3 * i + d];
+                // Inside [0, 1] by construction; 2e-6 absolute (f32 of values <= 1).
+                assert!(
+                    (0.0..=1.0).contains(&g) && (g as f64 - want[d]).abs() <= 2e-6,
+                    "{contraction:?} point {p:?} axis {d}: {g} vs {}",
+                    want[d]
+                );
+            }
+        }
+    }
+    let mut rec = e.ctx.recorder("sh").unwrap();
+    enc.sh(&mut rec, pb.binding(), sh.binding(), n as u64)
+        .unwrap();
+    e.ctx.run(rec).unwrap();
+    let got = sh.read().unwrap();
+    for (i, p) in pts.iter().enumerate() {
+        let (m, ok) = (
+            p.iter().fold(0f64, |m, v| m.max(v.abs() as f64)),
+            p.iter().all(|v| v.is_finite()),
+        );
+        let d = if ok && m > 0.0 {
+            let u = p.map(|v| v as f64 / m);
+            let l = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
+            u.map(|v| v / l)
+        } else {
+            [0.0, 0.0, 1.0]
+        };
+        let want = sh4(d);
+        for k in 0..16 {
+            assert!(
+                (got[16 * i + k] as f64 - want[k]).abs() <= 2e-6,
+                "direction {p:?} coefficient {k}: {} vs {}",
+                got[16 * i + k],
+                want[k]
+            );
+        }
+    }
+    assert_no_validation_messages(&e.ctx);
+}

@@ -327,6 +327,54 @@ pub fn adam_step(
     }
 }
 
+/// Contraction into [0, 1]^3 in f64 (see `field::encodings::Contraction`).
+pub fn contract(x: [f32; 3], scene: &crate::field::encodings::SceneBox) -> [f64; 3] {
+    use crate::field::encodings::Contraction;
+    let u: Vec<f64> = (0..3)
+        .map(|d| ((x[d] as f64 - scene.center[d] as f64) / scene.radius as f64).clamp(-1e37, 1e37))
+        .collect();
+    let c: Vec<f64> = match scene.contraction {
+        Contraction::None => return [0, 1, 2].map(|d| (u[d] * 0.5 + 0.5).clamp(0.0, 1.0)),
+        Contraction::L2 | Contraction::LInf => {
+            let n = if scene.contraction == Contraction::L2 {
+                u.iter().map(|v| v * v).sum::<f64>().sqrt()
+            } else {
+                u.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
+            };
+            if n > 1.0 {
+                u.iter().map(|v| (2.0 - 1.0 / n) * v / n).collect()
+            } else {
+                u
+            }
+        }
+    };
+    [0, 1, 2].map(|d| (c[d] * 0.25 + 0.5).clamp(0.0, 1.0))
+}
+
+/// Degree-4 real spherical harmonics (16 values) of a unit direction, in f64.
+pub fn sh4(d: [f64; 3]) -> [f64; 16] {
+    let [x, y, z] = d;
+    let (x2, y2, z2) = (x * x, y * y, z * z);
+    [
+        0.28209479177387814,
+        -0.48860251190291987 * y,
+        0.48860251190291987 * z,
+        -0.48860251190291987 * x,
+        1.0925484305920792 * x * y,
+        -1.0925484305920792 * y * z,
+        0.94617469575755997 * z2 - 0.31539156525251999,
+        -1.0925484305920792 * x * z,
+        0.54627421529603959 * (x2 - y2),
+        0.59004358992664352 * y * (-3.0 * x2 + y2),
+        2.8906114426405538 * x * y * z,
+        0.45704579946446572 * y * (1.0 - 5.0 * z2),
+        0.3731763325901154 * z * (5.0 * z2 - 3.0),
+        0.45704579946446572 * x * (1.0 - 5.0 * z2),
+        1.4453057213202769 * z * (x2 - y2),
+        0.59004358992664352 * x * (-x2 + 3.0 * y2),
+    ]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -506,6 +554,56 @@ mod tests {
                 "distortion w {i}: {fd} vs {}",
                 grad[i]
             );
+        }
+    }
+
+    /// The SH basis is orthonormal over the sphere (quadrature on a Fibonacci sphere), which
+    /// checks every constant independently of the formulas' transcription.
+    #[test]
+    fn sh_basis_is_orthonormal() {
+        let n = 40_000;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        let mut gram = [[0f64; 16]; 16];
+        for i in 0..n {
+            let z = 1.0 - (2.0 * i as f64 + 1.0) / n as f64;
+            let r = (1.0 - z * z).sqrt();
+            let (s, c) = (golden * i as f64).sin_cos();
+            let y = sh4([r * c, r * s, z]);
+            for a in 0..16 {
+                for b in 0..16 {
+                    gram[a][b] += y[a] * y[b] * 4.0 * std::f64::consts::PI / n as f64;
+                }
+            }
+        }
+        for a in 0..16 {
+            for b in 0..16 {
+                let want = if a == b { 1.0 } else { 0.0 };
+                assert!(
+                    (gram[a][b] - want).abs() < 1e-3,
+                    "<Y{a}, Y{b}> = {}",
+                    gram[a][b]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn contraction_is_continuous_and_bounded() {
+        use crate::field::encodings::{Contraction, SceneBox};
+        for contraction in [Contraction::L2, Contraction::LInf] {
+            let s = SceneBox {
+                center: [1.0, 2.0, 3.0],
+                radius: 2.0,
+                contraction,
+            };
+            // Continuous across the unit sphere / cube (radius 2 around the centre).
+            let a = contract([3.0 - 1e-4, 2.0, 3.0], &s);
+            let b = contract([3.0 + 1e-4, 2.0, 3.0], &s);
+            assert!((a[0] - b[0]).abs() < 1e-4);
+            // The centre maps to the middle; far points approach the boundary of radius 2.
+            assert_eq!(contract([1.0, 2.0, 3.0], &s), [0.5, 0.5, 0.5]);
+            let far = contract([1e30, 2.0, 3.0], &s);
+            assert!((far[0] - 1.0).abs() < 1e-12 && (far[1] - 0.5).abs() < 1e-12);
         }
     }
 

@@ -1,4 +1,5 @@
 //! The radiance field's GPU parts.
 
+pub mod encodings;
 pub mod hash_grid;
 pub mod mlp;
