@@ -352,6 +352,7 @@ pub fn contract(x: [f32; 3], scene: &crate::field::encodings::SceneBox) -> [f64;
 }
 
 /// Degree-4 real spherical harmonics (16 values) of a unit direction, in f64.
+#[allow(clippy::excessive_precision)] // the constants as published, digit for digit
 pub fn sh4(d: [f64; 3]) -> [f64; 16] {
     let [x, y, z] = d;
     let (x2, y2, z2) = (x * x, y * y, z * z);
