@@ -570,20 +570,16 @@ mod tests {
             let r = (1.0 - z * z).sqrt();
             let (s, c) = (golden * i as f64).sin_cos();
             let y = sh4([r * c, r * s, z]);
-            for a in 0..16 {
-                for b in 0..16 {
-                    gram[a][b] += y[a] * y[b] * 4.0 * std::f64::consts::PI / n as f64;
+            for (row, ya) in gram.iter_mut().zip(y) {
+                for (g, yb) in row.iter_mut().zip(y) {
+                    *g += ya * yb * 4.0 * std::f64::consts::PI / n as f64;
                 }
             }
         }
-        for a in 0..16 {
-            for b in 0..16 {
+        for (a, row) in gram.iter().enumerate() {
+            for (b, g) in row.iter().enumerate() {
                 let want = if a == b { 1.0 } else { 0.0 };
-                assert!(
-                    (gram[a][b] - want).abs() < 1e-3,
-                    "<Y{a}, Y{b}> = {}",
-                    gram[a][b]
-                );
+                assert!((g - want).abs() < 1e-3, "<Y{a}, Y{b}> = {g}");
             }
         }
     }
