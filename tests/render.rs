@@ -247,3 +247,139 @@ fn composite_and_distortion_match_reference() {
         .all(|v| v.is_finite()));
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn rays_match_reference_on_fern_in_world_and_ndc() {
+    use extranerf_nerf::data::llff::{load_llff, LlffOptions};
+    use extranerf_nerf::reference::{camera_ray, ndc_ray};
+    use extranerf_nerf::render::rays::{gpu_camera, RayGen, RaySpace};
+    let e = engine();
+    let gen = RayGen::new(&e.ctx).unwrap();
+    let mut scene = load_llff(
+        &extranerf_tests::shared_data().join("llff/fern"),
+        &LlffOptions::default(),
+    )
+    .unwrap();
+    // A camera looking along +x: its central ray is parallel to NDC's near plane.
+    let mut side = scene.cameras[0].clone();
+    side.c2w = glam::DMat4::from_rotation_y(-std::f64::consts::FRAC_PI_2);
+    scene.cameras.push(side);
+    let cams: Vec<_> = scene.cameras.iter().map(gpu_camera).collect();
+    let nc = cams.len() as u32;
+    let mut rng = Rng::new(41);
+    let mut pix: Vec<[u32; 2]> = Vec::new();
+    for (c, cam) in scene.cameras.iter().enumerate() {
+        let (w, h) = (cam.width, cam.height);
+        for p in [0, w - 1, (h - 1) * w, h * w - 1, (h / 2) * w + w / 2] {
+            pix.push([c as u32, p]);
+        }
+        for _ in 0..50 {
+            pix.push([c as u32, rng.below(w * h)]);
+        }
+    }
+    pix.push([nc + 3, 0]); // no such camera
+    pix.push([0, 504 * 378]); // past the last pixel
+    let n = pix.len();
+    let cb = Buffer::from_slice(&e.ctx, "cameras", &cams).unwrap();
+    let pb = Buffer::from_slice(
+        &e.ctx,
+        "pixels",
+        &pix.iter().flatten().copied().collect::<Vec<u32>>(),
+    )
+    .unwrap();
+    let ob = Buffer::<f32>::new(&e.ctx, "origins", 4 * n).unwrap();
+    let db = Buffer::<f32>::new(&e.ctx, "directions", 4 * n).unwrap();
+    for space in [RaySpace::World, RaySpace::Ndc { near: 1.0 }] {
+        let mut rec = e.ctx.recorder("rays").unwrap();
+        gen.generate(
+            &mut rec,
+            cb.binding(),
+            nc,
+            pb.binding(),
+            ob.binding(),
+            db.binding(),
+            n as u64,
+            space,
+        )
+        .unwrap();
+        e.ctx.run(rec).unwrap();
+        let (o, d) = (ob.read().unwrap(), db.read().unwrap());
+        assert!(
+            o.iter().chain(&d).all(|v| v.is_finite()),
+            "{space:?}: non-finite ray"
+        );
+        for (i, &[c, p]) in pix.iter().enumerate() {
+            let (go, gd) = (
+                [o[4 * i] as f64, o[4 * i + 1] as f64, o[4 * i + 2] as f64],
+                [d[4 * i] as f64, d[4 * i + 1] as f64, d[4 * i + 2] as f64],
+            );
+            if c >= nc || p >= scene.cameras[c as usize].width * scene.cameras[c as usize].height {
+                assert_eq!(
+                    (go, gd),
+                    ([0.0; 3], [0.0; 3]),
+                    "invalid index must give a zero ray"
+                );
+                continue;
+            }
+            let cam = &scene.cameras[c as usize];
+            let px = [(p % cam.width) as f64 + 0.5, (p / cam.width) as f64 + 0.5];
+            let (wo, wd) = camera_ray(cam, px);
+            let (wo, wd) = match space {
+                RaySpace::World => (wo, wd),
+                RaySpace::Ndc { near } => ndc_ray(cam, wo, wd, near as f64),
+            };
+            // The side camera's central ray sits on the 1e-12 nudge: its NDC values are huge
+            // and only checked for being finite.
+            if (c + 1 == nc) && matches!(space, RaySpace::Ndc { .. }) {
+                continue;
+            }
+            for k in 0..3 {
+                let tol = 1e-5 * (1.0 + wo[k].abs());
+                assert!(
+                    (go[k] - wo[k]).abs() <= tol,
+                    "{space:?} camera {c} pixel {p} origin {k}: {} vs {}",
+                    go[k],
+                    wo[k]
+                );
+                let tol = 1e-5 * (1.0 + wd[k].abs());
+                assert!(
+                    (gd[k] - wd[k]).abs() <= tol,
+                    "{space:?} camera {c} pixel {p} direction {k}: {} vs {}",
+                    gd[k],
+                    wd[k]
+                );
+            }
+            match space {
+                // Independent check of the convention: the point at depth 5 projects back
+                // onto the pixel.
+                RaySpace::World => {
+                    let x = glam::DVec3::from(go) + 5.0 * glam::DVec3::from(gd);
+                    let (u, v, z) = cam.project(x);
+                    assert!(
+                        (u - px[0]).abs() < 2e-3
+                            && (v - px[1]).abs() < 2e-3
+                            && (z - 5.0).abs() < 1e-4,
+                        "camera {c} pixel {p}: projects to ({u}, {v}, {z})"
+                    );
+                }
+                // NDC origins sit on the near plane, z = -1.
+                RaySpace::Ndc { .. } => {
+                    assert!((go[2] + 1.0).abs() < 1e-5, "NDC origin z {}", go[2])
+                }
+            }
+        }
+    }
+    assert!(gen
+        .generate(
+            &mut e.ctx.recorder("x").unwrap(),
+            cb.binding(),
+            nc,
+            pb.binding(),
+            ob.binding(),
+            db.binding(),
+            1,
+            RaySpace::Ndc { near: 0.0 }
+        )
+        .is_err());
+    assert_no_validation_messages(&e.ctx);
+}

@@ -376,6 +376,40 @@ pub fn sh4(d: [f64; 3]) -> [f64; 16] {
     ]
 }
 
+/// World-space ray through pixel coordinates `px` (centres at +0.5) in f64: origin and
+/// direction with unit depth along the viewing axis.
+pub fn camera_ray(cam: &crate::data::Camera, px: [f64; 2]) -> ([f64; 3], [f64; 3]) {
+    let dc = glam::DVec3::new((px[0] - cam.cx) / cam.fx, -(px[1] - cam.cy) / cam.fy, -1.0);
+    let d = glam::DMat3::from_mat4(cam.c2w) * dc;
+    let o = cam.c2w.w_axis.truncate();
+    (o.to_array(), d.to_array())
+}
+
+/// NeRF's `ndc_rays` in f64 (directions parallel to the near plane nudged as the kernel does).
+pub fn ndc_ray(
+    cam: &crate::data::Camera,
+    o: [f64; 3],
+    d: [f64; 3],
+    near: f64,
+) -> ([f64; 3], [f64; 3]) {
+    let mut d = d;
+    if d[2].abs() < 1e-12 {
+        d[2] = -1e-12;
+    }
+    let t = -(near + o[2]) / d[2];
+    let o = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+    let ax = -2.0 * (cam.fx as f32) as f64 / cam.width as f64;
+    let ay = -2.0 * (cam.fy as f32) as f64 / cam.height as f64;
+    (
+        [ax * o[0] / o[2], ay * o[1] / o[2], 1.0 + 2.0 * near / o[2]],
+        [
+            ax * (d[0] / d[2] - o[0] / o[2]),
+            ay * (d[1] / d[2] - o[1] / o[2]),
+            -2.0 * near / o[2],
+        ],
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

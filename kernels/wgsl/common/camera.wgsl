@@ -1,0 +1,39 @@
+// Pinhole cameras in the OpenGL / NeRF convention (x right, y up, looking along -z) and NeRF's
+// normalised device coordinates for forward-facing scenes.
+
+struct GpuCamera {
+    // Rows of the 3x4 camera-to-world matrix.
+    c2w0: vec4<f32>,
+    c2w1: vec4<f32>,
+    c2w2: vec4<f32>,
+    // fx, fy, cx, cy in pixels.
+    intr: vec4<f32>,
+    // width, height, unused, unused.
+    size: vec4<u32>,
+}
+
+// Ray through pixel coordinates `px` (pixel centres at +0.5): origin, and direction scaled so
+// that one unit of t is one unit of depth along the viewing axis.
+fn camera_ray(cam: GpuCamera, px: vec2<f32>) -> array<vec3<f32>, 2> {
+    let dc = vec3<f32>((px.x - cam.intr.z) / cam.intr.x, -(px.y - cam.intr.w) / cam.intr.y, -1.0);
+    let d = vec3<f32>(dot(cam.c2w0.xyz, dc), dot(cam.c2w1.xyz, dc), dot(cam.c2w2.xyz, dc));
+    let o = vec3<f32>(cam.c2w0.w, cam.c2w1.w, cam.c2w2.w);
+    return array<vec3<f32>, 2>(o, d);
+}
+
+// NeRF's ndc_rays: moves the origin to the plane z = -near and maps the frustum to [-1, 1]^3
+// (the far end at infinity becomes z = 1). A direction parallel to the near plane is nudged to
+// a tiny -z component so the result stays finite.
+fn ndc_ray(cam: GpuCamera, o_in: vec3<f32>, d_in: vec3<f32>, near: f32) -> array<vec3<f32>, 2> {
+    var d = d_in;
+    if abs(d.z) < 1e-12 {
+        d.z = -1e-12;
+    }
+    let t = -(near + o_in.z) / d.z;
+    let o = o_in + t * d;
+    let ax = -2.0 * cam.intr.x / f32(cam.size.x);
+    let ay = -2.0 * cam.intr.y / f32(cam.size.y);
+    let o_ndc = vec3<f32>(ax * o.x / o.z, ay * o.y / o.z, 1.0 + 2.0 * near / o.z);
+    let d_ndc = vec3<f32>(ax * (d.x / d.z - o.x / o.z), ay * (d.y / d.z - o.y / o.z), -2.0 * near / o.z);
+    return array<vec3<f32>, 2>(o_ndc, d_ndc);
+}
