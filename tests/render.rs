@@ -33,7 +33,7 @@ fn batch(rng: &mut Rng, n_rays: usize) -> Batch {
     };
     let push_ray = |b: &mut Batch, samples: &[(f32, f32)], rng: &mut Rng| {
         b.rays.push([b.sigma.len() as u32, samples.len() as u32]);
-        let mut t = 2.0f32;
+        let mut t = rng.uniform(0.2, 3.0);
         for (i, &(sigma, dt)) in samples.iter().enumerate() {
             b.sigma.push(sigma);
             b.rgb.push([
@@ -141,10 +141,12 @@ fn composite_and_distortion_match_reference() {
         d_weight.binding(),
     )
     .unwrap();
+    // Gradient scaling on: rays start at t in [0.2, 3], so samples below t = 1 are scaled.
     let g = RayGrads {
         d_rgba: g_rgba.binding(),
         d_depth: g_depth.binding(),
         d_weight: d_weight.binding(),
+        grad_scaling: true,
     };
     comp.backward(&mut rec, &s, bg, &g, d_sigma.binding(), d_rgb.binding())
         .unwrap();
@@ -198,7 +200,7 @@ fn composite_and_distortion_match_reference() {
         }
         let dw_f32: Vec<f32> = dw[range.clone()].to_vec();
         let (want_ds, want_drgb) =
-            composite_backward(sg, col, tdt, bg, d_rgba[r], d_depth[r], &dw_f32);
+            composite_backward(sg, col, tdt, bg, d_rgba[r], d_depth[r], &dw_f32, true);
         // |dL/dx| <= 2 max|u| + |background term|; 1e-4 of that bound, times dt.
         let u_max = (0..sg.len())
             .map(|i| {

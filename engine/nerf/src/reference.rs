@@ -204,7 +204,9 @@ pub fn composite_forward(
 }
 
 /// Backward of [`composite_forward`] for one ray in f64: (dL/dsigma, dL/drgb) per sample, given
-/// dL/d(r, g, b, opacity), dL/ddepth and an extra dL/dweight per sample.
+/// dL/d(r, g, b, opacity), dL/ddepth and an extra dL/dweight per sample; with `grad_scaling`
+/// each sample's gradients are multiplied by min(1, t^2) (Floaters No More).
+#[allow(clippy::too_many_arguments)] // mirrors the kernel's operands
 pub fn composite_backward(
     sigma: &[f32],
     rgb: &[[f32; 4]],
@@ -213,6 +215,7 @@ pub fn composite_backward(
     d_rgba: [f32; 4],
     d_depth: f32,
     d_weight: &[f32],
+    grad_scaling: bool,
 ) -> (Vec<f64>, Vec<[f64; 3]>) {
     let n = sigma.len();
     let dt: Vec<f32> = t_dt.iter().map(|v| v[1]).collect();
@@ -248,14 +251,20 @@ pub fn composite_backward(
             0.0
         };
     }
+    let scale = |i: usize| {
+        if grad_scaling {
+            (t_dt[i][0] as f64 * t_dt[i][0] as f64).min(1.0)
+        } else {
+            1.0
+        }
+    };
+    let d_sigma = d_sigma
+        .iter()
+        .enumerate()
+        .map(|(i, d)| d * scale(i))
+        .collect();
     let d_rgb = (0..n)
-        .map(|i| {
-            [
-                w[i] * d_rgba[0] as f64,
-                w[i] * d_rgba[1] as f64,
-                w[i] * d_rgba[2] as f64,
-            ]
-        })
+        .map(|i| [0, 1, 2].map(|c| scale(i) * w[i] * d_rgba[c] as f64))
         .collect();
     (d_sigma, d_rgb)
 }
@@ -532,7 +541,13 @@ mod tests {
         let g = [0.3f32, -0.7, 0.5, 0.25];
         let gd = -0.4f32;
         let dw: Vec<f32> = (0..n).map(|i| (i as f32 * 0.3).sin() * 0.2).collect();
-        let (d_sigma, d_rgb) = composite_backward(&sigma, &rgb, &t_dt, bg, g, gd, &dw);
+        let (d_sigma, d_rgb) = composite_backward(&sigma, &rgb, &t_dt, bg, g, gd, &dw, false);
+        // Gradient scaling only rescales per sample.
+        let (scaled, _) = composite_backward(&sigma, &rgb, &t_dt, bg, g, gd, &dw, true);
+        for i in 0..n {
+            let t = t_dt[i][0] as f64;
+            assert!((scaled[i] - d_sigma[i] * (t * t).min(1.0)).abs() < 1e-12);
+        }
         let dt: Vec<f32> = t_dt.iter().map(|v| v[1]).collect();
         let loss = |s: &[f32], c: &[[f32; 4]]| -> f64 {
             let o = composite_forward(s, c, &t_dt, bg);

@@ -6,7 +6,9 @@
 
 struct Params {
     n_rays: u32,
-    _pad0: u32,
+    // Floaters No More (Philip & Deschaintre 2023): 1 scales each sample's gradients by
+    // min(1, t^2), damping the near-camera floaters that few views constrain.
+    grad_scaling: u32,
     _pad1: u32,
     _pad2: u32,
     // Background colour (rgb, w unused), added with the ray's final transmittance.
@@ -92,7 +94,11 @@ fn composite_bwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
         let dx = exp(-tau) * u - (total - prefix) - bg;
         // sigma <= 0 or dt <= 0 contribute x = 0 with zero slope in sigma below 0; the
         // gradient still flows for sigma = 0 (the density can grow).
-        d_sigma[s] = select(0.0, dt * dx, dt > 0.0 && sigma[s] >= 0.0);
-        d_rgb[s] = vec4<f32>(w * g.xyz, 0.0);
+        var scale = 1.0;
+        if params.grad_scaling != 0u {
+            scale = min(1.0, t_dt[s].x * t_dt[s].x);
+        }
+        d_sigma[s] = select(0.0, scale * dt * dx, dt > 0.0 && sigma[s] >= 0.0);
+        d_rgb[s] = vec4<f32>(scale * w * g.xyz, 0.0);
     }
 }

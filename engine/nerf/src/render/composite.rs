@@ -38,6 +38,8 @@ pub struct RayGrads<'a> {
     pub d_depth: Binding<'a>,
     /// Per sample extra dL/dweight (the distortion loss), zeros when unused.
     pub d_weight: Binding<'a>,
+    /// Scale each sample's gradients by min(1, t^2) ("Floaters No More").
+    pub grad_scaling: bool,
 }
 
 /// The compositing kernels.
@@ -62,10 +64,10 @@ impl Compositor {
         })
     }
 
-    fn params(n_rays: u64, background: [f32; 3]) -> Result<k::Params> {
+    fn params(n_rays: u64, background: [f32; 3], grad_scaling: bool) -> Result<k::Params> {
         Ok(k::Params {
             n_rays: n32(n_rays)?,
-            _pad0: 0,
+            grad_scaling: u32::from(grad_scaling),
             _pad1: 0,
             _pad2: 0,
             background: [background[0], background[1], background[2], 0.0],
@@ -96,7 +98,7 @@ impl Compositor {
         rec.dispatch(
             &self.fwd,
             b.into_array(),
-            &Self::params(s.n_rays, background)?,
+            &Self::params(s.n_rays, background, false)?,
             s.n_rays,
         )
     }
@@ -131,7 +133,7 @@ impl Compositor {
         rec.dispatch(
             &self.bwd,
             b.into_array(),
-            &Self::params(s.n_rays, background)?,
+            &Self::params(s.n_rays, background, g.grad_scaling)?,
             s.n_rays,
         )
     }
