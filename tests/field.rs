@@ -345,3 +345,61 @@ fn contraction_and_sh_match_reference_at_the_extremes() {
     }
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn hash_decay_matches_reference() {
+    use extranerf_nerf::reference::hash_decay;
+    let e = engine();
+    let cfg = HashGridConfig {
+        levels: 8,
+        features: 2,
+        log2_table: 14,
+        min_res: 8,
+        max_res: 512,
+    };
+    let grid = HashGrid::new(&e.ctx, cfg).unwrap();
+    let mut rng = Rng::new(61);
+    let n = cfg.param_count() as usize;
+    let table: Vec<f32> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let g0: Vec<f32> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let tb = Buffer::from_slice(&e.ctx, "table", &table).unwrap();
+    let gb = Buffer::from_slice(&e.ctx, "grad", &g0).unwrap();
+    let partial = Buffer::<f32>::new(&e.ctx, "partial", grid.decay_partials() as usize).unwrap();
+    let total = Buffer::<f32>::new(&e.ctx, "total", 1).unwrap();
+    let plan = extranerf_prims::ReducePlan::new(&e.ctx).unwrap();
+    let mut rec = e.ctx.recorder("decay").unwrap();
+    grid.decay(
+        &mut rec,
+        tb.binding(),
+        gb.binding(),
+        partial.binding(),
+        0.25,
+    )
+    .unwrap();
+    e.prims
+        .reduce_sum(
+            &mut rec,
+            &plan,
+            partial.binding(),
+            grid.decay_partials(),
+            total.binding(),
+        )
+        .unwrap();
+    e.ctx.run(rec).unwrap();
+    let (want_loss, want_grad) = hash_decay(&cfg, &table, 0.25);
+    let got = total.read().unwrap()[0] as f64;
+    assert!(
+        (got - want_loss).abs() <= 1e-5 * want_loss,
+        "loss {got} vs {want_loss}"
+    );
+    let grad = gb.read().unwrap();
+    for i in 0..n {
+        let want = g0[i] as f64 + want_grad[i];
+        assert!(
+            (grad[i] as f64 - want).abs() <= 1e-6,
+            "entry {i}: {} vs {want}",
+            grad[i]
+        );
+    }
+    assert_no_validation_messages(&e.ctx);
+}

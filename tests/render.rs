@@ -385,3 +385,108 @@ fn rays_match_reference_on_fern_in_world_and_ndc() {
         .is_err());
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn ray_losses_match_reference() {
+    use extranerf_nerf::reference::ray_loss;
+    use extranerf_nerf::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
+    let e = engine();
+    let kernel = RayLoss::new(&e.ctx).unwrap();
+    let mut rng = Rng::new(51);
+    let n = 1001;
+    let rendered: Vec<[f32; 4]> = (0..n)
+        .map(|_| {
+            [
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+            ]
+        })
+        .collect();
+    let depth: Vec<f32> = (0..n).map(|_| rng.uniform(1.0, 10.0)).collect();
+    // All-black and all-white targets included.
+    let target: Vec<[f32; 4]> = (0..n)
+        .map(|i| match i % 10 {
+            0 => [0.0; 4],
+            1 => [1.0, 1.0, 1.0, 0.0],
+            _ => [
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                0.0,
+            ],
+        })
+        .collect();
+    let tdepth: Vec<[f32; 2]> = (0..n)
+        .map(|i| {
+            [
+                rng.uniform(1.0, 10.0),
+                if i % 3 == 0 {
+                    rng.uniform(0.1, 1.0)
+                } else {
+                    0.0
+                },
+            ]
+        })
+        .collect();
+    let flat4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let rb = Buffer::from_slice(&e.ctx, "rendered", &flat4(&rendered)).unwrap();
+    let db = Buffer::from_slice(&e.ctx, "depth", &depth).unwrap();
+    let tb = Buffer::from_slice(&e.ctx, "target", &flat4(&target)).unwrap();
+    let tdb = Buffer::from_slice(
+        &e.ctx,
+        "target depth",
+        &tdepth.iter().flatten().copied().collect::<Vec<f32>>(),
+    )
+    .unwrap();
+    let loss = Buffer::<f32>::new(&e.ctx, "loss", n).unwrap();
+    let g = Buffer::<f32>::new(&e.ctx, "d_rgba", 4 * n).unwrap();
+    let gd = Buffer::<f32>::new(&e.ctx, "d_depth", n).unwrap();
+    for rgb in [RgbLoss::L2, RgbLoss::Huber(0.05)] {
+        let cfg = LossConfig {
+            rgb,
+            depth_lambda: 0.1,
+        };
+        let mut rec = e.ctx.recorder("loss").unwrap();
+        let t = Targets {
+            rgb: tb.binding(),
+            depth: tdb.binding(),
+        };
+        kernel
+            .record(
+                &mut rec,
+                &cfg,
+                rb.binding(),
+                db.binding(),
+                &t,
+                loss.binding(),
+                g.binding(),
+                gd.binding(),
+                n as u64,
+            )
+            .unwrap();
+        e.ctx.run(rec).unwrap();
+        let (l, gg, ggd) = (loss.read().unwrap(), g.read().unwrap(), gd.read().unwrap());
+        for i in 0..n {
+            let (wl, wg, wgd) = ray_loss(rendered[i], depth[i], target[i], tdepth[i], &cfg);
+            let inv = 1.0 / n as f64;
+            // f32 arithmetic on values of order 1 (depth errors up to 9): 1e-6 relative.
+            assert!(
+                (l[i] as f64 - wl * inv).abs() <= 1e-6 * (1.0 + wl) * inv,
+                "{rgb:?} ray {i} loss"
+            );
+            for c in 0..3 {
+                assert!(
+                    (gg[4 * i + c] as f64 - wg[c] * inv).abs() <= 1e-6 * inv,
+                    "{rgb:?} ray {i} dL/drgb {c}"
+                );
+            }
+            assert!(
+                (ggd[i] as f64 - wgd * inv).abs() <= 1e-6 * (1.0 + wgd.abs()) * inv,
+                "{rgb:?} ray {i} dL/ddepth"
+            );
+        }
+    }
+    assert_no_validation_messages(&e.ctx);
+}

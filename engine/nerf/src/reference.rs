@@ -419,6 +419,64 @@ pub fn ndc_ray(
     )
 }
 
+/// Per-ray loss (before the 1/n of the batch mean) and its gradients (d_rgb, d_depth), in f64.
+pub fn ray_loss(
+    rendered: [f32; 4],
+    depth: f32,
+    target: [f32; 4],
+    target_depth: [f32; 2],
+    cfg: &crate::render::loss::LossConfig,
+) -> (f64, [f64; 3], f64) {
+    use crate::render::loss::RgbLoss;
+    let e = [0, 1, 2].map(|c| rendered[c] as f64 - target[c] as f64);
+    let (mut l, g) = match cfg.rgb {
+        RgbLoss::L2 => (
+            e.iter().map(|v| v * v).sum::<f64>() / 3.0,
+            e.map(|v| 2.0 * v / 3.0),
+        ),
+        RgbLoss::Huber(d) => {
+            let d = d as f64;
+            let l = e
+                .iter()
+                .map(|v| {
+                    if v.abs() <= d {
+                        0.5 * v * v
+                    } else {
+                        d * (v.abs() - 0.5 * d)
+                    }
+                })
+                .sum::<f64>()
+                / 3.0;
+            (
+                l,
+                e.map(|v| if v.abs() <= d { v } else { d * v.signum() } / 3.0),
+            )
+        }
+    };
+    let mut gd = 0.0;
+    if target_depth[1] > 0.0 {
+        let de = depth as f64 - target_depth[0] as f64;
+        l += cfg.depth_lambda as f64 * target_depth[1] as f64 * de * de;
+        gd = 2.0 * cfg.depth_lambda as f64 * target_depth[1] as f64 * de;
+    }
+    (l, g, gd)
+}
+
+/// Hash decay in f64: (lambda * sum over levels of mean(V_l^2), gradient).
+pub fn hash_decay(cfg: &HashGridConfig, table: &[f32], lambda: f32) -> (f64, Vec<f64>) {
+    let mut loss = 0.0;
+    let mut grad = vec![0f64; table.len()];
+    for lv in cfg.level_layout() {
+        let count = lv.size as usize * cfg.features as usize;
+        let scale = lambda as f64 / count as f64;
+        for i in lv.offset as usize..lv.offset as usize + count {
+            loss += scale * table[i] as f64 * table[i] as f64;
+            grad[i] = 2.0 * scale * table[i] as f64;
+        }
+    }
+    (loss, grad)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -650,6 +708,66 @@ mod tests {
             assert_eq!(contract([1.0, 2.0, 3.0], &s), [0.5, 0.5, 0.5]);
             let far = contract([1e30, 2.0, 3.0], &s);
             assert!((far[0] - 1.0).abs() < 1e-12 && (far[1] - 0.5).abs() < 1e-12);
+        }
+    }
+
+    /// Ray losses and hash decay against central finite differences.
+    #[test]
+    fn loss_gradients_match_finite_differences() {
+        use crate::render::loss::{LossConfig, RgbLoss};
+        for rgb in [RgbLoss::L2, RgbLoss::Huber(0.1)] {
+            let cfg = LossConfig {
+                rgb,
+                depth_lambda: 0.3,
+            };
+            let (r, d, t, td) = (
+                [0.9f32, 0.2, 0.55, 1.0],
+                2.5f32,
+                [0.1f32, 0.25, 0.5, 0.0],
+                [2.0f32, 0.7],
+            );
+            let (_, g, gd) = ray_loss(r, d, t, td, &cfg);
+            let h = 1e-3f32;
+            for c in 0..3 {
+                let (mut up, mut dn) = (r, r);
+                up[c] += h;
+                dn[c] -= h;
+                let fd = (ray_loss(up, d, t, td, &cfg).0 - ray_loss(dn, d, t, td, &cfg).0)
+                    / (2.0 * h as f64);
+                assert!(
+                    (fd - g[c]).abs() < 1e-4,
+                    "{rgb:?} channel {c}: {fd} vs {}",
+                    g[c]
+                );
+            }
+            let fd = (ray_loss(r, d + h, t, td, &cfg).0 - ray_loss(r, d - h, t, td, &cfg).0)
+                / (2.0 * h as f64);
+            assert!((fd - gd).abs() < 1e-4, "depth: {fd} vs {gd}");
+            assert_eq!(
+                ray_loss(r, d, t, [2.0, 0.0], &cfg).2,
+                0.0,
+                "no target, no depth gradient"
+            );
+        }
+        let hg = HashGridConfig {
+            levels: 3,
+            features: 2,
+            log2_table: 6,
+            min_res: 2,
+            max_res: 8,
+        };
+        let mut table: Vec<f32> = (0..hg.param_count() as usize)
+            .map(|i| ((i * 13 % 17) as f32 - 8.0) / 8.0)
+            .collect();
+        let (_, grad) = hash_decay(&hg, &table, 0.5);
+        for i in (0..table.len()).step_by(7) {
+            let orig = table[i];
+            table[i] = orig + 1e-3;
+            let up = hash_decay(&hg, &table, 0.5).0;
+            table[i] = orig - 1e-3;
+            let dn = hash_decay(&hg, &table, 0.5).0;
+            table[i] = orig;
+            assert!(((up - dn) / 2e-3 - grad[i]).abs() < 1e-6, "entry {i}");
         }
     }
 

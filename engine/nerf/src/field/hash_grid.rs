@@ -1,6 +1,7 @@
 //! Multi-resolution hash encoding (Instant-NGP) on the engine's device: level layout, and the
 //! standalone forward / backward kernels. The fused march kernels share the WGSL functions.
 
+use extranerf_gpu::kernels::field::hash_decay as kdecay;
 use extranerf_gpu::kernels::field::hash_grid as k;
 use extranerf_gpu::kernels::field::hash_grid_f2 as k2;
 use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
@@ -120,6 +121,7 @@ pub struct HashGrid {
     levels: Buffer<HashLevel>,
     /// Generic kernels (any F) or the F = 2 specialisation.
     kernels: Kernels,
+    decay: Kernel,
 }
 
 #[derive(Debug)]
@@ -154,7 +156,47 @@ impl HashGrid {
                     bwd: Kernel::new(ctx, &k::encode_bwd::DESC)?,
                 }
             },
+            decay: Kernel::new(ctx, &kdecay::hash_decay::DESC)?,
         })
+    }
+
+    /// Partial sums the hash-decay pass writes (sum them, e.g. with `Prims::reduce_sum`).
+    pub fn decay_partials(&self) -> u64 {
+        self.config.param_count().div_ceil(256)
+    }
+
+    /// Records hash decay (Zip-NeRF): adds the gradient of `lambda * sum_l mean(V_l^2)` to
+    /// `d_table` and writes [`HashGrid::decay_partials`] partial losses into `partial`.
+    pub fn decay<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        table: Binding<'a>,
+        d_table: Binding<'a>,
+        partial: Binding<'a>,
+        lambda: f32,
+    ) -> Result<()> {
+        let n = self.config.param_count();
+        table.check_fits(n, 4, "hash grid table")?;
+        d_table.check_fits(n, 4, "hash grid gradient")?;
+        partial.check_fits(self.decay_partials(), 4, "hash decay partial losses")?;
+        if !(lambda >= 0.0 && lambda.is_finite()) {
+            return Err(GpuError::Usage(format!(
+                "hash decay weight {lambda} must be >= 0"
+            )));
+        }
+        let p = kdecay::Params {
+            n: n as u32,
+            levels: self.config.levels,
+            features: self.config.features,
+            lambda,
+        };
+        let b = kdecay::hash_decay::Bindings {
+            level_info: self.levels.binding(),
+            table,
+            d_table,
+            partial,
+        };
+        rec.dispatch(&self.decay, b.into_array(), &p, n)
     }
 
     /// The configuration.
