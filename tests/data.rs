@@ -330,3 +330,83 @@ fn transforms_json_loads_and_rejects_bad_input() {
     }
     let _ = std::fs::remove_dir_all(dir);
 }
+
+#[test]
+fn fern_sparse_depth_targets() {
+    use extranerf_nerf::data::depth::sparse_depth_all;
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let points = read_points3d_bin(&fern().join("sparse/0/points3D.bin")).unwrap();
+    let all = sparse_depth_all(&scene, &points);
+    assert_eq!(all.len(), 20);
+    for (v, samples) in all.iter().enumerate() {
+        let cam = &scene.cameras[v];
+        let (near, far) = cam.bounds.unwrap();
+        assert!(
+            samples.len() > 2000,
+            "view {v}: only {} depth samples",
+            samples.len()
+        );
+        let mut seen = std::collections::HashSet::new();
+        for s in samples {
+            assert!(s.x < cam.width && s.y < cam.height);
+            assert!(
+                seen.insert((s.x, s.y)),
+                "view {v}: two samples in pixel ({}, {})",
+                s.x,
+                s.y
+            );
+            assert!(
+                s.depth >= 0.5 * near
+                    && s.depth <= 2.0 * far
+                    && s.confidence > 0.0
+                    && s.confidence <= 1.0
+            );
+        }
+        // Most points sit well inside the capture's bounds, as the loader test shows.
+        let inside = samples
+            .iter()
+            .filter(|s| s.depth >= near * 0.9 && s.depth <= far * 1.1)
+            .count();
+        assert!(inside as f64 > 0.98 * samples.len() as f64, "view {v}");
+    }
+}
+
+fn write_npy_f32(path: &Path, shape: &str, data: &[f32]) {
+    let mut h = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + h.len() + 1) % 64 != 0 {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((h.len() as u16).to_le_bytes());
+    b.extend(h.as_bytes());
+    b.extend(data.iter().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(path, b).unwrap();
+}
+
+#[test]
+fn depth_maps_from_npy() {
+    use extranerf_nerf::data::depth::read_depth_npy;
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let cam = &scene.cameras[0];
+    let dir = scratch_dir("depth-npy");
+    let n = (cam.width * cam.height) as usize;
+    let mut data: Vec<f32> = (0..n).map(|i| 1.0 + (i % 97) as f32 * 0.01).collect();
+    data[5] = f32::NAN;
+    data[6] = -1.0;
+    data[7] = f32::INFINITY;
+    let ok = dir.join("depth.npy");
+    write_npy_f32(&ok, "(378, 504)", &data);
+    let d = read_depth_npy(&ok, cam).unwrap();
+    assert_eq!(d.len(), n);
+    assert_eq!((d[4], d[5], d[6], d[7]), (data[4], 0.0, 0.0, 0.0));
+    let wrong = dir.join("small.npy");
+    write_npy_f32(&wrong, "(10, 504)", &data[..5040]);
+    let e = read_depth_npy(&wrong, cam).unwrap_err().to_string();
+    assert!(e.contains("small.npy") && e.contains("504x10"), "{e}");
+    let bad = dir.join("rgb.npy");
+    write_npy_f32(&bad, "(378, 504, 3)", &vec![0.0; 3 * n]);
+    let e = read_depth_npy(&bad, cam).unwrap_err().to_string();
+    assert!(e.contains("rgb.npy") && e.contains("(H, W)"), "{e}");
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -6,6 +6,7 @@
 //! Every error names the file and the problem.
 
 pub mod colmap;
+pub mod depth;
 pub mod llff;
 pub mod npy;
 pub mod split;

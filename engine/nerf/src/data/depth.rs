@@ -1,0 +1,100 @@
+//! Depth supervision for training views: COLMAP sparse points projected into each view, and
+//! dense depth maps from `.npy` files.
+
+use std::path::Path;
+
+use super::colmap::Point3D;
+use super::npy::read_npy;
+use super::{Camera, DataError, Result, Scene};
+
+/// One depth target: pixel centre coordinates, depth along the viewing axis, confidence in
+/// (0, 1] from the point's reprojection error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DepthSample {
+    /// Pixel x (column) of the pixel the point falls in.
+    pub x: u32,
+    /// Pixel y (row).
+    pub y: u32,
+    /// Depth along the viewing axis, in scene units.
+    pub depth: f64,
+    /// 1 / (1 + (error / 1 px)^2).
+    pub confidence: f64,
+}
+
+/// Projects the scene's sparse points (already in scene coordinates, see
+/// [`Scene::transform_points`]) into `cam`: points behind the camera, outside the image or the
+/// camera's depth bounds are dropped; where several land in one pixel the nearest is kept.
+pub fn sparse_depth(cam: &Camera, world: &[glam::DVec3], points: &[Point3D]) -> Vec<DepthSample> {
+    let mut best: std::collections::HashMap<(u32, u32), DepthSample> =
+        std::collections::HashMap::new();
+    let (near, far) = cam.bounds.unwrap_or((0.0, f64::INFINITY));
+    for (p, src) in world.iter().zip(points) {
+        let (u, v, d) = cam.project(*p);
+        if !(d > 0.0 && d >= near * 0.5 && d <= far * 2.0)
+            || !(u >= 0.0 && v >= 0.0 && u < cam.width as f64 && v < cam.height as f64)
+        {
+            continue;
+        }
+        let key = (u as u32, v as u32);
+        let s = DepthSample {
+            x: key.0,
+            y: key.1,
+            depth: d,
+            confidence: 1.0 / (1.0 + src.error * src.error),
+        };
+        best.entry(key)
+            .and_modify(|b| {
+                if d < b.depth {
+                    *b = s
+                }
+            })
+            .or_insert(s);
+    }
+    let mut out: Vec<DepthSample> = best.into_values().collect();
+    out.sort_by_key(|s| (s.y, s.x));
+    out
+}
+
+/// Sparse depth targets for every camera of a scene.
+pub fn sparse_depth_all(scene: &Scene, points: &[Point3D]) -> Vec<Vec<DepthSample>> {
+    let world = scene.transform_points(points);
+    scene
+        .cameras
+        .iter()
+        .map(|c| sparse_depth(c, &world, points))
+        .collect()
+}
+
+/// Reads a dense depth map (`.npy`, shape (H, W) or (H, W, 1), float32/64) for `cam`, checking
+/// its size; non-finite or non-positive values mean "no depth" and become 0.
+pub fn read_depth_npy(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
+    let a = read_npy(path)?;
+    let (h, w) = match a.shape.as_slice() {
+        [h, w] | [h, w, 1] => (*h, *w),
+        s => {
+            return Err(DataError::malformed(
+                path,
+                format!("depth map shape {s:?}: expected (H, W) or (H, W, 1)"),
+            ))
+        }
+    };
+    if (w as u32, h as u32) != (cam.width, cam.height) {
+        return Err(DataError::malformed(
+            path,
+            format!(
+                "depth map is {w}x{h}, its view is {}x{}",
+                cam.width, cam.height
+            ),
+        ));
+    }
+    Ok(a.data
+        .iter()
+        .map(|&v| {
+            if v.is_finite() && v > 0.0 {
+                v as f32
+            } else {
+                0.0
+            }
+        })
+        .collect())
+}
