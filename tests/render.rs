@@ -490,3 +490,129 @@ fn ray_losses_match_reference() {
     }
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn occupancy_grid_matches_reference() {
+    use extranerf_nerf::reference::{occ_cell, occ_cell_point};
+    use extranerf_nerf::render::occupancy::{Occupancy, OccupancyConfig};
+    let e = engine();
+    let cfg = OccupancyConfig {
+        res: 16,
+        cascades: 3,
+        decay: 0.9,
+        threshold: 0.5,
+    };
+    let occ = Occupancy::new(&e.ctx, cfg).unwrap();
+    let cells = cfg.cells() as usize;
+    let mut rng = Rng::new(71);
+    let mut grid = vec![0f32; cells];
+    // Three updates over windows that wrap around the end of the grid.
+    for (step, (first, count)) in [(0usize, cells), (cells - 1000, 5000), (7, 3000)]
+        .into_iter()
+        .enumerate()
+    {
+        let pos = Buffer::<f32>::new(&e.ctx, "positions", 3 * count).unwrap();
+        let dens: Vec<f32> = (0..count)
+            .map(|i| match i % 50 {
+                0 => f32::NAN,
+                1 => -3.0,
+                2 => f32::INFINITY,
+                _ => rng.uniform(0.0, 2.0).powi(3),
+            })
+            .collect();
+        let db = Buffer::from_slice(&e.ctx, "densities", &dens).unwrap();
+        let mut rec = e.ctx.recorder("occupancy").unwrap();
+        occ.record_sample(
+            &mut rec,
+            pos.binding(),
+            first as u64,
+            count as u64,
+            step as u32,
+        )
+        .unwrap();
+        occ.record_update(&mut rec, db.binding(), first as u64, count as u64)
+            .unwrap();
+        occ.record_bits(&mut rec, &e.prims).unwrap();
+        e.ctx.run(rec).unwrap();
+        let p = pos.read().unwrap();
+        for k in 0..count {
+            let cell = ((first + k) % cells) as u32;
+            let want = occ_cell_point(cell, step as u32, cfg.res, cfg.cascades);
+            let got = [p[3 * k], p[3 * k + 1], p[3 * k + 2]];
+            for d in 0..3 {
+                assert!(
+                    (got[d] - want[d]).abs() <= 1e-6 * (1.0 + want[d].abs()),
+                    "sample {k} of cell {cell}: {got:?} vs {want:?}"
+                );
+            }
+            // Each sample lies in its own cell, except in the inner part of a coarse cascade,
+            // which the finer cascade covers (queries never reach those cells).
+            let (back, edge) = occ_cell(got, cfg.res, cfg.cascades);
+            let cascade = cell / cfg.res.pow(3);
+            let inner = cascade > 0 && got.iter().all(|v| v.abs() <= 2f32.powi(cascade as i32 - 1));
+            assert!(
+                edge || inner || back == Some(cell),
+                "sample of cell {cell} maps to {back:?}"
+            );
+            let d = dens[k];
+            let d = if d.is_nan() || d < 0.0 {
+                0.0
+            } else {
+                d.min(3.0e38)
+            };
+            grid[cell as usize] = (grid[cell as usize] * cfg.decay).max(d);
+        }
+        let got = occ.grid().read().unwrap();
+        assert!(got == grid, "grid differs after update {step}");
+    }
+    let mean = grid.iter().map(|&v| v as f64).sum::<f64>() / cells as f64;
+    let thresh = (cfg.threshold as f64).min(mean);
+    let bits = occ.bits().read().unwrap();
+    for (i, &g) in grid.iter().enumerate() {
+        if ((g as f64) - thresh).abs() < 1e-3 * thresh {
+            continue; // the f32 mean may fall either side
+        }
+        assert_eq!(
+            (bits[i / 32] >> (i % 32)) & 1 == 1,
+            g as f64 > thresh,
+            "cell {i}: density {g}, threshold {thresh}"
+        );
+    }
+    // Queries: random points in and beyond the cascades, NaN, the origin.
+    let mut q: Vec<[f32; 3]> = vec![
+        [0.0; 3],
+        [f32::NAN, 0.0, 0.0],
+        [5.0, 0.0, 0.0],
+        [4.0, -4.0, 4.0],
+        [1.0, 1.0, 1.0],
+        [2.0, 0.0, -1.0],
+    ];
+    for _ in 0..3000 {
+        q.push([
+            rng.uniform(-4.5, 4.5),
+            rng.uniform(-4.5, 4.5),
+            rng.uniform(-4.5, 4.5),
+        ]);
+    }
+    let qb = Buffer::from_slice(
+        &e.ctx,
+        "query",
+        &q.iter().flatten().copied().collect::<Vec<f32>>(),
+    )
+    .unwrap();
+    let ob = Buffer::<u32>::new(&e.ctx, "occupied", q.len()).unwrap();
+    let mut rec = e.ctx.recorder("query").unwrap();
+    occ.record_query(&mut rec, qb.binding(), ob.binding(), q.len() as u64)
+        .unwrap();
+    e.ctx.run(rec).unwrap();
+    let got = ob.read().unwrap();
+    for (i, p) in q.iter().enumerate() {
+        let (cell, edge) = occ_cell(*p, cfg.res, cfg.cascades);
+        if edge {
+            continue;
+        }
+        let want = cell.map_or(0, |c| (bits[c as usize / 32] >> (c % 32)) & 1);
+        assert_eq!(got[i], want, "query {p:?} (cell {cell:?})");
+    }
+    assert_no_validation_messages(&e.ctx);
+}

@@ -477,6 +477,64 @@ pub fn hash_decay(cfg: &HashGridConfig, table: &[f32], lambda: f32) -> (f64, Vec
     (loss, grad)
 }
 
+/// PCG hash (as `common/rng.wgsl`).
+pub fn pcg_hash(v: u32) -> u32 {
+    let state = v.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+    let word = ((state >> ((state >> 28) + 4)) ^ state).wrapping_mul(277_803_737);
+    (word >> 22) ^ word
+}
+
+/// Uniform in [0, 1) from the hash (as `rand01`).
+pub fn rand01(v: u32) -> f32 {
+    (pcg_hash(v) >> 8) as f32 * (1.0 / 16_777_216.0)
+}
+
+/// Occupancy cell of a scene-normalised point (f32 arithmetic as the kernel), or `None`
+/// outside the grid; the flag is true when the point lies within 1e-4 cells of a cell face,
+/// where fused and unfused f32 arithmetic may disagree.
+pub fn occ_cell(u: [f32; 3], res: u32, cascades: u32) -> (Option<u32>, bool) {
+    if u.iter().any(|v| v.is_nan()) {
+        return (None, false);
+    }
+    let m = u.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let c = if m <= 1.0 {
+        0
+    } else if m <= 2f32.powi(cascades as i32 - 1) {
+        (m as f64).log2().ceil() as u32
+    } else {
+        return (None, false);
+    };
+    let r = res as f32;
+    let mut q = [0u32; 3];
+    let mut edge = false;
+    for d in 0..3 {
+        let p = ((u[d] * 2f32.powi(-(c as i32))) * 0.5 + 0.5) * r;
+        let pc = p.clamp(0.0, r - 1.0);
+        q[d] = pc as u32;
+        let exact = ((u[d] as f64 / 2f64.powi(c as i32)) * 0.5 + 0.5) * res as f64;
+        edge |= (exact - exact.round()).abs() < 1e-4;
+    }
+    (Some(((c * res + q[2]) * res + q[1]) * res + q[0]), edge)
+}
+
+/// The jittered sample position of an occupancy cell, as `occ_sample` computes it.
+pub fn occ_cell_point(cell: u32, seed: u32, res: u32, cascades: u32) -> [f32; 3] {
+    let per = res * res * res;
+    let total = per * cascades;
+    let h = seed
+        .wrapping_mul(3)
+        .wrapping_mul(total)
+        .wrapping_add(cell.wrapping_mul(3));
+    let j = [
+        rand01(h),
+        rand01(h.wrapping_add(1)),
+        rand01(h.wrapping_add(2)),
+    ];
+    let (c, i) = (cell / per, cell % per);
+    let q = [i % res, (i / res) % res, i / (res * res)];
+    [0, 1, 2].map(|d| ((q[d] as f32 + j[d]) / res as f32 * 2.0 - 1.0) * 2f32.powi(c as i32))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

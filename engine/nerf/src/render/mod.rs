@@ -4,4 +4,5 @@
 
 pub mod composite;
 pub mod loss;
+pub mod occupancy;
 pub mod rays;
