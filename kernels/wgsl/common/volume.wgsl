@@ -17,3 +17,12 @@ fn alpha_of(x: f32) -> f32 {
     }
     return 1.0 - exp(-x);
 }
+
+// Weight of the next sample of a ray, given the optical depth `tau` accumulated before it;
+// advances `tau` past the sample.
+fn next_weight(sigma: f32, dt: f32, tau: ptr<function, f32>) -> f32 {
+    let x = optical_depth(sigma, dt);
+    let w = exp(-*tau) * alpha_of(x);
+    *tau += x;
+    return w;
+}

@@ -46,12 +46,10 @@ fn composite_fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
     var depth = 0.0;
     var opacity = 0.0;
     for (var s = span.x; s < span.x + span.y; s += 1u) {
-        let x = optical_depth(sigma[s], t_dt[s].y);
-        let w = exp(-tau) * alpha_of(x);
+        let w = next_weight(sigma[s], t_dt[s].y, &tau);
         c += w * rgb[s].xyz;
         depth += w * t_dt[s].x;
         opacity += w;
-        tau += x;
     }
     let t_end = exp(-tau);
     out_rgba[r] = vec4<f32>(c + t_end * params.background.xyz, opacity);
@@ -74,11 +72,9 @@ fn composite_bwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
     var tau = 0.0;
     var total = 0.0;
     for (var s = span.x; s < span.x + span.y; s += 1u) {
-        let x = optical_depth(sigma[s], t_dt[s].y);
-        let w = exp(-tau) * alpha_of(x);
+        let w = next_weight(sigma[s], t_dt[s].y, &tau);
         let u = dot(rgb[s].xyz, g.xyz) + t_dt[s].x * gd + g.w + d_weight[s];
         total += w * u;
-        tau += x;
     }
     let bg = exp(-tau) * dot(params.background.xyz, g.xyz);
     // Second pass: suffix sums as total minus the running prefix.
@@ -86,11 +82,9 @@ fn composite_bwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
     var prefix = 0.0;
     for (var s = span.x; s < span.x + span.y; s += 1u) {
         let dt = t_dt[s].y;
-        let x = optical_depth(sigma[s], dt);
-        let w = exp(-tau) * alpha_of(x);
+        let w = next_weight(sigma[s], dt, &tau);
         let u = dot(rgb[s].xyz, g.xyz) + t_dt[s].x * gd + g.w + d_weight[s];
         prefix += w * u;
-        tau += x;
         let dx = exp(-tau) * u - (total - prefix) - bg;
         // sigma <= 0 or dt <= 0 contribute x = 0 with zero slope in sigma below 0; the
         // gradient still flows for sigma = 0 (the density can grow).

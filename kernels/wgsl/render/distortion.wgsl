@@ -33,20 +33,16 @@ fn distortion(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var w_tot = 0.0;
     var wm_tot = 0.0;
     for (var s = span.x; s < span.x + span.y; s += 1u) {
-        let x = optical_depth(sigma[s], t_dt[s].y);
-        let w = exp(-tau) * alpha_of(x);
+        let w = next_weight(sigma[s], t_dt[s].y, &tau);
         w_tot += w;
         wm_tot += w * s_ds[s].x;
-        tau += x;
     }
     tau = 0.0;
     var w_lt = 0.0;
     var wm_lt = 0.0;
     var l = 0.0;
     for (var s = span.x; s < span.x + span.y; s += 1u) {
-        let x = optical_depth(sigma[s], t_dt[s].y);
-        let w = exp(-tau) * alpha_of(x);
-        tau += x;
+        let w = next_weight(sigma[s], t_dt[s].y, &tau);
         let m = s_ds[s].x;
         let ds = s_ds[s].y;
         let w_gt = w_tot - w_lt - w;
