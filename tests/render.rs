@@ -616,3 +616,220 @@ fn occupancy_grid_matches_reference() {
     }
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn stratified_samples_match_reference() {
+    use extranerf_nerf::reference::stratified;
+    use extranerf_nerf::render::sample::{SampleOutputs, Sampler, Spacing};
+    let e = engine();
+    let sampler = Sampler::new(&e.ctx).unwrap();
+    let mut rng = Rng::new(81);
+    let (n, k) = (300usize, 37u32);
+    let o: Vec<[f32; 4]> = (0..n)
+        .map(|_| {
+            [
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                0.0,
+            ]
+        })
+        .collect();
+    // Axis-parallel directions included.
+    let d: Vec<[f32; 4]> = (0..n)
+        .map(|i| {
+            if i % 7 == 0 {
+                [0.0, 0.0, -1.0, 1.0]
+            } else {
+                [rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), -1.0, 0.0]
+            }
+        })
+        .collect();
+    let nf: Vec<[f32; 2]> = (0..n)
+        .map(|_| {
+            let a = rng.uniform(0.01, 2.0);
+            [a, a * rng.uniform(1.5, 1000.0)]
+        })
+        .collect();
+    let f4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let (ob, db) = (
+        Buffer::from_slice(&e.ctx, "o", &f4(&o)).unwrap(),
+        Buffer::from_slice(&e.ctx, "d", &f4(&d)).unwrap(),
+    );
+    let nfb = Buffer::from_slice(
+        &e.ctx,
+        "near_far",
+        &nf.iter().flatten().copied().collect::<Vec<f32>>(),
+    )
+    .unwrap();
+    let total = n * k as usize;
+    let pos = Buffer::<f32>::new(&e.ctx, "positions", 3 * total).unwrap();
+    let tdt = Buffer::<f32>::new(&e.ctx, "t_dt", 2 * total).unwrap();
+    let sds = Buffer::<f32>::new(&e.ctx, "s_ds", 2 * total).unwrap();
+    let rays = Buffer::<u32>::new(&e.ctx, "rays", 2 * n).unwrap();
+    for (spacing, seed) in [
+        (Spacing::Linear, None),
+        (Spacing::Linear, Some(5u32)),
+        (Spacing::Disparity, Some(9u32)),
+    ] {
+        let out = SampleOutputs {
+            positions: pos.binding(),
+            t_dt: tdt.binding(),
+            s_ds: sds.binding(),
+            rays: rays.binding(),
+        };
+        let mut rec = e.ctx.recorder("sample").unwrap();
+        sampler
+            .record(
+                &mut rec,
+                ob.binding(),
+                db.binding(),
+                nfb.binding(),
+                &out,
+                n as u64,
+                k,
+                spacing,
+                seed,
+            )
+            .unwrap();
+        e.ctx.run(rec).unwrap();
+        let (p, t, s, r) = (
+            pos.read().unwrap(),
+            tdt.read().unwrap(),
+            sds.read().unwrap(),
+            rays.read().unwrap(),
+        );
+        for ray in 0..n {
+            assert_eq!((r[2 * ray], r[2 * ray + 1]), (ray as u32 * k, k));
+            let want = stratified(
+                ray as u32,
+                nf[ray][0],
+                nf[ray][1],
+                k,
+                spacing == Spacing::Disparity,
+                seed,
+            );
+            let mut sum_dt = 0.0;
+            for (i, w) in want.iter().enumerate() {
+                let idx = ray * k as usize + i;
+                let got = [
+                    t[2 * idx] as f64,
+                    t[2 * idx + 1] as f64,
+                    s[2 * idx] as f64,
+                    s[2 * idx + 1] as f64,
+                ];
+                for c in 0..4 {
+                    assert!(
+                        (got[c] - w[c]).abs() <= 2e-5 * w[c].abs().max(1e-3),
+                        "{spacing:?} ray {ray} sample {i} field {c}: {} vs {}",
+                        got[c],
+                        w[c]
+                    );
+                }
+                assert!(
+                    got[0] >= nf[ray][0] as f64 * (1.0 - 1e-6)
+                        && got[0] <= nf[ray][1] as f64 * (1.0 + 1e-6)
+                );
+                for c in 0..3 {
+                    let want_p = o[ray][c] as f64 + got[0] * d[ray][c] as f64;
+                    assert!(
+                        (p[3 * idx + c] as f64 - want_p).abs() <= 1e-5 * (1.0 + want_p.abs()),
+                        "position"
+                    );
+                }
+                sum_dt += got[1];
+            }
+            let span = (nf[ray][1] - nf[ray][0]) as f64;
+            assert!(
+                (sum_dt - span).abs() <= 1e-4 * span,
+                "intervals cover near..far: {sum_dt} vs {span}"
+            );
+        }
+    }
+    assert_no_validation_messages(&e.ctx);
+}
+
+#[test]
+fn activations_match_reference_at_the_extremes() {
+    use extranerf_nerf::field::activation::{Activation, Activations, Column};
+    use extranerf_nerf::reference::activation;
+    let e = engine();
+    let act = Activations::new(&e.ctx).unwrap();
+    let mut rng = Rng::new(91);
+    let n = 2000usize;
+    // Values in column 1 of a stride-3 layout; extremes first.
+    let extremes = [
+        0.0f32,
+        15.0,
+        15.5,
+        80.0,
+        1e30,
+        -1e30,
+        -100.0,
+        88.0,
+        -88.0,
+        f32::MAX,
+        -f32::MAX,
+    ];
+    let mut x = vec![7.0f32; 3 * n];
+    for i in 0..n {
+        x[3 * i + 1] = extremes
+            .get(i)
+            .copied()
+            .unwrap_or_else(|| rng.uniform(-20.0, 20.0));
+    }
+    let dy: Vec<f32> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let xb = Buffer::from_slice(&e.ctx, "x", &x).unwrap();
+    let dyb = Buffer::from_slice(&e.ctx, "dy", &dy).unwrap();
+    let col = Column {
+        stride: 3,
+        offset: 1,
+    };
+    for kind in [Activation::TruncExp, Activation::Sigmoid] {
+        let y = Buffer::<f32>::new(&e.ctx, "y", n).unwrap();
+        let dx = Buffer::from_slice(
+            &e.ctx,
+            "dx",
+            &vec![f32::from_bits(extranerf_tests::POISON); 3 * n],
+        )
+        .unwrap();
+        let mut rec = e.ctx.recorder("act").unwrap();
+        act.forward(&mut rec, kind, xb.binding(), col, y.binding(), n as u64)
+            .unwrap();
+        act.backward(
+            &mut rec,
+            kind,
+            xb.binding(),
+            col,
+            dyb.binding(),
+            dx.binding(),
+            n as u64,
+        )
+        .unwrap();
+        e.ctx.run(rec).unwrap();
+        let (y, dx) = (y.read().unwrap(), dx.read().unwrap());
+        for i in 0..n {
+            let (wy, wd) = activation(kind, x[3 * i + 1]);
+            assert!(
+                y[i].is_finite() && (y[i] as f64 - wy).abs() <= 2e-6 * wy.abs().max(1e-30),
+                "{kind:?} x={} y {} vs {wy}",
+                x[3 * i + 1],
+                y[i]
+            );
+            let g = dx[3 * i + 1] as f64;
+            assert!(
+                g.is_finite()
+                    && (g - dy[i] as f64 * wd).abs() <= 4e-6 * (dy[i] as f64 * wd).abs().max(1e-30),
+                "{kind:?} x={} dx {g} vs {}",
+                x[3 * i + 1],
+                dy[i] as f64 * wd
+            );
+            assert_eq!(
+                dx[3 * i].to_bits(),
+                extranerf_tests::POISON,
+                "other columns untouched"
+            );
+        }
+    }
+    assert_no_validation_messages(&e.ctx);
+}

@@ -535,6 +535,52 @@ pub fn occ_cell_point(cell: u32, seed: u32, res: u32, cascades: u32) -> [f32; 3]
     [0, 1, 2].map(|d| ((q[d] as f32 + j[d]) / res as f32 * 2.0 - 1.0) * 2f32.powi(c as i32))
 }
 
+/// Activation value and derivative in f64 (see `field::activation`).
+pub fn activation(kind: crate::field::activation::Activation, x: f32) -> (f64, f64) {
+    use crate::field::activation::Activation;
+    let x = x as f64;
+    match kind {
+        Activation::TruncExp => {
+            let y = x.min(15.0).exp();
+            (y, y)
+        }
+        Activation::Sigmoid => {
+            let y = 1.0 / (1.0 + (-x).exp());
+            let e = (-x.abs()).exp();
+            (y, e / ((1.0 + e) * (1.0 + e)))
+        }
+    }
+}
+
+/// The stratified samples of ray `r` in f64: (t, dt, s, ds) per sample, as `stratified` places
+/// them (jitter from the same hash).
+pub fn stratified(
+    r: u32,
+    near: f32,
+    far: f32,
+    k: u32,
+    disparity: bool,
+    seed: Option<u32>,
+) -> Vec<[f64; 4]> {
+    let t_of = |s: f64| {
+        if disparity {
+            1.0 / ((1.0 - s) / near as f64 + s / far as f64)
+        } else {
+            near as f64 + s * (far as f64 - near as f64)
+        }
+    };
+    (0..k)
+        .map(|i| {
+            let u = seed.map_or(0.5, |sd| {
+                rand01(pcg_hash(sd ^ pcg_hash(r)).wrapping_add(i)) as f64
+            });
+            let (s0, s1) = (i as f64 / k as f64, (i + 1) as f64 / k as f64);
+            let s = s0 + (s1 - s0) * u;
+            [t_of(s), t_of(s1) - t_of(s0), s, 1.0 / k as f64]
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -826,6 +872,29 @@ mod tests {
             let dn = hash_decay(&hg, &table, 0.5).0;
             table[i] = orig;
             assert!(((up - dn) / 2e-3 - grad[i]).abs() < 1e-6, "entry {i}");
+        }
+    }
+
+    #[test]
+    fn activation_derivatives_match_finite_differences() {
+        use crate::field::activation::Activation;
+        for kind in [Activation::TruncExp, Activation::Sigmoid] {
+            for x in [-30.0f32, -3.0, -0.5, 0.0, 0.7, 4.0, 14.0] {
+                let h = 1e-3f64;
+                let f = |v: f64| {
+                    let v = v as f32 as f64;
+                    match kind {
+                        Activation::TruncExp => v.min(15.0).exp(),
+                        Activation::Sigmoid => 1.0 / (1.0 + (-v).exp()),
+                    }
+                };
+                let fd = (f(x as f64 + h) - f(x as f64 - h)) / (2.0 * h);
+                let (_, d) = activation(kind, x);
+                assert!(
+                    (fd - d).abs() <= 1e-3 * d.abs() + 1e-12,
+                    "{kind:?} at {x}: {fd} vs {d}"
+                );
+            }
         }
     }
 

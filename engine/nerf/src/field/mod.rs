@@ -1,5 +1,6 @@
 //! The radiance field's GPU parts.
 
+pub mod activation;
 pub mod encodings;
 pub mod hash_grid;
 pub mod mlp;

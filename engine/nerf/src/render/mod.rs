@@ -1,4 +1,4 @@
-//! Rendering on the device: ray generation, compositing, the photometric, depth and
+//! Rendering on the device: ray generation, stratified sampling, compositing, the photometric, depth and
 //! distortion losses so far (the fused march that
 //! samples, queries the field and composites in one kernel builds on the same WGSL functions).
 
@@ -6,3 +6,4 @@ pub mod composite;
 pub mod loss;
 pub mod occupancy;
 pub mod rays;
+pub mod sample;

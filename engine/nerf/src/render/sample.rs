@@ -1,0 +1,92 @@
+//! Stratified sampling along rays (the march's fixed-step fallback and NeRF's coarse pass).
+
+use extranerf_gpu::kernels::render::sample as k;
+use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
+
+/// How samples are spaced between near and far.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Spacing {
+    /// Linear in distance (bounded scenes, NDC).
+    Linear = 0,
+    /// Linear in disparity 1/t (far-reaching depth ranges).
+    Disparity = 1,
+}
+
+/// Outputs of [`Sampler::record`].
+#[derive(Clone, Copy, Debug)]
+pub struct SampleOutputs<'a> {
+    /// `[n_rays * per_ray, 3]` sample positions.
+    pub positions: Binding<'a>,
+    /// `[n_rays * per_ray, 2]` (t, dt).
+    pub t_dt: Binding<'a>,
+    /// `[n_rays * per_ray, 2]` (s, ds), normalised to [0, 1] per ray.
+    pub s_ds: Binding<'a>,
+    /// `[n_rays, 2]` (first sample, count).
+    pub rays: Binding<'a>,
+}
+
+/// The sampling kernel.
+#[derive(Debug)]
+pub struct Sampler {
+    kernel: Kernel,
+}
+
+impl Sampler {
+    /// Builds the kernel.
+    pub fn new(ctx: &Context) -> Result<Sampler> {
+        Ok(Sampler {
+            kernel: Kernel::new(ctx, &k::stratified::DESC)?,
+        })
+    }
+
+    /// Records `per_ray` samples on each ray between its `near_far[n, 2]`; `origins` and
+    /// `directions` as [`crate::render::rays::RayGen`] writes them. `seed: None` puts samples
+    /// at stratum centres.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        origins: Binding<'a>,
+        directions: Binding<'a>,
+        near_far: Binding<'a>,
+        out: &SampleOutputs<'a>,
+        n_rays: u64,
+        per_ray: u32,
+        spacing: Spacing,
+        seed: Option<u32>,
+    ) -> Result<()> {
+        let total = n_rays * per_ray as u64;
+        if per_ray == 0 || total > u32::MAX as u64 {
+            return Err(GpuError::Usage(format!(
+                "{n_rays} rays x {per_ray} samples: need 1 to 2^32 samples"
+            )));
+        }
+        origins.check_fits(4 * n_rays, 4, "ray origins")?;
+        directions.check_fits(4 * n_rays, 4, "ray directions")?;
+        near_far.check_fits(2 * n_rays, 4, "near/far")?;
+        out.positions.check_fits(3 * total, 4, "sample positions")?;
+        out.t_dt.check_fits(2 * total, 4, "t_dt")?;
+        out.s_ds.check_fits(2 * total, 4, "s_ds")?;
+        out.rays.check_fits(2 * n_rays, 4, "ray spans")?;
+        let p = k::Params {
+            n_rays: n_rays as u32,
+            per_ray,
+            spacing: spacing as u32,
+            jitter: u32::from(seed.is_some()),
+            seed: seed.unwrap_or(0),
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
+        };
+        let b = k::stratified::Bindings {
+            origins,
+            directions,
+            near_far,
+            positions: out.positions,
+            t_dt: out.t_dt,
+            s_ds: out.s_ds,
+            rays: out.rays,
+        };
+        rec.dispatch(&self.kernel, b.into_array(), &p, n_rays)
+    }
+}
