@@ -16,6 +16,22 @@ pub struct Ticket(pub u64);
 
 /// Records dispatches, copies and timestamps into one command buffer.
 ///
+/// Everything a recording uses (buffers, kernels, timers) stays borrowed until the recorder is
+/// submitted or dropped, so nothing can be destroyed while it is still referenced; after the
+/// submission, drops are deferred by the release queue. This does not compile:
+///
+/// ```compile_fail,E0597
+/// # use extranerf_gpu::{Buffer, Context, Kernel};
+/// # fn f(ctx: &Context, desc: &'static extranerf_gpu::kernels::KernelDesc, b: &Buffer<u32>) {
+/// let mut rec = ctx.recorder("early drop").unwrap();
+/// {
+///     let kernel = Kernel::new(ctx, desc).unwrap();
+///     rec.dispatch(&kernel, [b.binding()], &0u32, 1).unwrap();
+/// } // `kernel` dropped while `rec` still refers to it
+/// ctx.run(rec).unwrap();
+/// # }
+/// ```
+///
 /// Barriers are inserted automatically: a command that reads or writes a buffer written since
 /// the last barrier, or writes one read since then, is preceded by a compute/transfer memory
 /// barrier. [`Recorder::barrier`] forces one.
@@ -193,7 +209,7 @@ impl<'a> Recorder<'a> {
     /// workgroup limit into 2-D; `bindings` come from the kernel's generated `Bindings`.
     pub fn dispatch<P: Pod, const N: usize>(
         &mut self,
-        kernel: &Kernel,
+        kernel: &'a Kernel,
         bindings: [Binding<'a>; N],
         params: &P,
         threads: u64,
@@ -437,7 +453,7 @@ impl<'a> Recorder<'a> {
     }
 
     /// Resets all queries of `timer` (record before the first timestamp).
-    pub fn reset_timer(&mut self, timer: &GpuTimer) {
+    pub fn reset_timer(&mut self, timer: &'a GpuTimer) {
         // SAFETY: recording command buffer; pool alive until the release queue passes it.
         unsafe {
             self.ctx
@@ -448,7 +464,7 @@ impl<'a> Recorder<'a> {
     }
 
     /// Writes timestamp `index` once all previous commands have finished.
-    pub fn timestamp(&mut self, timer: &GpuTimer, index: u32) -> Result<()> {
+    pub fn timestamp(&mut self, timer: &'a GpuTimer, index: u32) -> Result<()> {
         if index >= timer.capacity {
             return Err(GpuError::Usage(format!(
                 "timestamp {index} past the timer's {} slots",

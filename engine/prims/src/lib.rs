@@ -199,7 +199,7 @@ impl Prims {
 
     /// Records `data[0..n] = value` for 32-bit words (pass f32 as its bits).
     pub fn fill<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         data: Binding<'a>,
         n: u64,
@@ -221,7 +221,7 @@ impl Prims {
     /// Records `data[i] = start + i` for `i < n` (one element per thread, so large `n` crosses
     /// 65535 workgroups and exercises the 2-D folding).
     pub fn iota<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         data: Binding<'a>,
         n: u64,
@@ -242,7 +242,7 @@ impl Prims {
 
     /// Records `y[0..n] = a * x[0..n] + y[0..n]` (f32, fused multiply-add).
     pub fn saxpy<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         a: f32,
         x: Binding<'a>,
@@ -265,7 +265,7 @@ impl Prims {
 
     /// Records `out[0] = sum(input[0..n])` in two passes (f32 accumulation, tree order).
     pub fn reduce_sum<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         plan: &'a ReducePlan,
         input: Binding<'a>,
@@ -307,7 +307,7 @@ impl Prims {
     /// `n <= plan`'s maximum; `plan.total()` receives the sum of all `n`. With `binarize`,
     /// every element counts as `min(x, 1)`.
     pub fn exclusive_scan<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         plan: &'a ScanPlan,
         input: Binding<'a>,
@@ -379,7 +379,7 @@ impl Prims {
     /// Records stream compaction: `out[0..count]` = `values[i]` (or `i` when `values` is
     /// `None`) for every `i < n` with `flags[i] != 0`, in order; `plan.count()` gets `count`.
     pub fn compact<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         plan: &'a CompactPlan,
         flags: Binding<'a>,
@@ -410,7 +410,7 @@ impl Prims {
     /// Records a stable sort of `keys[0..n]` with `values[0..n]` by the low `bits` bits of the
     /// keys (32 sorts by the whole key; keys must be below `2^bits`), 4 bits per pass.
     pub fn radix_sort<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         plan: &'a SortPlan,
         keys: Binding<'a>,
@@ -479,7 +479,7 @@ impl Prims {
     /// `acc_len` are skipped.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand; a struct would only rename them
     pub fn scatter_add<'a>(
-        &self,
+        &'a self,
         rec: &mut Recorder<'a>,
         indices: Binding<'a>,
         values: Binding<'a>,

@@ -163,7 +163,7 @@ impl Occupancy {
     }
 
     /// Records the bitfield from the grid: occupied = density > min(threshold, mean density).
-    pub fn record_bits<'a>(&'a self, rec: &mut Recorder<'a>, prims: &Prims) -> Result<()> {
+    pub fn record_bits<'a>(&'a self, rec: &mut Recorder<'a>, prims: &'a Prims) -> Result<()> {
         let n = self.cfg.cells();
         prims.reduce_sum(rec, &self.plan, self.grid.binding(), n, self.sum.binding())?;
         let b = k::occ_bits::Bindings {
