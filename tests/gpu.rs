@@ -198,7 +198,7 @@ fn timestamps_bracket_a_dispatch() {
     let timer = GpuTimer::new(&e.ctx, "test timer", 2).unwrap();
     let b = Buffer::<u32>::new(&e.ctx, "timed", 1 << 20).unwrap();
     let mut rec = e.ctx.recorder("timed").unwrap();
-    rec.reset_timer(&timer);
+    rec.reset_timer(&timer).unwrap();
     rec.timestamp(&timer, 0).unwrap();
     e.prims.fill(&mut rec, b.binding(), 1 << 20, 3).unwrap();
     rec.timestamp(&timer, 1).unwrap();
@@ -266,7 +266,7 @@ fn create_drop_every_resource_kind_leaks_nothing() {
         let unsubmitted = ctx.recorder("never submitted").unwrap();
         drop(unsubmitted);
         let mut rec = ctx.recorder("submitted").unwrap();
-        rec.reset_timer(&timer);
+        rec.reset_timer(&timer).unwrap();
         rec.timestamp(&timer, 0).unwrap();
         prims.fill(&mut rec, b.binding(), 3, 9).unwrap();
         rec.copy(b.binding(), 0, c.binding(), 0, 12).unwrap();
@@ -285,4 +285,44 @@ fn create_drop_every_resource_kind_leaks_nothing() {
     drop(ctx);
     let msgs = log.take();
     assert!(msgs.is_empty(), "validation messages at teardown: {msgs:?}");
+}
+
+/// Buffers, kernels and timers of one context are refused by another context's recorder
+/// (their handles mean nothing on that device).
+#[test]
+fn resources_of_another_context_are_refused() {
+    let e = engine();
+    let other = Context::new(&ContextDesc {
+        validation: Validation::Off,
+        device: None,
+    })
+    .unwrap();
+    let foreign = Buffer::<u32>::new(&other, "foreign", 16).unwrap();
+    let foreign_kernel = Kernel::new(&other, &k::fill::fill::DESC).unwrap();
+    let foreign_timer = GpuTimer::new(&other, "foreign timer", 2).unwrap();
+    let local = Buffer::<u32>::new(&e.ctx, "local", 16).unwrap();
+    let own_kernel = Kernel::new(&e.ctx, &k::fill::fill::DESC).unwrap();
+    let mut rec = e.ctx.recorder("mixing contexts").unwrap();
+    let p = k::fill::Params { n: 16, value: 1 };
+    for err in [
+        rec.dispatch(&own_kernel, [foreign.binding()], &p, 16)
+            .unwrap_err(),
+        rec.dispatch(&foreign_kernel, [local.binding()], &p, 16)
+            .unwrap_err(),
+        rec.copy(foreign.binding(), 0, local.binding(), 0, 4)
+            .unwrap_err(),
+        rec.fill_words(foreign.binding(), 1, 0).unwrap_err(),
+        rec.reset_timer(&foreign_timer).unwrap_err(),
+        rec.timestamp(&foreign_timer, 0).unwrap_err(),
+    ] {
+        assert!(err.to_string().contains("another Vulkan context"), "{err}");
+    }
+    assert!(
+        rec.copy(local.binding(), 0, local.binding(), u64::MAX, 4)
+            .is_err(),
+        "offset overflow must be an error"
+    );
+    assert_eq!(rec.dispatches, 0);
+    drop(rec);
+    assert_no_validation_messages(&e.ctx);
 }

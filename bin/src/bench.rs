@@ -77,7 +77,7 @@ fn measure<'a>(
     mut op: impl FnMut(&mut Recorder<'a>) -> extranerf_gpu::Result<()>,
 ) -> anyhow::Result<Vec<f64>> {
     let mut rec = ctx.recorder("bench")?;
-    rec.reset_timer(timer);
+    rec.reset_timer(timer)?;
     pre(&mut rec)?;
     op(&mut rec)?;
     for r in 0..repeats {

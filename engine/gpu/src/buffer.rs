@@ -166,6 +166,8 @@ pub struct Binding<'a> {
     pub(crate) bytes: u64,
     pub(crate) last_use: &'a AtomicU64,
     pub(crate) name: &'a str,
+    /// The context the buffer belongs to.
+    pub(crate) ctx: usize,
 }
 
 impl Binding<'_> {
@@ -238,6 +240,7 @@ impl<T: Pod> Buffer<T> {
             bytes: self.raw.bytes,
             last_use: &self.raw.last_use,
             name: &self.raw.name,
+            ctx: self.raw.ctx.id(),
         }
     }
 

@@ -611,6 +611,11 @@ impl Context {
             .map_err(|_| GpuError::Usage("queue mutex poisoned by an earlier panic".into()))
     }
 
+    /// Identity of the device, to refuse resources of another context.
+    pub(crate) fn id(&self) -> usize {
+        Arc::as_ptr(&self.inner) as usize
+    }
+
     pub(crate) fn inner_last_submitted(&self) -> u64 {
         self.inner.last_submitted.load(Ordering::Acquire)
     }

@@ -8,7 +8,7 @@ use crate::error::{GpuError, Result, VkContext};
 
 /// A compute pipeline for one kernel entry point.
 pub struct Kernel {
-    ctx: Context,
+    pub(crate) ctx: Context,
     pub(crate) desc: &'static KernelDesc,
     pub(crate) pipeline: vk::Pipeline,
     pub(crate) layout: vk::PipelineLayout,

@@ -215,6 +215,10 @@ impl<'a> Recorder<'a> {
         threads: u64,
     ) -> Result<()> {
         let desc = kernel.desc;
+        self.same_device(kernel.ctx.id(), &format!("kernel `{}`", desc.name))?;
+        for b in &bindings {
+            self.same_device(b.ctx, &format!("buffer `{}`", b.name))?;
+        }
         if N != desc.bindings.len() {
             return Err(GpuError::KernelMismatch {
                 kernel: desc.name,
@@ -308,6 +312,17 @@ impl<'a> Recorder<'a> {
         Ok(())
     }
 
+    /// Refuses a resource made on another context (its handles mean nothing on this device).
+    fn same_device(&self, ctx: usize, what: &str) -> Result<()> {
+        if ctx != self.ctx.id() {
+            return Err(GpuError::Usage(format!(
+                "{what} belongs to another Vulkan context than recorder `{}`",
+                self.label
+            )));
+        }
+        Ok(())
+    }
+
     /// A full compute/transfer memory barrier.
     pub fn barrier(&mut self) {
         let mb = [vk::MemoryBarrier::default()
@@ -347,7 +362,11 @@ impl<'a> Recorder<'a> {
         dst_offset: u64,
         bytes: u64,
     ) -> Result<()> {
-        if src_offset + bytes > src.bytes || dst_offset + bytes > dst.bytes {
+        self.same_device(src.ctx, &format!("buffer `{}`", src.name))?;
+        self.same_device(dst.ctx, &format!("buffer `{}`", dst.name))?;
+        if src_offset.saturating_add(bytes) > src.bytes
+            || dst_offset.saturating_add(bytes) > dst.bytes
+        {
             return Err(GpuError::Usage(format!(
                 "copy of {bytes} bytes from `{}`+{src_offset} to `{}`+{dst_offset} is out of range",
                 src.name, dst.name
@@ -364,7 +383,8 @@ impl<'a> Recorder<'a> {
 
     /// `vkCmdFillBuffer`: fills the first `words` 32-bit words with `value`.
     pub fn fill_words(&mut self, dst: Binding<'a>, words: u64, value: u32) -> Result<()> {
-        if words * 4 > dst.bytes {
+        self.same_device(dst.ctx, &format!("buffer `{}`", dst.name))?;
+        if words.saturating_mul(4) > dst.bytes {
             return Err(GpuError::Usage(format!(
                 "fill of {words} words overruns `{}`",
                 dst.name
@@ -453,18 +473,22 @@ impl<'a> Recorder<'a> {
     }
 
     /// Resets all queries of `timer` (record before the first timestamp).
-    pub fn reset_timer(&mut self, timer: &'a GpuTimer) {
-        // SAFETY: recording command buffer; pool alive until the release queue passes it.
+    pub fn reset_timer(&mut self, timer: &'a GpuTimer) -> Result<()> {
+        self.same_device(timer.ctx.id(), "timer")?;
+        // SAFETY: recording command buffer; pool of this device, alive until the release queue
+        // passes this submission.
         unsafe {
             self.ctx
                 .inner
                 .device
                 .cmd_reset_query_pool(self.cmd, timer.pool, 0, timer.capacity)
         };
+        Ok(())
     }
 
     /// Writes timestamp `index` once all previous commands have finished.
     pub fn timestamp(&mut self, timer: &'a GpuTimer, index: u32) -> Result<()> {
+        self.same_device(timer.ctx.id(), "timer")?;
         if index >= timer.capacity {
             return Err(GpuError::Usage(format!(
                 "timestamp {index} past the timer's {} slots",
