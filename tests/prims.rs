@@ -443,3 +443,36 @@ fn chained_primitives_without_host_round_trips() {
     );
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn back_to_back_submissions_see_each_others_writes() {
+    // Three submissions without a host wait in between; each reads what the previous wrote.
+    let e = engine();
+    let n = 50_001u64;
+    let x = Buffer::<f32>::new(&e.ctx, "x", n as usize).unwrap();
+    let y = Buffer::<f32>::new(&e.ctx, "y", n as usize).unwrap();
+    let mut rec = e.ctx.recorder("first").unwrap();
+    e.prims
+        .fill(&mut rec, x.binding(), n, 1.5f32.to_bits())
+        .unwrap();
+    e.prims
+        .fill(&mut rec, y.binding(), n, 0.25f32.to_bits())
+        .unwrap();
+    e.ctx.submit(rec).unwrap();
+    let mut rec = e.ctx.recorder("second").unwrap();
+    e.prims
+        .saxpy(&mut rec, 2.0, x.binding(), y.binding(), n)
+        .unwrap();
+    e.ctx.submit(rec).unwrap();
+    let mut rec = e.ctx.recorder("third").unwrap();
+    e.prims
+        .saxpy(&mut rec, -1.0, x.binding(), y.binding(), n)
+        .unwrap();
+    let last = e.ctx.submit(rec).unwrap();
+    e.ctx.wait(last).unwrap();
+    assert!(
+        y.read().unwrap().iter().all(|&v| v == 1.75),
+        "2 * 1.5 + 0.25 - 1.5"
+    );
+    assert_no_validation_messages(&e.ctx);
+}

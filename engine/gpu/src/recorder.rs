@@ -121,6 +121,24 @@ impl Context {
             }
         };
         self.name(cmd, label);
+        // Order this recording after everything submitted before it: a barrier's first scope
+        // covers all earlier commands on the queue, so work of earlier submissions (which the
+        // host may not have waited for) is visible here.
+        let mb = [vk::MemoryBarrier::default()
+            .src_access_mask(ALL_ACCESS)
+            .dst_access_mask(ALL_ACCESS)];
+        // SAFETY: the command buffer was just begun.
+        unsafe {
+            device.cmd_pipeline_barrier(
+                cmd,
+                STAGES,
+                STAGES,
+                vk::DependencyFlags::empty(),
+                &mb,
+                &[],
+                &[],
+            )
+        };
         Ok(Recorder {
             ctx: self.clone(),
             pool,
