@@ -253,7 +253,7 @@ fn type_rank(t: vk::PhysicalDeviceType) -> u32 {
 }
 
 fn c_name(bytes: &[std::ffi::c_char]) -> String {
-    // SAFETY-free: Vulkan fixed-size name arrays are NUL-terminated; fall back to the whole array.
+    // Vulkan fixed-size name arrays are NUL-terminated; without a NUL the whole array is used.
     let b: Vec<u8> = bytes
         .iter()
         .take_while(|&&c| c != 0)
