@@ -410,3 +410,56 @@ fn depth_maps_from_npy() {
     assert!(e.contains("rgb.npy") && e.contains("(H, W)"), "{e}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+#[test]
+fn depth_maps_from_exr() {
+    use exr::prelude::*;
+    use extranerf_nerf::data::depth::read_depth_exr;
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let cam = &scene.cameras[0];
+    let dir = scratch_dir("depth-exr");
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut z: Vec<f32> = (0..w * h).map(|i| 2.0 + (i % 101) as f32 * 0.01).collect();
+    z[3] = f32::NAN;
+    z[4] = -2.0;
+    let write = |path: &Path, name: &str, data: FlatSamples, size: (usize, usize)| {
+        let mut list = SmallVec::new();
+        list.push(AnyChannel::new(name, data));
+        let layer = Layer::new(
+            size,
+            LayerAttributes::named("depth"),
+            Encoding::FAST_LOSSLESS,
+            AnyChannels::sort(list),
+        );
+        Image::from_layer(layer).write().to_file(path).unwrap();
+    };
+    let f32_path = dir.join("z.exr");
+    write(&f32_path, "Z", FlatSamples::F32(z.clone()), (w, h));
+    let d = read_depth_exr(&f32_path, cam).unwrap();
+    assert_eq!(
+        (d.len(), d[0], d[3], d[4], d[5]),
+        (w * h, z[0], 0.0, 0.0, z[5])
+    );
+    let f16_path = dir.join("half.exr");
+    write(
+        &f16_path,
+        "depth",
+        FlatSamples::F16(z.iter().map(|&v| f16::from_f32(v)).collect()),
+        (w, h),
+    );
+    let d = read_depth_exr(&f16_path, cam).unwrap();
+    assert!((d[7] - z[7]).abs() < 2e-3, "{} vs {}", d[7], z[7]);
+    let small = dir.join("small.exr");
+    write(&small, "Z", FlatSamples::F32(vec![1.0; 100]), (10, 10));
+    let e = read_depth_exr(&small, cam).unwrap_err().to_string();
+    assert!(e.contains("small.exr") && e.contains("10x10"), "{e}");
+    let garbage = dir.join("garbage.exr");
+    std::fs::write(&garbage, b"not an exr").unwrap();
+    let e = read_depth_exr(&garbage, cam).unwrap_err().to_string();
+    assert!(e.contains("garbage.exr") && e.contains("OpenEXR"), "{e}");
+    let e = read_depth_exr(&dir.join("missing.exr"), cam)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("missing.exr"), "{e}");
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -1,5 +1,5 @@
 //! Depth supervision for training views: COLMAP sparse points projected into each view, and
-//! dense depth maps from `.npy` files.
+//! dense depth maps from `.npy` or OpenEXR files.
 
 use std::path::Path;
 
@@ -96,5 +96,49 @@ pub fn read_depth_npy(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
                 0.0
             }
         })
+        .collect())
+}
+
+/// Channel names taken as depth, in order of preference.
+const DEPTH_CHANNELS: [&str; 6] = ["Z", "depth", "Depth", "D", "Y", "R"];
+
+/// Reads a dense depth map from an OpenEXR file for `cam`: the first layer's `Z` (or `depth`,
+/// `D`, `Y`, `R`, or its only) channel, any sample type; non-finite or non-positive values
+/// become 0 ("no depth").
+pub fn read_depth_exr(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
+    std::fs::metadata(path).map_err(|e| DataError::io(path, e))?;
+    let img = exr::prelude::read_first_flat_layer_from_file(path)
+        .map_err(|e| DataError::malformed(path, format!("cannot read as OpenEXR: {e}")))?;
+    let layer = img.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    let channels = &layer.channel_data.list;
+    let names: Vec<String> = channels.iter().map(|c| c.name.to_string()).collect();
+    let pick = DEPTH_CHANNELS
+        .iter()
+        .find_map(|want| names.iter().position(|n| n == want))
+        .or((channels.len() == 1).then_some(0));
+    let Some(i) = pick else {
+        return Err(DataError::malformed(
+            path,
+            format!("no depth channel among {names:?}; name it Z or depth"),
+        ));
+    };
+    if (w as u32, h as u32) != (cam.width, cam.height) {
+        return Err(DataError::malformed(
+            path,
+            format!(
+                "depth map is {w}x{h}, its view is {}x{}",
+                cam.width, cam.height
+            ),
+        ));
+    }
+    let values: Vec<f32> = match &channels[i].sample_data {
+        exr::prelude::FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        exr::prelude::FlatSamples::F32(v) => v.clone(),
+        exr::prelude::FlatSamples::U32(v) => v.iter().map(|&x| x as f32).collect(),
+    };
+    Ok(values
+        .into_iter()
+        .map(|v| if v.is_finite() && v > 0.0 { v } else { 0.0 })
         .collect())
 }
