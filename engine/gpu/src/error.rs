@@ -106,6 +106,15 @@ pub enum GpuError {
 /// Result alias of the Vulkan layer.
 pub type Result<T, E = GpuError> = std::result::Result<T, E>;
 
+/// An element count as the `u32` the kernels index with, or a [`GpuError::Usage`] naming `what`.
+pub fn count_u32(n: u64, what: &str) -> Result<u32> {
+    u32::try_from(n).map_err(|_| {
+        GpuError::Usage(format!(
+            "{what}: {n} elements exceed the kernels' 32-bit indices"
+        ))
+    })
+}
+
 /// Maps a failing `VkResult` to the error a user can act on.
 pub(crate) fn vk_err(call: &'static str, result: vk::Result) -> GpuError {
     match result {

@@ -24,7 +24,7 @@ pub use context::{
     list_devices, Context, ContextDesc, DeviceInfo, DeviceListing, HeapInfo, Validation,
     ValidationLogHandle, ValidationMessage,
 };
-pub use error::{GpuError, Result};
+pub use error::{count_u32, GpuError, Result};
 pub use extranerf_kernels as kernels;
 pub use kernel::Kernel;
 pub use recorder::{fold_groups, GpuTimer, Recorder, Ticket};

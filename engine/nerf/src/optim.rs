@@ -2,7 +2,7 @@
 //! learning-rate schedule (1e-2 decaying exponentially to 3e-4 over 5000 steps by default).
 
 use extranerf_gpu::kernels::optim::adam as k;
-use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
 /// Adam hyperparameters and the learning-rate schedule.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -111,8 +111,7 @@ impl Adam {
         grads.check_fits(self.n, 4, "Adam gradients")?;
         let c = &self.config;
         let p = k::Params {
-            n: u32::try_from(self.n)
-                .map_err(|_| GpuError::Usage(format!("Adam: {} parameters exceed 2^32", self.n)))?,
+            n: count_u32(self.n, "Adam parameters")?,
             lr: c.lr_at(step),
             beta1: c.beta1,
             beta2: c.beta2,

@@ -167,11 +167,7 @@ impl SortPlan {
 }
 
 fn n32(n: u64, what: &str) -> Result<u32> {
-    u32::try_from(n).map_err(|_| {
-        usage(format!(
-            "{what}: {n} elements exceed the kernels' 32-bit indices"
-        ))
-    })
+    extranerf_gpu::count_u32(n, what)
 }
 
 impl Prims {

@@ -1,7 +1,7 @@
 //! Output activations of the field: truncated exponential (density) and sigmoid (colour).
 
 use extranerf_gpu::kernels::field::activation as k;
-use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Context, GpuError, Kernel, Recorder, Result};
 
 /// Which activation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -34,7 +34,7 @@ fn params(n: u64, kind: Activation, col: Column) -> Result<k::Params> {
             "activation column {col:?}: need offset < stride"
         )));
     }
-    let n = u32::try_from(n).map_err(|_| GpuError::Usage(format!("{n} elements exceed 2^32")))?;
+    let n = count_u32(n, "activation elements")?;
     Ok(k::Params {
         n,
         kind: kind as u32,

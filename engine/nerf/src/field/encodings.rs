@@ -2,7 +2,7 @@
 //! march shares `common/contract.wgsl` and `common/sh.wgsl`).
 
 use extranerf_gpu::kernels::field::encodings as k;
-use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Context, GpuError, Kernel, Recorder, Result};
 
 /// How world positions are mapped into the hash grid's unit cube.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -51,7 +51,7 @@ impl Encodings {
             )));
         }
         Ok(k::Params {
-            n: u32::try_from(n).map_err(|_| GpuError::Usage(format!("{n} points exceed 2^32")))?,
+            n: count_u32(n, "points")?,
             mode: scene.contraction as u32,
             inv_radius: 1.0 / scene.radius,
             _pad: 0,

@@ -3,7 +3,7 @@
 //! WGSL layout (`common/mlp.wgsl`).
 
 use extranerf_gpu::kernels::field::mlp as k;
-use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
 pub use k::MlpShape;
 
@@ -93,8 +93,7 @@ impl Mlp {
     }
 
     fn params(&self, n: u64) -> Result<k::Params> {
-        let n32 = u32::try_from(n)
-            .map_err(|_| GpuError::Usage(format!("MLP: {n} points exceed 2^32")))?;
+        let n32 = count_u32(n, "MLP points")?;
         Ok(k::Params {
             n: n32,
             chunk: WGRAD_CHUNK,

@@ -51,7 +51,7 @@ pub struct Compositor {
 }
 
 fn n32(n: u64) -> Result<u32> {
-    u32::try_from(n).map_err(|_| extranerf_gpu::GpuError::Usage(format!("{n} rays exceed 2^32")))
+    extranerf_gpu::count_u32(n, "rays")
 }
 
 impl Compositor {

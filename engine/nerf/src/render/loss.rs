@@ -1,7 +1,7 @@
 //! Per-ray photometric and depth losses with their gradients (means over the batch).
 
 use extranerf_gpu::kernels::render::loss as k;
-use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Context, GpuError, Kernel, Recorder, Result};
 
 /// Photometric loss.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -87,8 +87,7 @@ impl RayLoss {
             b.check_fits(w * n_rays, 4, what)?;
         }
         let p = k::Params {
-            n_rays: u32::try_from(n_rays)
-                .map_err(|_| GpuError::Usage(format!("{n_rays} rays exceed 2^32")))?,
+            n_rays: count_u32(n_rays, "rays")?,
             kind,
             huber_delta,
             depth_lambda: cfg.depth_lambda,

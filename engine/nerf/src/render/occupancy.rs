@@ -3,7 +3,7 @@
 //! so the trainer can refresh it every few steps without host round trips.
 
 use extranerf_gpu::kernels::render::occupancy as k;
-use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 use extranerf_prims::{Prims, ReducePlan};
 
 /// Grid settings.
@@ -104,8 +104,7 @@ impl Occupancy {
     }
 
     fn params(&self, first: u64, count: u64, seed: u32) -> Result<k::Params> {
-        let count = u32::try_from(count)
-            .map_err(|_| GpuError::Usage(format!("{count} cells exceed 2^32")))?;
+        let count = count_u32(count, "occupancy cells")?;
         Ok(k::Params {
             res: self.cfg.res,
             cascades: self.cfg.cascades,

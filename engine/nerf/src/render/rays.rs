@@ -1,7 +1,7 @@
 //! Ray generation from the loaded cameras, in world space or NeRF's NDC.
 
 use extranerf_gpu::kernels::render::rays as k;
-use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{count_u32, Binding, Context, GpuError, Kernel, Recorder, Result};
 
 pub use k::GpuCamera;
 
@@ -85,7 +85,7 @@ impl RayGen {
             }
         };
         let p = k::Params {
-            n: u32::try_from(n).map_err(|_| GpuError::Usage(format!("{n} rays exceed 2^32")))?,
+            n: count_u32(n, "rays")?,
             ndc,
             near,
             n_cameras,
