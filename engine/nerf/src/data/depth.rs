@@ -78,25 +78,7 @@ pub fn read_depth_npy(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
             ))
         }
     };
-    if (w as u32, h as u32) != (cam.width, cam.height) {
-        return Err(DataError::malformed(
-            path,
-            format!(
-                "depth map is {w}x{h}, its view is {}x{}",
-                cam.width, cam.height
-            ),
-        ));
-    }
-    Ok(a.data
-        .iter()
-        .map(|&v| {
-            if v.is_finite() && v > 0.0 {
-                v as f32
-            } else {
-                0.0
-            }
-        })
-        .collect())
+    depth_for_view(path, cam, (w, h), a.data.iter().map(|&v| v as f32))
 }
 
 /// Channel names taken as depth, in order of preference.
@@ -123,6 +105,25 @@ pub fn read_depth_exr(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
             format!("no depth channel among {names:?}; name it Z or depth"),
         ));
     };
+    match &channels[i].sample_data {
+        exr::prelude::FlatSamples::F16(v) => {
+            depth_for_view(path, cam, (w, h), v.iter().map(|x| x.to_f32()))
+        }
+        exr::prelude::FlatSamples::F32(v) => depth_for_view(path, cam, (w, h), v.iter().copied()),
+        exr::prelude::FlatSamples::U32(v) => {
+            depth_for_view(path, cam, (w, h), v.iter().map(|&x| x as f32))
+        }
+    }
+}
+
+/// Checks a decoded depth map's size against its view and turns non-finite or non-positive
+/// values into 0 ("no depth").
+fn depth_for_view(
+    path: &Path,
+    cam: &Camera,
+    (w, h): (usize, usize),
+    values: impl Iterator<Item = f32>,
+) -> Result<Vec<f32>> {
     if (w as u32, h as u32) != (cam.width, cam.height) {
         return Err(DataError::malformed(
             path,
@@ -132,13 +133,7 @@ pub fn read_depth_exr(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
             ),
         ));
     }
-    let values: Vec<f32> = match &channels[i].sample_data {
-        exr::prelude::FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
-        exr::prelude::FlatSamples::F32(v) => v.clone(),
-        exr::prelude::FlatSamples::U32(v) => v.iter().map(|&x| x as f32).collect(),
-    };
     Ok(values
-        .into_iter()
         .map(|v| if v.is_finite() && v > 0.0 { v } else { 0.0 })
         .collect())
 }
