@@ -326,3 +326,50 @@ fn resources_of_another_context_are_refused() {
     drop(rec);
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn slices_bind_a_range_of_one_buffer() {
+    let e = engine();
+    let ctx = &e.ctx;
+    let align = ctx.info().min_storage_buffer_offset_alignment as usize;
+    // Start of the second section: a multiple of the alignment in u32 elements.
+    let at = align.div_ceil(4).max(1) * 3;
+    let n = at + 100;
+    let buf = Buffer::<u32>::from_slice(ctx, "sliced", &vec![7u32; n]).unwrap();
+    let mut rec = ctx.recorder("slices").unwrap();
+    // A kernel, a fill and a copy each confined to their slice.
+    e.prims
+        .fill(&mut rec, buf.slice(at, 37).unwrap(), 37, 1)
+        .unwrap();
+    rec.fill_words(buf.slice(0, 5).unwrap(), 5, 2).unwrap();
+    rec.copy(
+        buf.slice(0, 5).unwrap(),
+        0,
+        buf.slice(at, 50).unwrap(),
+        40 * 4,
+        2 * 4,
+    )
+    .unwrap();
+    ctx.run(rec).unwrap();
+    let got = buf.read().unwrap();
+    for (i, v) in got.iter().enumerate() {
+        let want = match i {
+            0..5 => 2,
+            _ if (at..at + 37).contains(&i) => 1,
+            _ if (at + 40..at + 42).contains(&i) => 2,
+            _ => 7,
+        };
+        assert_eq!(*v, want, "element {i}");
+    }
+    // Misaligned starts and overruns are errors naming the buffer.
+    if align > 4 {
+        let e1 = buf.slice(1, 4).unwrap_err().to_string();
+        assert!(e1.contains("sliced") && e1.contains("alignment"), "{e1}");
+    }
+    let e2 = buf.slice(at, n).unwrap_err().to_string();
+    assert!(e2.contains("sliced") && e2.contains("overruns"), "{e2}");
+    // A slice's range is enforced by the checks of the operations that use it.
+    let mut rec = ctx.recorder("slice overrun").unwrap();
+    assert!(rec.fill_words(buf.slice(0, 5).unwrap(), 9, 0).is_err());
+    assert_no_validation_messages(ctx);
+}

@@ -7,10 +7,12 @@ use clap::{Parser, Subcommand};
 use extranerf_gpu::{Context, ContextDesc, Validation};
 
 mod bench;
+mod nerf;
 
 /// extranerf: a Vulkan-native ExtraNeRF engine (neural radiance fields viewed from outside the
-/// cameras that took them). This build has the Vulkan compute core: device information and
-/// kernel microbenchmarks. Training, rendering and the diffusion stages follow.
+/// cameras that took them). This build trains the BaseNeRF field (hash grid + tiny MLPs) on
+/// posed photos, renders and evaluates it, and benchmarks the kernels. Visibility, the
+/// diffusion stages and the demo scene follow.
 #[derive(Parser, Debug)]
 #[command(name = "extranerf", version, propagate_version = true)]
 struct Cli {
@@ -37,6 +39,14 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         json: Option<PathBuf>,
     },
+    /// Train a BaseNeRF field on a scene; writes config.json, checkpoint.safetensors and
+    /// progress.jsonl into --out, checkpointing atomically every --checkpoint-every steps.
+    Train(nerf::TrainArgs),
+    /// Render a trained run's views: PNG colour and EXR depth (NDC t for forward-facing scenes).
+    Render(nerf::RenderArgs),
+    /// Evaluate a trained run: PSNR, SSIM, LPIPS (AlexNet, VGG) on the held-out views and PSNR
+    /// on the training views, written as JSON.
+    Eval(nerf::EvalArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -94,6 +104,9 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
             }
             Ok(())
         }
+        Command::Train(a) => nerf::train(&context(cli)?, a),
+        Command::Render(a) => nerf::render(&context(cli)?, a),
+        Command::Eval(a) => nerf::eval(&context(cli)?, a),
         Command::Bench {
             what: BenchCommand::Kernels(args),
         } => {

@@ -85,5 +85,129 @@ fn bad_arguments_are_clear_errors() {
     let (ok, _, err) = extranerf(&["bench", "kernels", "--repeats", "0"]);
     assert!(!ok && err.contains("--repeats"), "{err}");
     let (ok, _, err) = extranerf(&["train"]);
-    assert!(!ok && err.contains("unrecognized subcommand"), "{err}");
+    assert!(
+        !ok && err.contains("--scene") && err.contains("--out"),
+        "{err}"
+    );
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-bad-{}", std::process::id()));
+    let out = dir.join("run");
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        "/no/such/scene",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("/no/such/scene") && err.contains("poses_bounds.npy"),
+        "{err}"
+    );
+    let (ok, _, err) = extranerf(&["render", out.to_str().unwrap()]);
+    assert!(!ok && err.contains("checkpoint.safetensors"), "{err}");
+    let (ok, _, err) = extranerf(&["train", "--resume", "--out", out.to_str().unwrap()]);
+    assert!(!ok && err.contains("checkpoint.safetensors"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+fn fern() -> std::path::PathBuf {
+    let p = std::env::var_os("EXTRANERF_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
+        })
+        .join("llff/fern");
+    assert!(
+        p.join("poses_bounds.npy").exists(),
+        "shared data missing: {} (set EXTRANERF_DATA to the folder holding llff/fern)",
+        p.display()
+    );
+    p
+}
+
+/// train -> checkpoint -> resume -> render -> eval through the real binary, on fern with a
+/// tiny model and a handful of steps.
+#[test]
+fn train_resume_render_eval_on_fern() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-train-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let run = dir.join("run");
+    let run_s = run.to_str().unwrap();
+    let scene = fern();
+    let tiny = [
+        "--levels",
+        "4",
+        "--log2-table",
+        "12",
+        "--max-res",
+        "128",
+        "--width",
+        "16",
+        "--rays",
+        "64",
+        "--samples",
+        "8",
+    ];
+    let mut args = vec!["train", "--scene", scene.to_str().unwrap(), "--out", run_s];
+    args.extend([
+        "--steps",
+        "6",
+        "--log-every",
+        "3",
+        "--checkpoint-every",
+        "3",
+    ]);
+    args.extend(tiny);
+    let (ok, _, err) = extranerf(&args);
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("step     6/6") && err.contains("samples/s"),
+        "{err}"
+    );
+    for f in ["config.json", "checkpoint.safetensors", "progress.jsonl"] {
+        assert!(run.join(f).exists(), "{f} missing");
+    }
+    // A second plain train into the same folder is refused; --resume extends it.
+    let (ok, _, err) = extranerf(&args);
+    assert!(!ok && err.contains("--resume"), "{err}");
+    let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--steps", "9"]);
+    assert!(
+        ok && err.contains("resuming") && err.contains("step     9/9"),
+        "{err}"
+    );
+    let progress = std::fs::read_to_string(run.join("progress.jsonl")).unwrap();
+    assert_eq!(progress.lines().count(), 3, "{progress}");
+    // Render one training view: PNG + EXR of the right size.
+    let (ok, _, err) = extranerf(&["render", run_s, "--views", "2", "--samples", "4"]);
+    assert!(ok, "{err}");
+    let png = image::open(run.join("render/train_002.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (504, 378));
+    assert!(run.join("render/train_002.exr").exists());
+    let (ok, _, err) = extranerf(&["render", run_s, "--views", "99"]);
+    assert!(!ok && err.contains("view 99"), "{err}");
+    // Evaluate one held-out view with AlexNet LPIPS.
+    let lpips = fern().join("../../../models/lpips");
+    let (ok, out, err) = extranerf(&[
+        "eval",
+        run_s,
+        "--views",
+        "0",
+        "--samples",
+        "4",
+        "--lpips-nets",
+        "alex",
+        "--lpips",
+        lpips.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.contains("test: PSNR"), "{out}");
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    let psnr = m["test"]["psnr"].as_f64().unwrap();
+    let lp = m["test"]["lpips_alex"].as_f64().unwrap();
+    let ssim = m["test"]["ssim"].as_f64().unwrap();
+    assert!(
+        psnr > 5.0 && psnr < 40.0 && lp > 0.0 && lp.is_finite() && ssim < 1.0,
+        "{m}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
 }

@@ -163,6 +163,9 @@ impl<T: Pod> std::fmt::Debug for Buffer<T> {
 #[derive(Clone, Copy, Debug)]
 pub struct Binding<'a> {
     pub(crate) raw: vk::Buffer,
+    /// Byte offset of the bound range in the buffer.
+    pub(crate) offset: u64,
+    /// Bytes in the bound range.
     pub(crate) bytes: u64,
     pub(crate) last_use: &'a AtomicU64,
     pub(crate) name: &'a str,
@@ -171,7 +174,7 @@ pub struct Binding<'a> {
 }
 
 impl Binding<'_> {
-    /// Bytes bound (the buffer's padded size).
+    /// Bytes bound (the buffer's padded size, or a slice's range).
     pub fn bytes(&self) -> u64 {
         self.bytes
     }
@@ -237,11 +240,48 @@ impl<T: Pod> Buffer<T> {
     pub fn binding(&self) -> Binding<'_> {
         Binding {
             raw: self.raw.raw,
+            offset: 0,
             bytes: self.raw.bytes,
             last_use: &self.raw.last_use,
             name: &self.raw.name,
             ctx: self.raw.ctx.id(),
         }
+    }
+
+    /// Elements `start .. start + len` as a binding of their own (one flat parameter buffer
+    /// bound section by section). The start must sit on the device's
+    /// `minStorageBufferOffsetAlignment`; the range is rounded up to 16 bytes so kernels may read
+    /// it as vec4s, and must stay inside the buffer.
+    pub fn slice(&self, start: usize, len: usize) -> Result<Binding<'_>> {
+        let size = std::mem::size_of::<T>() as u64;
+        let offset = start as u64 * size;
+        let bytes = (len as u64 * size).max(1).div_ceil(16) * 16;
+        let align = self
+            .raw
+            .ctx
+            .info()
+            .min_storage_buffer_offset_alignment
+            .max(1);
+        if !offset.is_multiple_of(align) {
+            return Err(GpuError::Usage(format!(
+                "slice of `{}` at element {start}: byte offset {offset} is not a multiple of the device's storage offset alignment {align}",
+                self.raw.name
+            )));
+        }
+        if offset.saturating_add(bytes) > self.raw.bytes {
+            return Err(GpuError::Usage(format!(
+                "slice of `{}` at element {start} with {len} elements overruns its {} bytes",
+                self.raw.name, self.raw.bytes
+            )));
+        }
+        Ok(Binding {
+            raw: self.raw.raw,
+            offset,
+            bytes,
+            last_use: &self.raw.last_use,
+            name: &self.raw.name,
+            ctx: self.raw.ctx.id(),
+        })
     }
 
     /// Uploads `data` (exactly `len` elements) through a staging buffer and waits.

@@ -88,6 +88,8 @@ pub struct DeviceInfo {
     pub subgroup_arithmetic: bool,
     /// `maxStorageBufferRange`.
     pub max_storage_buffer_range: u64,
+    /// `minStorageBufferOffsetAlignment`.
+    pub min_storage_buffer_offset_alignment: u64,
     /// `maxComputeWorkGroupCount[0]`.
     pub max_workgroup_count_x: u32,
     /// `maxComputeWorkGroupCount[1]`.
@@ -950,6 +952,7 @@ fn probe_device(
             .contains(vk::ShaderStageFlags::COMPUTE)
             && subgroup.supported_operations.contains(ops),
         max_storage_buffer_range: p.limits.max_storage_buffer_range as u64,
+        min_storage_buffer_offset_alignment: p.limits.min_storage_buffer_offset_alignment,
         max_workgroup_count_x: p.limits.max_compute_work_group_count[0],
         max_workgroup_count_y: p.limits.max_compute_work_group_count[1],
         max_shared_memory: p.limits.max_compute_shared_memory_size,

@@ -279,7 +279,7 @@ impl<'a> Recorder<'a> {
             .map(|b| {
                 [vk::DescriptorBufferInfo::default()
                     .buffer(b.raw)
-                    .offset(0)
+                    .offset(b.offset)
                     .range(b.bytes)]
             })
             .collect();
@@ -395,7 +395,13 @@ impl<'a> Recorder<'a> {
         }
         self.uses.push(src.last_use);
         self.uses.push(dst.last_use);
-        self.record_copy(src.raw, src_offset, dst.raw, dst_offset, bytes);
+        self.record_copy(
+            src.raw,
+            src.offset + src_offset,
+            dst.raw,
+            dst.offset + dst_offset,
+            bytes,
+        );
         Ok(())
     }
 
@@ -418,7 +424,7 @@ impl<'a> Recorder<'a> {
             self.ctx
                 .inner
                 .device
-                .cmd_fill_buffer(self.cmd, dst.raw, 0, words * 4, value)
+                .cmd_fill_buffer(self.cmd, dst.raw, dst.offset, words * 4, value)
         };
         Ok(())
     }
@@ -433,7 +439,13 @@ impl<'a> Recorder<'a> {
         bytes: u64,
     ) {
         self.uses.push(dst.last_use);
-        self.record_copy(staging.raw, src_offset, dst.raw, dst_offset, bytes);
+        self.record_copy(
+            staging.raw,
+            src_offset,
+            dst.raw,
+            dst.offset + dst_offset,
+            bytes,
+        );
     }
 
     /// Readback copy into a host-visible staging buffer, made visible to the host.
@@ -445,7 +457,7 @@ impl<'a> Recorder<'a> {
         bytes: u64,
     ) {
         self.uses.push(src.last_use);
-        self.record_copy(src.raw, src_offset, staging.raw, 0, bytes);
+        self.record_copy(src.raw, src.offset + src_offset, staging.raw, 0, bytes);
         let mb = [vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
             .dst_access_mask(vk::AccessFlags::HOST_READ)];

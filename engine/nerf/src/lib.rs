@@ -1,14 +1,19 @@
 //! NeRF algorithms of extranerf, on the engine's Vulkan layer; no `unsafe` here.
 //!
-//! So far: [`data`], the scene loaders (LLFF `poses_bounds.npy`, instant-ngp / nerfstudio
-//! `transforms.json`, COLMAP `cameras.bin` / `points3D.bin`) and the evaluation splits;
-//! [`field`], the multi-resolution hash encoding on the GPU (forward and backward); and
-//! [`reference`], plain-Rust f64 definitions the kernels are tested against. The MLPs, the
-//! fused march, the losses and the trainer of the BaseNeRF issue build on these.
+//! [`data`]: scene loaders (LLFF, `transforms.json`, COLMAP) and splits; [`field`] and
+//! [`render`]: the device kernels (hash grid, MLPs, rays, sampling, compositing, losses,
+//! occupancy); [`model`]: the BaseNeRF field over one flat parameter buffer; [`trainer`]: the
+//! training step and rendering; [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM,
+//! LPIPS; [`reference`]: plain-Rust f64 definitions the kernels are tested against.
 #![forbid(unsafe_code)]
 
 pub mod data;
 pub mod field;
+pub mod metrics;
+pub mod model;
 pub mod optim;
 pub mod reference;
 pub mod render;
+pub mod run;
+pub mod safetensors;
+pub mod trainer;

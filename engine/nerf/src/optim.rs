@@ -95,6 +95,25 @@ impl Adam {
         &self.config
     }
 
+    /// The first and second moments (for checkpoints).
+    pub fn moments(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        Ok((self.m.read()?, self.v.read()?))
+    }
+
+    /// Restores moments saved by [`Adam::moments`].
+    pub fn load_moments(&self, m: &[f32], v: &[f32]) -> Result<()> {
+        if m.len() as u64 != self.n || v.len() as u64 != self.n {
+            return Err(GpuError::Usage(format!(
+                "Adam moments of {} and {} values for {} parameters",
+                m.len(),
+                v.len(),
+                self.n
+            )));
+        }
+        self.m.write(m)?;
+        self.v.write(v)
+    }
+
     /// Records update number `step` (1-based) of `params` with `grads * grad_scale`.
     pub fn record_step<'a>(
         &'a self,

@@ -581,6 +581,56 @@ pub fn stratified(
         .collect()
 }
 
+/// The BaseNeRF field (see `model::Field`) per sample: `(sigma, rgb)`; sample i looks along
+/// `dirs[i / per_ray]`. Each stage runs in f64 on the previous stage's output rounded to f32
+/// (the stages' own references take f32 inputs).
+pub fn field_forward(
+    cfg: &crate::model::ModelConfig,
+    params: &[f32],
+    positions: &[f32],
+    dirs: &[[f32; 3]],
+    per_ray: usize,
+) -> Vec<(f64, [f64; 3])> {
+    let lay = crate::model::ParamLayout::new(cfg);
+    let scene = cfg.scene_box().expect("valid model configuration");
+    let table = &params[lay.table.0..lay.table.0 + lay.table.1];
+    let wd = &params[lay.density.0..lay.density.0 + lay.density.1];
+    let wc = &params[lay.color.0..lay.color.0 + lay.color.1];
+    let contracted: Vec<f32> = positions
+        .chunks_exact(3)
+        .flat_map(|p| contract([p[0], p[1], p[2]], &scene).map(|v| v as f32))
+        .collect();
+    let enc: Vec<f32> = hash_grid_forward(&cfg.grid(), table, &contracted)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let dens = mlp_forward(&cfg.density_mlp(), wd, &enc);
+    let g = cfg.geo_dims as usize;
+    let n = positions.len() / 3;
+    let mut color_in = Vec::with_capacity(n * (g + 16));
+    for i in 0..n {
+        color_in.extend(dens[i * g..(i + 1) * g].iter().map(|&v| v as f32));
+        let d = dirs[i / per_ray].map(|v| v as f64);
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let u = if len > 0.0 && len.is_finite() {
+            d.map(|v| v / len)
+        } else {
+            [0.0, 0.0, 1.0]
+        };
+        color_in.extend(sh4(u).iter().map(|&v| v as f32));
+    }
+    let col = mlp_forward(&cfg.color_mlp(), wc, &color_in);
+    let sig = |x: f64| 1.0 / (1.0 + (-x).exp());
+    (0..n)
+        .map(|i| {
+            (
+                dens[i * g].min(15.0).exp(),
+                [sig(col[3 * i]), sig(col[3 * i + 1]), sig(col[3 * i + 2])],
+            )
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

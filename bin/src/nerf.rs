@@ -1,0 +1,492 @@
+//! `extranerf train`, `render` and `eval`.
+
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use extranerf_gpu::Context;
+use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
+use extranerf_nerf::run::{
+    load_checkpoint, model_for_scene, save_checkpoint, training_views, write_depth_exr, write_png,
+    Checkpoint, RunConfig, SceneSpec,
+};
+use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, STAT_SLOTS};
+use extranerf_prims::Prims;
+
+/// Arguments of `extranerf train`.
+#[derive(clap::Args, Debug)]
+pub struct TrainArgs {
+    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
+    #[arg(long, value_name = "DIR", required_unless_present = "resume")]
+    scene: Option<PathBuf>,
+    /// Views to train on: extrapolation (6 central views; the 8 farthest are held out),
+    /// fewshot (RegNeRF: every 8th held out, --fewshot-views spread over the rest) or all.
+    #[arg(long, default_value = "extrapolation")]
+    split: String,
+    /// Training views of the few-shot split.
+    #[arg(long, default_value_t = 3)]
+    fewshot_views: usize,
+    /// LLFF downsampling factor (reads images_N).
+    #[arg(long, default_value_t = 8)]
+    factor: u32,
+    /// Run folder: config.json, checkpoint.safetensors, progress.jsonl.
+    #[arg(long, value_name = "RUN")]
+    out: PathBuf,
+    /// Continue the run in --out from its checkpoint (its saved settings win; --steps may extend it).
+    #[arg(long)]
+    resume: bool,
+    /// Optimiser steps (the paper: 5000).
+    #[arg(long)]
+    steps: Option<u32>,
+    /// Rays per step.
+    #[arg(long)]
+    rays: Option<u32>,
+    /// Samples per ray.
+    #[arg(long)]
+    samples: Option<u32>,
+    /// log2 of the hash table size per level (paper: 19).
+    #[arg(long)]
+    log2_table: Option<u32>,
+    /// Hash-grid levels (paper: 16).
+    #[arg(long)]
+    levels: Option<u32>,
+    /// Finest hash-grid resolution (paper: 2048).
+    #[arg(long)]
+    max_res: Option<u32>,
+    /// Hidden width of both MLPs (paper: 64).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Depth loss weight on the COLMAP sparse points (0: off).
+    #[arg(long)]
+    depth_lambda: Option<f32>,
+    /// Distortion loss weight (0: off).
+    #[arg(long)]
+    distortion_lambda: Option<f32>,
+    /// Hash decay weight (0: off).
+    #[arg(long)]
+    hash_decay: Option<f32>,
+    /// Scale gradients by min(1, t^2) near the cameras (Floaters No More).
+    #[arg(long)]
+    grad_scaling: bool,
+    /// Seed of the initialisation and batches.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Steps between progress lines (1 to 64).
+    #[arg(long, default_value_t = 25)]
+    log_every: u32,
+    /// Steps between checkpoints (the last step always saves).
+    #[arg(long, default_value_t = 500)]
+    checkpoint_every: u32,
+}
+
+fn apply<T>(dst: &mut T, v: Option<T>) {
+    if let Some(v) = v {
+        *dst = v;
+    }
+}
+
+/// `extranerf train`.
+pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
+    if !(1..=STAT_SLOTS).contains(&a.log_every) {
+        bail!("--log-every must be 1 to {STAT_SLOTS}");
+    }
+    if a.checkpoint_every == 0 {
+        bail!("--checkpoint-every must be positive");
+    }
+    let (mut cfg, start, params, moments) = if a.resume {
+        let ck = load_checkpoint(&a.out).context("resuming")?;
+        eprintln!("resuming {} at step {}", a.out.display(), ck.step);
+        (ck.config, ck.step, Some(ck.params), ck.moments)
+    } else {
+        if a.out.join(extranerf_nerf::run::CHECKPOINT_FILE).exists() {
+            bail!(
+                "{} already holds a run; pass --resume to continue it or choose another --out",
+                a.out.display()
+            );
+        }
+        let scene = SceneSpec {
+            dir: a.scene.clone().unwrap_or_default(),
+            split: a.split.clone(),
+            fewshot_views: a.fewshot_views,
+            factor: a.factor,
+            sparse_depth: true,
+        };
+        let loaded = scene.load()?;
+        let mut model = model_for_scene(&loaded.scene);
+        apply(&mut model.log2_table, a.log2_table);
+        apply(&mut model.levels, a.levels);
+        apply(&mut model.max_res, a.max_res);
+        if let Some(w) = a.width {
+            model.density_width = w;
+            model.color_width = w;
+        }
+        let mut train = TrainConfig::default();
+        apply(&mut train.rays, a.rays);
+        apply(&mut train.samples, a.samples);
+        apply(&mut train.depth_lambda, a.depth_lambda);
+        apply(&mut train.distortion_lambda, a.distortion_lambda);
+        apply(&mut train.hash_decay_lambda, a.hash_decay);
+        apply(&mut train.seed, a.seed);
+        train.grad_scaling = a.grad_scaling;
+        if let Some(s) = a.steps {
+            train.steps = s;
+            train.decay_steps = s;
+        }
+        (
+            RunConfig {
+                scene,
+                model,
+                train,
+            },
+            0,
+            None,
+            None,
+        )
+    };
+    if a.resume {
+        if let Some(s) = a.steps {
+            cfg.train.steps = s;
+        }
+    }
+    cfg.model.validate()?;
+    cfg.train.validate()?;
+    let loaded = cfg.scene.load()?;
+    let views = training_views(&cfg.scene, &loaded, &cfg.model)?;
+    let depth_targets: usize = views
+        .iter()
+        .filter_map(|v| v.2.as_ref())
+        .map(|d| d.iter().filter(|p| p[1] > 0.0).count())
+        .sum();
+    eprintln!(
+        "scene {}: {} views, training on {:?}, testing on {:?}; {} sparse depth targets; space {}",
+        cfg.scene.dir.display(),
+        loaded.scene.cameras.len(),
+        loaded.split.train,
+        loaded.split.test,
+        depth_targets,
+        cfg.model.space
+    );
+    let params =
+        params.unwrap_or_else(|| extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed));
+    let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
+    let data = TrainData::new(ctx, &views)?;
+    let prims = Prims::new(ctx)?;
+    let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
+    let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), start, moments)?;
+    eprintln!(
+        "model: hash grid {}x{}x2^{} (N {}..{}), MLPs {:?} and {:?}, {} parameters; {} rays x {} samples per step",
+        cfg.model.levels,
+        cfg.model.features,
+        cfg.model.log2_table,
+        cfg.model.min_res,
+        cfg.model.max_res,
+        cfg.model.density_mlp().dims,
+        cfg.model.color_mlp().dims,
+        trainer.nerf().field().layout().total,
+        cfg.train.rays,
+        cfg.train.samples
+    );
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let mut log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(a.out.join("progress.jsonl"))
+        .with_context(|| format!("opening {}", a.out.join("progress.jsonl").display()))?;
+    let save = |t: &Trainer| -> anyhow::Result<()> {
+        let params = t.nerf().params().read()?;
+        let moments = t.moments()?;
+        save_checkpoint(
+            &a.out,
+            &Checkpoint {
+                config: cfg.clone(),
+                step: t.step(),
+                params,
+                moments: Some(moments),
+            },
+        )?;
+        Ok(())
+    };
+    let tty = std::io::stderr().is_terminal();
+    let t0 = Instant::now();
+    let total = cfg.train.steps;
+    while trainer.step() < total {
+        let to_ckpt = a.checkpoint_every - trainer.step() % a.checkpoint_every;
+        let count = a.log_every.min(total - trainer.step()).min(to_ckpt);
+        let stats = trainer.run_steps(ctx, &prims, &data, count)?;
+        if !(stats.loss.is_finite() && stats.mse.is_finite()) {
+            bail!(
+                "the loss became {} at step {}; the last checkpoint in {} is intact",
+                stats.loss,
+                trainer.step(),
+                a.out.display()
+            );
+        }
+        let done = trainer.step() - start;
+        let secs = t0.elapsed().as_secs_f64();
+        let sps = done as f64 * trainer.samples_per_step() as f64 / secs;
+        let eta = secs / done as f64 * (total - trainer.step()) as f64;
+        let line = format!(
+            "step {:>5}/{total}  loss {:.5}  psnr {:6.2} dB  {:.3e} samples/s  {:.1} s elapsed  ETA {:.0} s",
+            trainer.step(),
+            stats.loss,
+            stats.psnr(),
+            sps,
+            secs,
+            eta
+        );
+        if tty {
+            eprint!("\r{line}");
+        } else {
+            eprintln!("{line}");
+        }
+        writeln!(
+            log,
+            "{}",
+            serde_json::json!({"step": trainer.step(), "loss": stats.loss, "mse": stats.mse, "psnr": stats.psnr(), "samples_per_s": sps, "elapsed_s": secs})
+        )?;
+        if trainer.step() % a.checkpoint_every == 0 || trainer.step() == total {
+            save(&trainer)?;
+        }
+    }
+    if tty {
+        eprintln!();
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    eprintln!(
+        "trained {} steps in {:.1} s ({:.3e} samples/s); checkpoint in {}",
+        trainer.step() - start,
+        secs,
+        (trainer.step() - start) as f64 * trainer.samples_per_step() as f64 / secs.max(1e-9),
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// Arguments of `extranerf render`.
+#[derive(clap::Args, Debug)]
+pub struct RenderArgs {
+    /// Run folder written by `extranerf train`.
+    run: PathBuf,
+    /// Which views: test, train, all, or indices such as 0,4,9.
+    #[arg(long, default_value = "test")]
+    views: String,
+    /// Output folder (default RUN/render).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Samples per ray (default: the training setting).
+    #[arg(long)]
+    samples: Option<u32>,
+    /// Rays per pass.
+    #[arg(long, default_value_t = 8192)]
+    chunk: u32,
+}
+
+/// A view rendered from a run, with its ground truth.
+struct Rendered {
+    index: usize,
+    role: &'static str,
+    width: u32,
+    height: u32,
+    rgb: Vec<f32>,
+    depth: Vec<f32>,
+    truth: Vec<f32>,
+}
+
+fn render_views(
+    ctx: &Context,
+    run: &Path,
+    which: &str,
+    samples: Option<u32>,
+    chunk: u32,
+    mut each: impl FnMut(&Rendered) -> anyhow::Result<()>,
+) -> anyhow::Result<RunConfig> {
+    let ck = load_checkpoint(run)?;
+    let cfg = ck.config;
+    let loaded = cfg.scene.load()?;
+    let role = |i: usize| {
+        if loaded.split.train.contains(&i) {
+            "train"
+        } else if loaded.split.test.contains(&i) {
+            "test"
+        } else {
+            "other"
+        }
+    };
+    let list: Vec<(usize, &'static str)> = match which {
+        "test" => loaded.split.test.iter().map(|&i| (i, "test")).collect(),
+        "train" => loaded.split.train.iter().map(|&i| (i, "train")).collect(),
+        "all" => loaded
+            .split
+            .test
+            .iter()
+            .chain(&loaded.split.train)
+            .map(|&i| (i, role(i)))
+            .collect(),
+        list => {
+            let mut v = Vec::new();
+            for item in list.split(',') {
+                let i: usize = item.trim().parse().map_err(|_| {
+                    anyhow::anyhow!("--views {list}: use test, train, all or view indices like 0,4")
+                })?;
+                if i >= loaded.scene.cameras.len() {
+                    bail!(
+                        "--views: view {i} does not exist (the scene has {})",
+                        loaded.scene.cameras.len()
+                    );
+                }
+                v.push((i, role(i)));
+            }
+            v
+        }
+    };
+    let nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
+    let samples = samples.unwrap_or(cfg.train.samples);
+    for (i, role) in list {
+        let cam = &loaded.scene.cameras[i];
+        let t = Instant::now();
+        let (rgb, depth, _) = nerf.render(ctx, cam, chunk, samples)?;
+        let truth = extranerf_nerf::data::load_image(&cam.image)?;
+        eprintln!(
+            "rendered {role} view {i} ({}x{}) in {:.1} s",
+            cam.width,
+            cam.height,
+            t.elapsed().as_secs_f64()
+        );
+        each(&Rendered {
+            index: i,
+            role,
+            width: cam.width,
+            height: cam.height,
+            rgb,
+            depth,
+            truth: truth.rgb,
+        })?;
+    }
+    Ok(cfg)
+}
+
+/// `extranerf render`.
+pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
+    let out = a.out.clone().unwrap_or_else(|| a.run.join("render"));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, |r| {
+        let base = out.join(format!("{}_{:03}", r.role, r.index));
+        write_png(&base.with_extension("png"), r.width, r.height, &r.rgb)?;
+        write_depth_exr(&base.with_extension("exr"), r.width, r.height, &r.depth)?;
+        Ok(())
+    })?;
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+/// Arguments of `extranerf eval`.
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Run folder written by `extranerf train`.
+    run: PathBuf,
+    /// Metrics file (default RUN/metrics.json).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Folder with lpips_alex_v0.1.safetensors and lpips_vgg_v0.1.safetensors (default:
+    /// $EXTRANERF_MODELS/lpips, else ../shared/models/lpips).
+    #[arg(long)]
+    lpips: Option<PathBuf>,
+    /// Samples per ray (default: the training setting).
+    #[arg(long)]
+    samples: Option<u32>,
+    /// Rays per pass.
+    #[arg(long, default_value_t = 8192)]
+    chunk: u32,
+    /// Also save the rendered test views as PNG into RUN/eval.
+    #[arg(long)]
+    save_images: bool,
+    /// Which views: all (held-out and training), test, train, or indices such as 0,4,9.
+    #[arg(long, default_value = "all")]
+    views: String,
+    /// LPIPS backbones to run: alex, vgg or alex,vgg (VGG costs about 10 s per 504x378 view
+    /// on two cores).
+    #[arg(long, default_value = "alex,vgg", value_delimiter = ',')]
+    lpips_nets: Vec<String>,
+}
+
+/// `extranerf eval`: PSNR, SSIM, LPIPS (AlexNet and VGG) on the held-out views, PSNR on the
+/// training views.
+pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
+    let dir = a.lpips.clone().unwrap_or_else(|| {
+        std::env::var_os("EXTRANERF_MODELS")
+            .map(|m| PathBuf::from(m).join("lpips"))
+            .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"))
+    });
+    let mut nets = Vec::new();
+    for n in &a.lpips_nets {
+        let (net, file) = match n.as_str() {
+            "alex" => (LpipsNet::Alex, "lpips_alex_v0.1.safetensors"),
+            "vgg" => (LpipsNet::Vgg, "lpips_vgg_v0.1.safetensors"),
+            o => bail!("--lpips-nets {o}: use alex and/or vgg"),
+        };
+        nets.push((format!("lpips_{n}"), Lpips::load(&dir.join(file), net)?));
+    }
+    let mut per_view = Vec::new();
+    let t0 = Instant::now();
+    let img_dir = a.run.join("eval");
+    if a.save_images {
+        std::fs::create_dir_all(&img_dir)?;
+    }
+    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, |r| {
+        let p = psnr(&r.rgb, &r.truth)?;
+        let mut m = serde_json::json!({"view": r.index, "role": r.role, "psnr": p});
+        if r.role == "test" {
+            m["ssim"] = ssim(&r.rgb, &r.truth, r.width, r.height)?.into();
+            for (key, net) in &nets {
+                m[key.as_str()] = net.distance(&r.rgb, &r.truth, r.width, r.height)?.into();
+            }
+            if a.save_images {
+                write_png(
+                    &img_dir.join(format!("test_{:03}.png", r.index)),
+                    r.width,
+                    r.height,
+                    &r.rgb,
+                )?;
+            }
+        }
+        eprintln!("  {m}");
+        per_view.push(m);
+        Ok(())
+    })?;
+    let mean = |role: &str, key: &str| -> Option<f64> {
+        let v: Vec<f64> = per_view
+            .iter()
+            .filter(|m| m["role"] == role)
+            .filter_map(|m| m[key].as_f64())
+            .collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let summary = serde_json::json!({
+        "test": {
+            "psnr": mean("test", "psnr"),
+            "ssim": mean("test", "ssim"),
+            "lpips_alex": mean("test", "lpips_alex"),
+            "lpips_vgg": mean("test", "lpips_vgg"),
+        },
+        "train": {"psnr": mean("train", "psnr")},
+        "views": per_view,
+        "seconds": t0.elapsed().as_secs_f64(),
+        "device": ctx.info().name,
+    });
+    let out = a.out.clone().unwrap_or_else(|| a.run.join("metrics.json"));
+    extranerf_nerf::safetensors::write_atomic(
+        &out,
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
+    println!(
+        "test: PSNR {:.2} SSIM {:.4} LPIPS(alex) {:.4} LPIPS(vgg) {:.4}; train PSNR {:.2}; wrote {}",
+        summary["test"]["psnr"].as_f64().unwrap_or(f64::NAN),
+        summary["test"]["ssim"].as_f64().unwrap_or(f64::NAN),
+        summary["test"]["lpips_alex"].as_f64().unwrap_or(f64::NAN),
+        summary["test"]["lpips_vgg"].as_f64().unwrap_or(f64::NAN),
+        summary["train"]["psnr"].as_f64().unwrap_or(f64::NAN),
+        out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,317 @@
+//! Image-quality metrics on the host: PSNR, SSIM and LPIPS.
+//!
+//! Images are interleaved RGB f32 in [0, 1], row-major (`3 * width * height` values), as
+//! [`crate::data::load_image`] returns them. PSNR and SSIM follow the NeRF / mip-NeRF evaluation
+//! code (SSIM with 'valid' filtering), LPIPS the authors' v0.1 models ([`lpips`]); weights are
+//! read from safetensors files ([`crate::safetensors`]).
+
+pub mod lpips;
+
+use std::path::PathBuf;
+
+pub use lpips::{Lpips, LpipsNet};
+
+/// What went wrong computing a metric or loading its weights.
+#[derive(Debug, thiserror::Error)]
+pub enum MetricsError {
+    /// The two images have different numbers of values.
+    #[error("the images differ in size: {a} vs {b} values")]
+    LengthMismatch {
+        /// Values in the first image.
+        a: usize,
+        /// Values in the second image.
+        b: usize,
+    },
+    /// An image has no values.
+    #[error("the images are empty")]
+    Empty,
+    /// The values do not make an RGB image of the stated size.
+    #[error("{len} values do not make a {width}x{height} RGB image ({} expected)", 3 * *width as u64 * *height as u64)]
+    SizeMismatch {
+        /// Values given.
+        len: usize,
+        /// Stated width.
+        width: u32,
+        /// Stated height.
+        height: u32,
+    },
+    /// The image is smaller than the metric's window or network needs.
+    #[error("a {width}x{height} image is too small for {metric}: at least {min}x{min} is needed")]
+    TooSmall {
+        /// Width.
+        width: u32,
+        /// Height.
+        height: u32,
+        /// Smallest width and height accepted.
+        min: u32,
+        /// The metric.
+        metric: &'static str,
+    },
+    /// A weights file is missing or unreadable.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A weights file is malformed or lacks what the network needs.
+    #[error("{path}: {problem}")]
+    Weights {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        problem: String,
+    },
+}
+
+/// Result alias of the metrics module.
+pub type Result<T, E = MetricsError> = std::result::Result<T, E>;
+
+fn check_pair(a: &[f32], b: &[f32]) -> Result<()> {
+    if a.len() != b.len() {
+        return Err(MetricsError::LengthMismatch {
+            a: a.len(),
+            b: b.len(),
+        });
+    }
+    if a.is_empty() {
+        return Err(MetricsError::Empty);
+    }
+    Ok(())
+}
+
+/// Checks a pair of `width` x `height` RGB images of at least `min` x `min` pixels.
+fn check_images(
+    a: &[f32],
+    b: &[f32],
+    width: u32,
+    height: u32,
+    min: u32,
+    metric: &'static str,
+) -> Result<()> {
+    check_pair(a, b)?;
+    if a.len() as u64 != 3 * width as u64 * height as u64 {
+        return Err(MetricsError::SizeMismatch {
+            len: a.len(),
+            width,
+            height,
+        });
+    }
+    if width < min || height < min {
+        return Err(MetricsError::TooSmall {
+            width,
+            height,
+            min,
+            metric,
+        });
+    }
+    Ok(())
+}
+
+/// Peak signal-to-noise ratio in dB for data range 1: `-10 log10(mse)`, the MSE taken over all
+/// values in f64. Identical images give `f64::INFINITY`.
+pub fn psnr(a: &[f32], b: &[f32]) -> Result<f64> {
+    check_pair(a, b)?;
+    let se: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(&x, &y)| (x as f64 - y as f64).powi(2))
+        .sum();
+    let mse = se / a.len() as f64;
+    Ok(if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    })
+}
+
+/// Window size of [`ssim`].
+pub const SSIM_WINDOW: usize = 11;
+const SSIM_SIGMA: f64 = 1.5;
+
+/// The normalised 1D Gaussian of the SSIM window.
+fn ssim_kernel() -> [f64; SSIM_WINDOW] {
+    let half = (SSIM_WINDOW / 2) as f64;
+    let mut k: [f64; SSIM_WINDOW] =
+        std::array::from_fn(|i| (-0.5 * ((i as f64 - half) / SSIM_SIGMA).powi(2)).exp());
+    let sum: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= sum);
+    k
+}
+
+/// 'Valid' separable Gaussian filter of a `w` x `h` plane: `(w - 10) x (h - 10)` values.
+fn filter_valid(x: &[f64], w: usize, h: usize, k: &[f64; SSIM_WINDOW]) -> Vec<f64> {
+    let (ow, oh) = (w + 1 - SSIM_WINDOW, h + 1 - SSIM_WINDOW);
+    let mut rows = Vec::with_capacity(ow * h);
+    for row in x.chunks_exact(w) {
+        rows.extend(row.windows(SSIM_WINDOW).map(|win| dot(win, k)));
+    }
+    let mut out = vec![0.0; ow * oh];
+    for (y, orow) in out.chunks_exact_mut(ow).enumerate() {
+        for (i, &kv) in k.iter().enumerate() {
+            let src = &rows[(y + i) * ow..][..ow];
+            orow.iter_mut().zip(src).for_each(|(o, s)| *o += kv * s);
+        }
+    }
+    out
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Structural similarity (Wang et al. 2004) as the NeRF / RegNeRF / ExtraNeRF evaluations compute
+/// it (mip-NeRF's `compute_ssim`): 11x11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03,
+/// data range 1, 'valid' filtering (no padding), variances clamped at 0 and the covariance at
+/// their geometric mean; the SSIM map is averaged over channels and pixels. f64 throughout.
+pub fn ssim(a: &[f32], b: &[f32], width: u32, height: u32) -> Result<f64> {
+    check_images(a, b, width, height, SSIM_WINDOW as u32, "SSIM")?;
+    let (w, h) = (width as usize, height as usize);
+    let k = ssim_kernel();
+    let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
+    let mut sum = 0.0;
+    let mut count = 0usize;
+    for ch in 0..3 {
+        let plane = |img: &[f32]| -> Vec<f64> {
+            img.iter().skip(ch).step_by(3).map(|&v| v as f64).collect()
+        };
+        let (x, y) = (plane(a), plane(b));
+        let prod =
+            |p: &[f64], q: &[f64]| -> Vec<f64> { p.iter().zip(q).map(|(u, v)| u * v).collect() };
+        let f = |p: &[f64]| filter_valid(p, w, h, &k);
+        let (mx, my) = (f(&x), f(&y));
+        let (sxx, syy, sxy) = (f(&prod(&x, &x)), f(&prod(&y, &y)), f(&prod(&x, &y)));
+        for i in 0..mx.len() {
+            let (mx, my) = (mx[i], my[i]);
+            let vx = (sxx[i] - mx * mx).max(0.0);
+            let vy = (syy[i] - my * my).max(0.0);
+            let cxy = sxy[i] - mx * my;
+            let cxy = cxy.signum() * (vx * vy).sqrt().min(cxy.abs());
+            sum += (2.0 * mx * my + c1) * (2.0 * cxy + c2)
+                / ((mx * mx + my * my + c1) * (vx + vy + c2));
+        }
+        count += mx.len();
+    }
+    Ok(sum / count as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deterministic values in [0, 1).
+    pub(crate) fn noise(n: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..n)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                (s >> 40) as f32 / (1u64 << 24) as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn psnr_of_known_mse() {
+        let a = vec![0.5f32; 300];
+        let b: Vec<f32> = a
+            .iter()
+            .enumerate()
+            .map(|(i, v)| if i % 2 == 0 { v + 0.1 } else { v - 0.1 })
+            .collect();
+        // mse = 0.01 (up to f32 rounding of 0.6 and 0.4) -> 20 dB
+        assert!((psnr(&a, &b).unwrap() - 20.0).abs() < 1e-5);
+        assert_eq!(psnr(&a, &a).unwrap(), f64::INFINITY);
+    }
+
+    #[test]
+    fn psnr_rejects_bad_input() {
+        let e = psnr(&[0.0; 6], &[0.0; 3]).unwrap_err();
+        assert!(matches!(e, MetricsError::LengthMismatch { a: 6, b: 3 }));
+        assert_eq!(e.to_string(), "the images differ in size: 6 vs 3 values");
+        assert!(matches!(psnr(&[], &[]), Err(MetricsError::Empty)));
+    }
+
+    #[test]
+    fn ssim_of_identical_images_is_one() {
+        let a = noise(3 * 20 * 13, 1);
+        assert!((ssim(&a, &a, 20, 13).unwrap() - 1.0).abs() < 1e-12);
+    }
+
+    /// The SSIM map by a direct double loop over the 2D window.
+    fn ssim_direct(a: &[f32], b: &[f32], w: usize, h: usize) -> f64 {
+        let k = ssim_kernel();
+        let (c1, c2) = (1e-4, 9e-4);
+        let mut sum = 0.0;
+        let mut n = 0;
+        for ch in 0..3 {
+            for y in 0..=h - 11 {
+                for x in 0..=w - 11 {
+                    let [mut mx, mut my, mut sxx, mut syy, mut sxy] = [0f64; 5];
+                    for i in 0..11 {
+                        for j in 0..11 {
+                            let wt = k[i] * k[j];
+                            let idx = 3 * ((y + i) * w + x + j) + ch;
+                            let (p, q) = (a[idx] as f64, b[idx] as f64);
+                            mx += wt * p;
+                            my += wt * q;
+                            sxx += wt * p * p;
+                            syy += wt * q * q;
+                            sxy += wt * p * q;
+                        }
+                    }
+                    let (vx, vy, cxy) = (sxx - mx * mx, syy - my * my, sxy - mx * my);
+                    sum += (2.0 * mx * my + c1) * (2.0 * cxy + c2)
+                        / ((mx * mx + my * my + c1) * (vx + vy + c2));
+                    n += 1;
+                }
+            }
+        }
+        sum / n as f64
+    }
+
+    #[test]
+    fn ssim_matches_direct_window_sum() {
+        let (w, h) = (16, 14);
+        let a = noise(3 * w * h, 2);
+        let b: Vec<f32> = a
+            .iter()
+            .zip(noise(3 * w * h, 3))
+            .map(|(x, n)| 0.7 * x + 0.3 * n)
+            .collect();
+        let s = ssim(&a, &b, w as u32, h as u32).unwrap();
+        let d = ssim_direct(&a, &b, w, h);
+        assert!((s - d).abs() < 1e-12, "{s} vs {d}");
+        assert!(s > 0.3 && s < 0.99, "{s}");
+    }
+
+    #[test]
+    fn ssim_hand_computed_constant_images() {
+        // Constant planes: variances vanish, SSIM = (2 m1 m2 + c1) / (m1^2 + m2^2 + c1).
+        let (a, b) = (vec![0.25f32; 3 * 11 * 11], vec![0.75f32; 3 * 11 * 11]);
+        let want = (2.0 * 0.25 * 0.75 + 1e-4) / (0.0625 + 0.5625 + 1e-4);
+        assert!((ssim(&a, &b, 11, 11).unwrap() - want).abs() < 1e-12);
+    }
+
+    #[test]
+    fn ssim_rejects_bad_input() {
+        let a = noise(3 * 10 * 20, 4);
+        let e = ssim(&a, &a, 10, 20).unwrap_err();
+        assert!(matches!(e, MetricsError::TooSmall { min: 11, .. }), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "a 10x20 image is too small for SSIM: at least 11x11 is needed"
+        );
+        let e = ssim(&a, &a, 20, 20).unwrap_err();
+        assert!(
+            matches!(e, MetricsError::SizeMismatch { len: 600, .. }),
+            "{e}"
+        );
+        assert!(matches!(
+            ssim(&a, &a[1..], 10, 20),
+            Err(MetricsError::LengthMismatch { .. })
+        ));
+    }
+}

@@ -1,0 +1,452 @@
+//! The BaseNeRF field: hash-grid encoding -> density MLP (its first output is the density
+//! logit, trunc-exp) -> (geometry features, SH4 of the view direction) -> colour MLP ->
+//! sigmoid, with all parameters in one flat buffer `[table | density MLP | colour MLP]`.
+
+use serde::{Deserialize, Serialize};
+
+use extranerf_gpu::kernels::render::field_heads as kh;
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_prims::reference::Rng;
+
+use crate::field::encodings::{Contraction, Encodings, SceneBox};
+use crate::field::hash_grid::{HashGrid, HashGridConfig};
+use crate::field::mlp::{Mlp, MlpConfig};
+
+/// Floats between parameter sections (256 bytes, the largest storage-offset alignment Vulkan
+/// allows), so every section binds as a slice of the flat buffer.
+pub const SECTION_ALIGN: usize = 64;
+
+/// The field's architecture (Instant-NGP's NeRF defaults) and where it lives.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Hash-grid levels L.
+    pub levels: u32,
+    /// Features per level F.
+    pub features: u32,
+    /// log2 of the per-level table size T.
+    pub log2_table: u32,
+    /// Coarsest grid resolution.
+    pub min_res: u32,
+    /// Finest grid resolution.
+    pub max_res: u32,
+    /// Density MLP hidden width.
+    pub density_width: u32,
+    /// Density MLP hidden layers.
+    pub density_layers: u32,
+    /// Density MLP outputs (the density logit plus geometry features for the colour MLP).
+    pub geo_dims: u32,
+    /// Colour MLP hidden width.
+    pub color_width: u32,
+    /// Colour MLP hidden layers.
+    pub color_layers: u32,
+    /// Ray space: "ndc" (forward-facing captures) or "world".
+    pub space: String,
+    /// Sampling range along each ray (NDC: 0 to 1; world: depth along the viewing axis).
+    pub near: f32,
+    /// See `near`.
+    pub far: f32,
+    /// World points map to the grid as `(x - center) / radius`, then contract.
+    pub center: [f32; 3],
+    /// See `center`.
+    pub radius: f32,
+    /// "none", "l2" (mip-NeRF 360) or "linf".
+    pub contraction: String,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        let g = HashGridConfig::default();
+        ModelConfig {
+            levels: g.levels,
+            features: g.features,
+            log2_table: g.log2_table,
+            min_res: g.min_res,
+            max_res: g.max_res,
+            density_width: 64,
+            density_layers: 1,
+            geo_dims: 16,
+            color_width: 64,
+            color_layers: 2,
+            space: "ndc".into(),
+            near: 0.0,
+            far: 1.0,
+            center: [0.0; 3],
+            radius: 1.0,
+            contraction: "none".into(),
+        }
+    }
+}
+
+impl ModelConfig {
+    /// The hash-grid settings.
+    pub fn grid(&self) -> HashGridConfig {
+        HashGridConfig {
+            levels: self.levels,
+            features: self.features,
+            log2_table: self.log2_table,
+            min_res: self.min_res,
+            max_res: self.max_res,
+        }
+    }
+
+    /// Density MLP widths.
+    pub fn density_mlp(&self) -> MlpConfig {
+        let mut dims = vec![self.levels * self.features];
+        dims.extend(std::iter::repeat_n(
+            self.density_width,
+            self.density_layers as usize,
+        ));
+        dims.push(self.geo_dims);
+        MlpConfig { dims }
+    }
+
+    /// Colour MLP widths.
+    pub fn color_mlp(&self) -> MlpConfig {
+        let mut dims = vec![self.geo_dims + 16];
+        dims.extend(std::iter::repeat_n(
+            self.color_width,
+            self.color_layers as usize,
+        ));
+        dims.push(3);
+        MlpConfig { dims }
+    }
+
+    /// The scene box of the contraction.
+    pub fn scene_box(&self) -> Result<SceneBox> {
+        let contraction = match self.contraction.as_str() {
+            "none" => Contraction::None,
+            "l2" => Contraction::L2,
+            "linf" => Contraction::LInf,
+            other => {
+                return Err(GpuError::Usage(format!(
+                    "contraction `{other}`: use none, l2 or linf"
+                )))
+            }
+        };
+        Ok(SceneBox {
+            center: self.center,
+            radius: self.radius,
+            contraction,
+        })
+    }
+
+    /// Checks every setting.
+    pub fn validate(&self) -> Result<()> {
+        self.grid().validate()?;
+        self.density_mlp().validate()?;
+        self.color_mlp().validate()?;
+        if self.geo_dims + 16 > 64 {
+            return Err(GpuError::Usage(format!(
+                "geo_dims {} + 16 SH coefficients exceed the MLP limit of 64 inputs",
+                self.geo_dims
+            )));
+        }
+        if !matches!(self.space.as_str(), "ndc" | "world") {
+            return Err(GpuError::Usage(format!(
+                "space `{}`: use ndc or world",
+                self.space
+            )));
+        }
+        if !(self.near.is_finite()
+            && self.far.is_finite()
+            && self.near >= 0.0
+            && self.far > self.near)
+        {
+            return Err(GpuError::Usage(format!(
+                "sampling range {}..{} must satisfy 0 <= near < far",
+                self.near, self.far
+            )));
+        }
+        self.scene_box()?;
+        if !(self.radius.is_finite() && self.radius > 0.0)
+            || self.center.iter().any(|c| !c.is_finite())
+        {
+            return Err(GpuError::Usage(format!(
+                "scene box centre {:?} radius {}: need finite values and radius > 0",
+                self.center, self.radius
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Where each section of the flat parameter buffer starts, and its length (floats).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ParamLayout {
+    /// Hash table.
+    pub table: (usize, usize),
+    /// Density MLP.
+    pub density: (usize, usize),
+    /// Colour MLP.
+    pub color: (usize, usize),
+    /// Total floats including alignment gaps.
+    pub total: usize,
+}
+
+impl ParamLayout {
+    /// The layout for a configuration.
+    pub fn new(cfg: &ModelConfig) -> ParamLayout {
+        let up = |n: usize| n.div_ceil(SECTION_ALIGN) * SECTION_ALIGN;
+        let t = cfg.grid().param_count() as usize;
+        let d = cfg.density_mlp().param_count();
+        let c = cfg.color_mlp().param_count();
+        let d0 = up(t);
+        let c0 = d0 + up(d);
+        ParamLayout {
+            table: (0, t),
+            density: (d0, d),
+            color: (c0, c),
+            total: c0 + up(c),
+        }
+    }
+}
+
+impl ParamLayout {
+    /// The three sections of a flat buffer (parameters or gradients) as bindings.
+    pub fn sections<'a>(&self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 3]> {
+        Ok([
+            buf.slice(self.table.0, self.table.1)?,
+            buf.slice(self.density.0, self.density.1)?,
+            buf.slice(self.color.0, self.color.1)?,
+        ])
+    }
+}
+
+/// Initial parameters: table entries uniform in +-1e-4 (Instant-NGP), MLP weights Xavier-uniform,
+/// biases zero, gaps zero.
+pub fn init_params(cfg: &ModelConfig, seed: u64) -> Vec<f32> {
+    let lay = ParamLayout::new(cfg);
+    let mut rng = Rng::new(seed);
+    let mut p = vec![0f32; lay.total];
+    for v in &mut p[lay.table.0..lay.table.0 + lay.table.1] {
+        *v = rng.uniform(-1e-4, 1e-4);
+    }
+    for (mlp, start) in [
+        (cfg.density_mlp(), lay.density.0),
+        (cfg.color_mlp(), lay.color.0),
+    ] {
+        for l in 0..mlp.layers() {
+            let (ni, no) = (mlp.dims[l] as usize, mlp.dims[l + 1] as usize);
+            let a = (6.0 / (ni + no) as f64).sqrt() as f32;
+            let off = start + mlp.offset(l);
+            for v in &mut p[off..off + ni * no] {
+                *v = rng.uniform(-a, a);
+            }
+        }
+    }
+    p
+}
+
+/// Per-sample work buffers of one field evaluation, as bindings (the caller owns them).
+#[derive(Clone, Copy, Debug)]
+pub struct FieldIo<'a> {
+    /// `[n, 3]` sample positions (world or NDC).
+    pub positions: Binding<'a>,
+    /// Per ray `(xyz, _)` world view direction; sample i belongs to ray `i / per_ray`.
+    pub dirs: Binding<'a>,
+    /// `[n, 3]` contracted positions.
+    pub contracted: Binding<'a>,
+    /// `[n, L*F]` encoding.
+    pub encoded: Binding<'a>,
+    /// `[n, geo_dims]` density MLP output.
+    pub dens: Binding<'a>,
+    /// `[n, geo_dims + 16]` colour MLP input.
+    pub color_in: Binding<'a>,
+    /// `[n, 3]` colour MLP output.
+    pub color_out: Binding<'a>,
+    /// `[n]` density (output).
+    pub sigma: Binding<'a>,
+    /// `[n, 4]` colour (output).
+    pub rgb: Binding<'a>,
+}
+
+/// Gradient buffers of the backward pass.
+#[derive(Clone, Copy, Debug)]
+pub struct FieldGrads<'a> {
+    /// `[n]` dL/dsigma (input).
+    pub d_sigma: Binding<'a>,
+    /// `[n, 4]` dL/drgb (input).
+    pub d_rgb: Binding<'a>,
+    /// `[n, 3]` scratch.
+    pub d_color_out: Binding<'a>,
+    /// `[n, geo_dims + 16]` scratch.
+    pub d_color_in: Binding<'a>,
+    /// `[n, geo_dims]` scratch.
+    pub d_dens: Binding<'a>,
+    /// `[n, L*F]` scratch.
+    pub d_encoded: Binding<'a>,
+    /// `[n, density saved_stride]` scratch.
+    pub saved_density: Binding<'a>,
+    /// `[n, colour saved_stride]` scratch.
+    pub saved_color: Binding<'a>,
+}
+
+/// The field's kernels for one configuration.
+#[derive(Debug)]
+pub struct Field {
+    config: ModelConfig,
+    layout: ParamLayout,
+    scene: SceneBox,
+    grid: HashGrid,
+    density: Mlp,
+    color: Mlp,
+    enc: Encodings,
+    density_fwd: Kernel,
+    color_fwd: Kernel,
+    color_bwd: Kernel,
+    density_bwd: Kernel,
+}
+
+impl Field {
+    /// Builds the kernels.
+    pub fn new(ctx: &Context, config: ModelConfig) -> Result<Field> {
+        config.validate()?;
+        Ok(Field {
+            layout: ParamLayout::new(&config),
+            scene: config.scene_box()?,
+            grid: HashGrid::new(ctx, config.grid())?,
+            density: Mlp::new(ctx, config.density_mlp())?,
+            color: Mlp::new(ctx, config.color_mlp())?,
+            enc: Encodings::new(ctx)?,
+            density_fwd: Kernel::new(ctx, &kh::density_head_fwd::DESC)?,
+            color_fwd: Kernel::new(ctx, &kh::color_head_fwd::DESC)?,
+            color_bwd: Kernel::new(ctx, &kh::color_head_bwd::DESC)?,
+            density_bwd: Kernel::new(ctx, &kh::density_head_bwd::DESC)?,
+            config,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ModelConfig {
+        &self.config
+    }
+
+    /// The flat parameter layout.
+    pub fn layout(&self) -> &ParamLayout {
+        &self.layout
+    }
+
+    /// The hash grid (for hash decay).
+    pub fn grid(&self) -> &HashGrid {
+        &self.grid
+    }
+
+    /// Floats per sample of each buffer in [`FieldIo`] and [`FieldGrads`], by name.
+    pub fn per_sample(&self) -> [(&'static str, usize); 14] {
+        let enc = (self.config.levels * self.config.features) as usize;
+        let g = self.config.geo_dims as usize;
+        [
+            ("positions", 3),
+            ("contracted", 3),
+            ("encoded", enc),
+            ("dens", g),
+            ("color_in", g + 16),
+            ("color_out", 3),
+            ("sigma", 1),
+            ("rgb", 4),
+            ("d_color_out", 3),
+            ("d_color_in", g + 16),
+            ("d_dens", g),
+            ("d_encoded", enc),
+            ("saved_density", self.config.density_mlp().saved_stride()),
+            ("saved_color", self.config.color_mlp().saved_stride()),
+        ]
+    }
+
+    fn heads_params(&self, n: u64, per_ray: u32) -> Result<kh::Params> {
+        if per_ray == 0 {
+            return Err(GpuError::Usage("samples per ray must be positive".into()));
+        }
+        Ok(kh::Params {
+            n: count_u32(n, "field samples")?,
+            per_ray,
+            geo_dims: self.config.geo_dims,
+            _pad: 0,
+        })
+    }
+
+    /// Records the forward pass of `n` samples (`per_ray` per ray) with parameters `params`
+    /// (the whole flat buffer's sections, see [`Field::layout`]).
+    pub fn forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        params: [Binding<'a>; 3],
+        io: &FieldIo<'a>,
+        n: u64,
+        per_ray: u32,
+    ) -> Result<()> {
+        let [table, wd, wc] = params;
+        let hp = self.heads_params(n, per_ray)?;
+        self.enc
+            .contract(rec, io.positions, io.contracted, n, &self.scene)?;
+        self.grid
+            .forward(rec, io.contracted, table, io.encoded, n)?;
+        self.density.forward(rec, wd, io.encoded, io.dens, n)?;
+        let b = kh::density_head_fwd::Bindings {
+            dirs: io.dirs,
+            dens: io.dens,
+            sigma: io.sigma,
+            color_in: io.color_in,
+        };
+        rec.dispatch(&self.density_fwd, b.into_array(), &hp, n)?;
+        self.color.forward(rec, wc, io.color_in, io.color_out, n)?;
+        let b = kh::color_head_fwd::Bindings {
+            color_out: io.color_out,
+            rgb: io.rgb,
+        };
+        rec.dispatch(&self.color_fwd, b.into_array(), &hp, n)
+    }
+
+    /// Records the backward pass after [`Field::forward`] on the same buffers: adds the
+    /// parameter gradients to `d_params` (same sections as `params`).
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn backward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        params: [Binding<'a>; 3],
+        d_params: [Binding<'a>; 3],
+        io: &FieldIo<'a>,
+        g: &FieldGrads<'a>,
+        n: u64,
+        per_ray: u32,
+    ) -> Result<()> {
+        let [_, wd, wc] = params;
+        let [dt, dwd, dwc] = d_params;
+        let hp = self.heads_params(n, per_ray)?;
+        let b = kh::color_head_bwd::Bindings {
+            color_out: io.color_out,
+            d_color_out: g.d_color_out,
+            d_rgb: g.d_rgb,
+        };
+        rec.dispatch(&self.color_bwd, b.into_array(), &hp, n)?;
+        self.color.backward(
+            rec,
+            wc,
+            io.color_in,
+            g.d_color_out,
+            g.d_color_in,
+            g.saved_color,
+            dwc,
+            n,
+        )?;
+        let b = kh::density_head_bwd::Bindings {
+            dens: io.dens,
+            d_dens: g.d_dens,
+            d_sigma: g.d_sigma,
+            d_color_in: g.d_color_in,
+        };
+        rec.dispatch(&self.density_bwd, b.into_array(), &hp, n)?;
+        self.density.backward(
+            rec,
+            wd,
+            io.encoded,
+            g.d_dens,
+            g.d_encoded,
+            g.saved_density,
+            dwd,
+            n,
+        )?;
+        self.grid.backward(rec, io.contracted, g.d_encoded, dt, n)
+    }
+}

@@ -1,0 +1,379 @@
+//! A training run on disk: the scene it trains on, the resolved configuration (`config.json`)
+//! and the checkpoint (`checkpoint.safetensors`: the flat parameters, Adam's moments and the
+//! step), both written atomically so a crash leaves the previous checkpoint intact.
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use image::ImageEncoder;
+use serde::{Deserialize, Serialize};
+
+use crate::data::depth::sparse_depth;
+use crate::data::llff::{load_llff, LlffOptions};
+use crate::data::split::{Split, SplitIndices};
+use crate::data::transforms::load_transforms;
+use crate::data::{colmap, load_image, Camera, DataError, Scene};
+use crate::model::{ModelConfig, ParamLayout};
+use crate::safetensors::{write_atomic, SafeTensors, Tensor};
+use crate::trainer::TrainConfig;
+
+/// What can go wrong with a run.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// Scene or checkpoint files.
+    #[error(transparent)]
+    Data(#[from] DataError),
+    /// The device.
+    #[error(transparent)]
+    Gpu(#[from] extranerf_gpu::GpuError),
+    /// A setting that cannot work.
+    #[error("{0}")]
+    Config(String),
+}
+
+/// Result alias of runs.
+pub type Result<T, E = RunError> = std::result::Result<T, E>;
+
+/// Which scene and views.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneSpec {
+    /// LLFF folder (poses_bounds.npy) or a folder / file with transforms.json.
+    pub dir: PathBuf,
+    /// "extrapolation", "fewshot" or "all".
+    pub split: String,
+    /// Training views of the few-shot split.
+    pub fewshot_views: usize,
+    /// LLFF downsampling factor (images_N).
+    pub factor: u32,
+    /// Supervise depth with the COLMAP sparse points when `sparse/0/points3D.bin` exists.
+    pub sparse_depth: bool,
+}
+
+/// Everything a run was trained with.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    /// Scene.
+    pub scene: SceneSpec,
+    /// Field.
+    pub model: ModelConfig,
+    /// Training.
+    pub train: TrainConfig,
+}
+
+/// A loaded scene with its split.
+#[derive(Clone, Debug)]
+pub struct LoadedScene {
+    /// Cameras.
+    pub scene: Scene,
+    /// Train / test views.
+    pub split: SplitIndices,
+}
+
+impl SceneSpec {
+    /// The split.
+    pub fn split(&self) -> Result<Split> {
+        match self.split.as_str() {
+            "extrapolation" => Ok(Split::Extrapolation),
+            "fewshot" => Ok(Split::FewShot(self.fewshot_views)),
+            "all" => Ok(Split::All),
+            o => Err(RunError::Config(format!(
+                "split `{o}`: use extrapolation, fewshot or all"
+            ))),
+        }
+    }
+
+    /// Loads the cameras and applies the split.
+    pub fn load(&self) -> Result<LoadedScene> {
+        let scene = if self.dir.join("poses_bounds.npy").exists() {
+            load_llff(
+                &self.dir,
+                &LlffOptions {
+                    factor: self.factor,
+                    ..LlffOptions::default()
+                },
+            )?
+        } else if self.dir.is_file() {
+            load_transforms(&self.dir)?
+        } else if self.dir.join("transforms.json").exists() {
+            load_transforms(&self.dir.join("transforms.json"))?
+        } else if self.dir.join("transforms_train.json").exists() {
+            load_transforms(&self.dir.join("transforms_train.json"))?
+        } else {
+            return Err(DataError::Malformed {
+                path: self.dir.clone(),
+                problem: "not a scene: expected poses_bounds.npy (LLFF) or transforms.json".into(),
+            }
+            .into());
+        };
+        let split = self.split()?.apply(&scene.cameras)?;
+        Ok(LoadedScene { scene, split })
+    }
+}
+
+/// The model configuration a scene needs: NDC for forward-facing captures; otherwise world
+/// space with the L2 contraction around the cameras, sampled between the cameras' bounds.
+pub fn model_for_scene(scene: &Scene) -> ModelConfig {
+    if scene.forward_facing {
+        return ModelConfig::default();
+    }
+    let n = scene.cameras.len().max(1) as f64;
+    let centre = scene.cameras.iter().map(Camera::centre).sum::<DVec3>() / n;
+    let radius = scene
+        .cameras
+        .iter()
+        .map(|c| c.centre().distance(centre))
+        .fold(0.0f64, f64::max)
+        .max(1e-3);
+    let near = scene
+        .cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.0))
+        .fold(f64::INFINITY, f64::min);
+    let far = scene
+        .cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.1))
+        .fold(0.0f64, f64::max);
+    let (near, far) = if near.is_finite() && far > near {
+        (near, far)
+    } else {
+        (0.05 * radius, 100.0 * radius)
+    };
+    ModelConfig {
+        space: "world".into(),
+        near: near.max(1e-4) as f32,
+        far: far as f32,
+        center: centre.as_vec3().to_array(),
+        radius: radius as f32,
+        contraction: "l2".into(),
+        ..ModelConfig::default()
+    }
+}
+
+pub use crate::trainer::View;
+
+/// Loads the training views' images and, when asked and available, sparse depth targets in
+/// the model's ray space (NDC t for `space == "ndc"`, view depth otherwise).
+pub fn training_views(
+    spec: &SceneSpec,
+    loaded: &LoadedScene,
+    model: &ModelConfig,
+) -> Result<Vec<View>> {
+    let points_path = spec.dir.join("sparse/0/points3D.bin");
+    let points = if spec.sparse_depth && points_path.exists() {
+        Some(colmap::read_points3d_bin(&points_path)?)
+    } else {
+        None
+    };
+    let world = points.as_ref().map(|p| loaded.scene.transform_points(p));
+    let mut views = Vec::new();
+    for &i in &loaded.split.train {
+        let cam = loaded.scene.cameras[i].clone();
+        let img = load_image(&cam.image)?;
+        if (img.width, img.height) != (cam.width, cam.height) {
+            return Err(DataError::Malformed {
+                path: cam.image.clone(),
+                problem: format!(
+                    "image is {}x{} but its camera says {}x{}",
+                    img.width, img.height, cam.width, cam.height
+                ),
+            }
+            .into());
+        }
+        let depth = match (&points, &world) {
+            (Some(p), Some(w)) => {
+                let mut d = vec![[0f32; 2]; cam.width as usize * cam.height as usize];
+                for s in sparse_depth(&cam, w, p) {
+                    let t = if model.space == "ndc" {
+                        // World point of the pixel centre at that view depth; NDC t = 1 + near / z
+                        // (near = 1, the camera looks along -z).
+                        let dir = DVec3::new(
+                            (s.x as f64 + 0.5 - cam.cx) / cam.fx,
+                            -(s.y as f64 + 0.5 - cam.cy) / cam.fy,
+                            -1.0,
+                        );
+                        let pw = cam.c2w.transform_point3(dir * s.depth);
+                        if pw.z >= -1.0 {
+                            continue;
+                        }
+                        1.0 + 1.0 / pw.z
+                    } else {
+                        s.depth
+                    };
+                    d[(s.y * cam.width + s.x) as usize] = [t as f32, s.confidence as f32];
+                }
+                Some(d)
+            }
+            _ => None,
+        };
+        views.push((cam, img, depth));
+    }
+    Ok(views)
+}
+
+/// File names inside a run folder.
+pub const CONFIG_FILE: &str = "config.json";
+/// See [`CONFIG_FILE`].
+pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+
+/// A checkpoint's contents.
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    /// The run's configuration.
+    pub config: RunConfig,
+    /// Steps done.
+    pub step: u32,
+    /// Flat parameters.
+    pub params: Vec<f32>,
+    /// Adam's first and second moments (absent in weights-only files).
+    pub moments: Option<(Vec<f32>, Vec<f32>)>,
+}
+
+/// Writes `config.json` and the checkpoint into `dir` (created if missing), each atomically.
+pub fn save_checkpoint(dir: &Path, ck: &Checkpoint) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| DataError::Io {
+        path: dir.to_path_buf(),
+        source: e,
+    })?;
+    let json = serde_json::to_string_pretty(&ck.config)
+        .map_err(|e| RunError::Config(format!("cannot serialise the configuration: {e}")))?;
+    let mut st = SafeTensors::default();
+    let lay = ParamLayout::new(&ck.config.model);
+    if ck.params.len() != lay.total {
+        return Err(RunError::Config(format!(
+            "{} parameters for a layout of {}",
+            ck.params.len(),
+            lay.total
+        )));
+    }
+    let mut put = |name: &str, v: &[f32]| {
+        st.tensors.insert(
+            name.into(),
+            Tensor {
+                shape: vec![v.len()],
+                data: v.to_vec(),
+            },
+        );
+    };
+    put("params", &ck.params);
+    if let Some((m, v)) = &ck.moments {
+        put("adam.m", m);
+        put("adam.v", v);
+    }
+    st.metadata.insert("step".into(), ck.step.to_string());
+    st.metadata.insert("config".into(), json.clone());
+    st.metadata
+        .insert("format".into(), "extranerf-basenerf-1".into());
+    st.write(&dir.join(CHECKPOINT_FILE))?;
+    write_atomic(&dir.join(CONFIG_FILE), json.as_bytes())?;
+    Ok(())
+}
+
+/// Reads a run folder's checkpoint (the configuration comes from the checkpoint's own
+/// metadata, so the pair can never disagree).
+pub fn load_checkpoint(dir: &Path) -> Result<Checkpoint> {
+    let path = dir.join(CHECKPOINT_FILE);
+    if !path.exists() {
+        return Err(DataError::Malformed {
+            path: dir.to_path_buf(),
+            problem: format!(
+                "no {CHECKPOINT_FILE}: not a run folder, or training has not saved yet"
+            ),
+        }
+        .into());
+    }
+    let st = SafeTensors::read(&path)?;
+    let bad = |p: String| {
+        RunError::Data(DataError::Malformed {
+            path: path.clone(),
+            problem: p,
+        })
+    };
+    let json = st
+        .metadata
+        .get("config")
+        .ok_or_else(|| bad("no config in the metadata".into()))?;
+    let config: RunConfig =
+        serde_json::from_str(json).map_err(|e| bad(format!("config in the metadata: {e}")))?;
+    config
+        .model
+        .validate()
+        .map_err(|e| bad(format!("model configuration: {e}")))?;
+    let step = st
+        .metadata
+        .get("step")
+        .and_then(|s| s.parse().ok())
+        .ok_or_else(|| bad("no step in the metadata".into()))?;
+    let total = ParamLayout::new(&config.model).total;
+    let params = st.get("params", &[total], &path)?.data.clone();
+    if params.iter().any(|v| !v.is_finite()) {
+        return Err(bad("parameters contain NaN or infinity".into()));
+    }
+    let moments = match (st.tensors.get("adam.m"), st.tensors.get("adam.v")) {
+        (Some(_), Some(_)) => Some((
+            st.get("adam.m", &[total], &path)?.data.clone(),
+            st.get("adam.v", &[total], &path)?.data.clone(),
+        )),
+        _ => None,
+    };
+    Ok(Checkpoint {
+        config,
+        step,
+        params,
+        moments,
+    })
+}
+
+/// Writes an RGB f32 image (values clamped to [0, 1]) as an 8-bit PNG, atomically.
+pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()> {
+    if rgb.len() != width as usize * height as usize * 3 {
+        return Err(RunError::Config(format!(
+            "{}: {} values for a {width}x{height} RGB image",
+            path.display(),
+            rgb.len()
+        )));
+    }
+    let bytes: Vec<u8> = rgb
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect();
+    let mut png = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut png)
+        .write_image(&bytes, width, height, image::ExtendedColorType::Rgb8)
+        .map_err(|e| RunError::Config(format!("{}: cannot encode PNG: {e}", path.display())))?;
+    write_atomic(path, &png)?;
+    Ok(())
+}
+
+/// Writes a depth map as a single-channel f32 OpenEXR file (channel `Z`).
+pub fn write_depth_exr(path: &Path, width: u32, height: u32, depth: &[f32]) -> Result<()> {
+    use exr::prelude::*;
+    if depth.len() != width as usize * height as usize {
+        return Err(RunError::Config(format!(
+            "{}: {} depth values for {width}x{height}",
+            path.display(),
+            depth.len()
+        )));
+    }
+    let mut list = SmallVec::new();
+    list.push(AnyChannel::new("Z", FlatSamples::F32(depth.to_vec())));
+    let layer = Layer::new(
+        (width as usize, height as usize),
+        LayerAttributes::named("depth"),
+        Encoding::FAST_LOSSLESS,
+        AnyChannels::sort(list),
+    );
+    let mut tmp = path.to_path_buf();
+    tmp.set_extension("exr.tmp");
+    exr::image::Image::from_layer(layer)
+        .write()
+        .to_file(&tmp)
+        .map_err(|e| RunError::Config(format!("{}: cannot write EXR: {e}", path.display())))?;
+    std::fs::rename(&tmp, path).map_err(|e| DataError::Io {
+        path: path.to_path_buf(),
+        source: e,
+    })?;
+    Ok(())
+}

@@ -1,0 +1,764 @@
+//! Training and rendering of the BaseNeRF field on the device. A training step is one recording
+//! with no host traffic: draw a batch of pixels from the training images, generate rays,
+//! sample them, evaluate the field, composite, take the losses, back-propagate, zero-and-fill
+//! the flat gradient buffer and update it with Adam; the batch loss and MSE land in a small
+//! ring of device slots that the host reads only when it prints progress.
+
+use serde::{Deserialize, Serialize};
+
+use extranerf_gpu::kernels::render::{batch as kb, pixels as kp};
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_prims::{Prims, ReducePlan};
+
+use crate::data::{Camera, Image};
+use crate::model::{Field, FieldGrads, FieldIo, ModelConfig};
+use crate::optim::{Adam, AdamConfig};
+use crate::render::composite::{Compositor, RayGrads, Samples};
+use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
+use crate::render::rays::{gpu_camera, GpuCamera, RayGen, RaySpace};
+use crate::render::sample::{SampleOutputs, Sampler, Spacing};
+
+/// Steps whose loss and MSE the device keeps between progress reads.
+pub const STAT_SLOTS: u32 = 64;
+/// Floats between stat slots (the reduce output is bound as a slice, 256-byte aligned).
+const SLOT: usize = 64;
+
+/// Training hyperparameters (the paper's schedule by default).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Optimiser steps.
+    pub steps: u32,
+    /// Rays per batch.
+    pub rays: u32,
+    /// Samples per ray.
+    pub samples: u32,
+    /// "l2" or "huber".
+    pub rgb_loss: String,
+    /// Huber threshold.
+    pub huber_delta: f32,
+    /// Depth loss weight (rays with a depth target only).
+    pub depth_lambda: f32,
+    /// Distortion loss weight (mip-NeRF 360).
+    pub distortion_lambda: f32,
+    /// Hash decay weight (Zip-NeRF).
+    pub hash_decay_lambda: f32,
+    /// Scale sample gradients by min(1, t^2) (Floaters No More).
+    pub grad_scaling: bool,
+    /// Learning rate at the first step.
+    pub lr_start: f32,
+    /// Learning rate at `decay_steps`.
+    pub lr_end: f32,
+    /// Steps of the log-linear decay.
+    pub decay_steps: u32,
+    /// Seed of the initialisation and the batches.
+    pub seed: u64,
+    /// Background colour added with each ray's final transmittance.
+    pub background: [f32; 3],
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            steps: 5000,
+            rays: 1024,
+            samples: 32,
+            rgb_loss: "l2".into(),
+            huber_delta: 0.1,
+            depth_lambda: 0.1,
+            distortion_lambda: 1e-3,
+            hash_decay_lambda: 1e-5,
+            grad_scaling: false,
+            lr_start: 1e-2,
+            lr_end: 3e-4,
+            decay_steps: 5000,
+            seed: 0,
+            background: [0.0; 3],
+        }
+    }
+}
+
+impl TrainConfig {
+    /// The loss settings.
+    pub fn loss(&self) -> Result<LossConfig> {
+        let rgb = match self.rgb_loss.as_str() {
+            "l2" => RgbLoss::L2,
+            "huber" => RgbLoss::Huber(self.huber_delta),
+            o => return Err(GpuError::Usage(format!("rgb loss `{o}`: use l2 or huber"))),
+        };
+        Ok(LossConfig {
+            rgb,
+            depth_lambda: self.depth_lambda,
+        })
+    }
+
+    /// The optimiser settings.
+    pub fn adam(&self) -> AdamConfig {
+        AdamConfig {
+            lr_start: self.lr_start,
+            lr_end: self.lr_end,
+            decay_steps: self.decay_steps,
+            ..AdamConfig::default()
+        }
+    }
+
+    /// Checks the settings.
+    pub fn validate(&self) -> Result<()> {
+        self.loss()?;
+        if self.rays == 0 || self.samples == 0 || self.steps == 0 {
+            return Err(GpuError::Usage(format!(
+                "rays ({}), samples per ray ({}) and steps ({}) must be positive",
+                self.rays, self.samples, self.steps
+            )));
+        }
+        let ok = |v: f32| v.is_finite() && v >= 0.0;
+        if !(ok(self.distortion_lambda) && ok(self.hash_decay_lambda) && ok(self.depth_lambda)) {
+            return Err(GpuError::Usage(
+                "loss weights must be finite and >= 0".into(),
+            ));
+        }
+        if self.background.iter().any(|c| !c.is_finite()) {
+            return Err(GpuError::Usage("background must be finite".into()));
+        }
+        Ok(())
+    }
+}
+
+/// One training view: camera, image, optional per-pixel `(depth, confidence)` target.
+pub type View = (Camera, Image, Option<Vec<[f32; 2]>>);
+
+/// The training views on the device: cameras, packed pixels and depth targets.
+#[derive(Debug)]
+pub struct TrainData {
+    cameras: Buffer<GpuCamera>,
+    info: Buffer<[u32; 4]>,
+    rgb: Buffer<[f32; 4]>,
+    depth: Buffer<[f32; 2]>,
+    n_images: u32,
+}
+
+impl TrainData {
+    /// Uploads `views` (camera, image, optional per-pixel `(depth, confidence)` with depth in
+    /// the ray space's units; confidence 0 = no target).
+    pub fn new(ctx: &Context, views: &[View]) -> Result<TrainData> {
+        if views.is_empty() {
+            return Err(GpuError::Usage("no training views".into()));
+        }
+        let mut info = Vec::new();
+        let mut rgb = Vec::new();
+        let mut depth = Vec::new();
+        for (i, (cam, img, d)) in views.iter().enumerate() {
+            let px = img.width as usize * img.height as usize;
+            if (cam.width, cam.height) != (img.width, img.height) {
+                return Err(GpuError::Usage(format!(
+                    "view {i}: camera is {}x{} but its image {} is {}x{}",
+                    cam.width,
+                    cam.height,
+                    cam.image.display(),
+                    img.width,
+                    img.height
+                )));
+            }
+            info.push([rgb.len() as u32, img.width, img.height, i as u32]);
+            rgb.extend(img.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2], 0.0]));
+            match d {
+                Some(d) if d.len() == px => depth.extend_from_slice(d),
+                Some(d) => {
+                    return Err(GpuError::Usage(format!(
+                        "view {i}: {} depth targets for {px} pixels",
+                        d.len()
+                    )))
+                }
+                None => depth.extend(std::iter::repeat_n([0.0, 0.0], px)),
+            }
+        }
+        count_u32(rgb.len() as u64, "training pixels")?;
+        let cams: Vec<GpuCamera> = views.iter().map(|v| gpu_camera(&v.0)).collect();
+        Ok(TrainData {
+            cameras: Buffer::from_slice(ctx, "train cameras", &cams)?,
+            info: Buffer::from_slice(ctx, "train image info", &info)?,
+            rgb: Buffer::from_slice(ctx, "train pixels", &rgb)?,
+            depth: Buffer::from_slice(ctx, "train depth targets", &depth)?,
+            n_images: views.len() as u32,
+        })
+    }
+}
+
+/// Per-ray and per-sample buffers for batches of up to `rays` rays of `samples` samples.
+#[derive(Debug)]
+struct Workspace {
+    rays: u32,
+    samples: u32,
+    pixels: Buffer<[u32; 2]>,
+    origins: Buffer<[f32; 4]>,
+    dirs: Buffer<[f32; 4]>,
+    world_origins: Buffer<[f32; 4]>,
+    world_dirs: Buffer<[f32; 4]>,
+    near_far: Buffer<[f32; 2]>,
+    spans: Buffer<[u32; 2]>,
+    t_dt: Buffer<[f32; 2]>,
+    s_ds: Buffer<[f32; 2]>,
+    out_rgba: Buffer<[f32; 4]>,
+    out_depth: Buffer<f32>,
+    target_rgb: Buffer<[f32; 4]>,
+    target_depth: Buffer<[f32; 2]>,
+    loss: Buffer<f32>,
+    mse: Buffer<f32>,
+    dist_loss: Buffer<f32>,
+    d_rgba: Buffer<[f32; 4]>,
+    d_depth: Buffer<f32>,
+    d_weight: Buffer<f32>,
+    d_sigma: Buffer<f32>,
+    d_rgb: Buffer<[f32; 4]>,
+    /// Per-sample buffers of [`Field::per_sample`], in that order.
+    per_sample: Vec<Buffer<f32>>,
+}
+
+impl Workspace {
+    fn new(
+        ctx: &Context,
+        field: &Field,
+        cfg: &ModelConfig,
+        rays: u32,
+        samples: u32,
+        grads: bool,
+    ) -> Result<Workspace> {
+        let r = rays as usize;
+        let n = r * samples as usize;
+        count_u32(n as u64, "samples per batch")?;
+        let gr = |len: usize| if grads { len } else { 1 };
+        let mut per_sample = Vec::new();
+        for (i, (name, w)) in field.per_sample().into_iter().enumerate() {
+            // The last six are gradient scratch.
+            let len = if i >= 8 { gr(n * w) } else { n * w };
+            per_sample.push(Buffer::new(ctx, name, len)?);
+        }
+        Ok(Workspace {
+            rays,
+            samples,
+            pixels: Buffer::new(ctx, "pixels", r)?,
+            origins: Buffer::new(ctx, "ray origins", r)?,
+            dirs: Buffer::new(ctx, "ray directions", r)?,
+            world_origins: Buffer::new(ctx, "world ray origins", r)?,
+            world_dirs: Buffer::new(ctx, "world ray directions", r)?,
+            near_far: Buffer::from_slice(ctx, "near/far", &vec![[cfg.near, cfg.far]; r])?,
+            spans: Buffer::new(ctx, "ray spans", r)?,
+            t_dt: Buffer::new(ctx, "t_dt", n)?,
+            s_ds: Buffer::new(ctx, "s_ds", n)?,
+            out_rgba: Buffer::new(ctx, "rendered rgba", r)?,
+            out_depth: Buffer::new(ctx, "rendered depth", r)?,
+            target_rgb: Buffer::new(ctx, "target rgb", r)?,
+            target_depth: Buffer::new(ctx, "target depth", r)?,
+            loss: Buffer::new(ctx, "ray loss", gr(r))?,
+            mse: Buffer::new(ctx, "ray mse", gr(r))?,
+            dist_loss: Buffer::new(ctx, "distortion loss", gr(r))?,
+            d_rgba: Buffer::new(ctx, "dL/drgba", gr(r))?,
+            d_depth: Buffer::new(ctx, "dL/ddepth", gr(r))?,
+            d_weight: Buffer::new(ctx, "dL/dweight", gr(n))?,
+            d_sigma: Buffer::new(ctx, "dL/dsigma", gr(n))?,
+            d_rgb: Buffer::new(ctx, "dL/drgb", gr(n))?,
+            per_sample,
+        })
+    }
+
+    fn io(&self) -> FieldIo<'_> {
+        let p = |i: usize| self.per_sample[i].binding();
+        FieldIo {
+            positions: p(0),
+            dirs: self.world_dirs.binding(),
+            contracted: p(1),
+            encoded: p(2),
+            dens: p(3),
+            color_in: p(4),
+            color_out: p(5),
+            sigma: p(6),
+            rgb: p(7),
+        }
+    }
+
+    fn field_grads(&self) -> FieldGrads<'_> {
+        let p = |i: usize| self.per_sample[i].binding();
+        FieldGrads {
+            d_sigma: self.d_sigma.binding(),
+            d_rgb: self.d_rgb.binding(),
+            d_color_out: p(8),
+            d_color_in: p(9),
+            d_dens: p(10),
+            d_encoded: p(11),
+            saved_density: p(12),
+            saved_color: p(13),
+        }
+    }
+
+    fn samples(&self, n_rays: u64) -> Samples<'_> {
+        Samples {
+            rays: self.spans.binding(),
+            sigma: self.per_sample[6].binding(),
+            rgb: self.per_sample[7].binding(),
+            t_dt: self.t_dt.binding(),
+            n_rays,
+            n_samples: n_rays * self.samples as u64,
+        }
+    }
+}
+
+/// A field with its parameters and the kernels that render it.
+#[derive(Debug)]
+pub struct Nerf {
+    field: Field,
+    space: RaySpace,
+    params: Buffer<f32>,
+    raygen: RayGen,
+    sampler: Sampler,
+    comp: Compositor,
+    pixel_range: Kernel,
+    background: [f32; 3],
+}
+
+impl Nerf {
+    /// A field with the given parameters (`ParamLayout::total` floats).
+    pub fn new(
+        ctx: &Context,
+        config: ModelConfig,
+        params: &[f32],
+        background: [f32; 3],
+    ) -> Result<Nerf> {
+        let field = Field::new(ctx, config)?;
+        let total = field.layout().total;
+        if params.len() != total {
+            return Err(GpuError::Usage(format!(
+                "{} parameters given, the configuration has {total}",
+                params.len()
+            )));
+        }
+        let space = match field.config().space.as_str() {
+            "ndc" => RaySpace::Ndc { near: 1.0 },
+            _ => RaySpace::World,
+        };
+        Ok(Nerf {
+            space,
+            params: Buffer::from_slice(ctx, "field parameters", params)?,
+            raygen: RayGen::new(ctx)?,
+            sampler: Sampler::new(ctx)?,
+            comp: Compositor::new(ctx)?,
+            pixel_range: Kernel::new(ctx, &kp::pixel_range::DESC)?,
+            field,
+            background,
+        })
+    }
+
+    /// The field.
+    pub fn field(&self) -> &Field {
+        &self.field
+    }
+
+    /// The flat parameter buffer.
+    pub fn params(&self) -> &Buffer<f32> {
+        &self.params
+    }
+
+    fn sections<'a>(&'a self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 3]> {
+        self.field.layout().sections(buf)
+    }
+
+    /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`), the field and the
+    /// compositing into `ws.out_rgba` / `ws.out_depth`.
+    fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        n: u64,
+        seed: Option<u32>,
+    ) -> Result<()> {
+        let space = self.space;
+        self.raygen.generate(
+            rec,
+            cameras,
+            n_cameras,
+            ws.pixels.binding(),
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            n,
+            space,
+        )?;
+        self.raygen.generate(
+            rec,
+            cameras,
+            n_cameras,
+            ws.pixels.binding(),
+            ws.world_origins.binding(),
+            ws.world_dirs.binding(),
+            n,
+            RaySpace::World,
+        )?;
+        let io = ws.io();
+        let out = SampleOutputs {
+            positions: io.positions,
+            t_dt: ws.t_dt.binding(),
+            s_ds: ws.s_ds.binding(),
+            rays: ws.spans.binding(),
+        };
+        let spacing = match space {
+            RaySpace::Ndc { .. } => Spacing::Linear,
+            RaySpace::World => Spacing::Disparity,
+        };
+        self.sampler.record(
+            rec,
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            ws.near_far.binding(),
+            &out,
+            n,
+            ws.samples,
+            spacing,
+            seed,
+        )?;
+        let ns = n * ws.samples as u64;
+        self.field
+            .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples)?;
+        self.comp.forward(
+            rec,
+            &ws.samples(n),
+            self.background,
+            ws.out_rgba.binding(),
+            ws.out_depth.binding(),
+        )
+    }
+
+    /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
+    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass.
+    pub fn render(
+        &self,
+        ctx: &Context,
+        camera: &Camera,
+        chunk_rays: u32,
+        samples: u32,
+    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        let ws = Workspace::new(
+            ctx,
+            &self.field,
+            self.field.config(),
+            chunk_rays,
+            samples,
+            false,
+        )?;
+        let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
+        let total = camera.width as u64 * camera.height as u64;
+        count_u32(total, "pixels")?;
+        let rgba_all = Buffer::<[f32; 4]>::new(ctx, "rendered image", total as usize)?;
+        let depth_all = Buffer::<f32>::new(ctx, "rendered depth", total as usize)?;
+        let mut first = 0u64;
+        while first < total {
+            let n = (total - first).min(chunk_rays as u64);
+            let mut rec = ctx.recorder("render")?;
+            let p = kp::Params {
+                n: n as u32,
+                camera: 0,
+                first: first as u32,
+                _pad: 0,
+            };
+            let b = kp::pixel_range::Bindings {
+                pixels: ws.pixels.binding(),
+            };
+            rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
+            self.record_forward(&mut rec, &ws, cams.binding(), 1, n, None)?;
+            rec.copy(
+                ws.out_rgba.binding(),
+                0,
+                rgba_all.binding(),
+                first * 16,
+                n * 16,
+            )?;
+            rec.copy(
+                ws.out_depth.binding(),
+                0,
+                depth_all.binding(),
+                first * 4,
+                n * 4,
+            )?;
+            ctx.run(rec)?;
+            first += n;
+        }
+        let rgba = rgba_all.read()?;
+        let depth = depth_all.read()?;
+        let rgb = rgba.iter().flat_map(|p| [p[0], p[1], p[2]]).collect();
+        let opacity = rgba.iter().map(|p| p[3]).collect();
+        Ok((rgb, depth, opacity))
+    }
+}
+
+/// Progress of a window of steps, read from the device.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepStats {
+    /// Mean batch loss (photometric + depth) over the window.
+    pub loss: f64,
+    /// Mean colour MSE over the window.
+    pub mse: f64,
+}
+
+impl StepStats {
+    /// PSNR of the window's mean MSE.
+    pub fn psnr(&self) -> f64 {
+        -10.0 * self.mse.max(1e-12).log10()
+    }
+}
+
+/// The optimiser state and the kernels of a training step.
+#[derive(Debug)]
+pub struct Trainer {
+    cfg: TrainConfig,
+    nerf: Nerf,
+    ws: Workspace,
+    grads: Buffer<f32>,
+    adam: Adam,
+    loss: RayLoss,
+    batch: Kernel,
+    ray_mse: Kernel,
+    reduce: ReducePlan,
+    stats: Buffer<f32>,
+    decay_partials: Buffer<f32>,
+    step: u32,
+}
+
+impl Trainer {
+    /// A trainer for `nerf` (its parameters are trained in place), at step `step` with Adam
+    /// moments `moments` (`None`: fresh).
+    pub fn new(
+        ctx: &Context,
+        nerf: Nerf,
+        cfg: TrainConfig,
+        step: u32,
+        moments: Option<(&[f32], &[f32])>,
+    ) -> Result<Trainer> {
+        cfg.validate()?;
+        let total = nerf.field.layout().total;
+        let ws = Workspace::new(
+            ctx,
+            &nerf.field,
+            nerf.field.config(),
+            cfg.rays,
+            cfg.samples,
+            true,
+        )?;
+        let adam = Adam::new(ctx, total as u64, cfg.adam())?;
+        if let Some((m, v)) = moments {
+            adam.load_moments(m, v)?;
+        }
+        Ok(Trainer {
+            grads: Buffer::new(ctx, "field gradients", total)?,
+            adam,
+            loss: RayLoss::new(ctx)?,
+            batch: Kernel::new(ctx, &kb::sample_batch::DESC)?,
+            ray_mse: Kernel::new(ctx, &kp::ray_mse::DESC)?,
+            reduce: ReducePlan::new(ctx)?,
+            stats: Buffer::from_slice(
+                ctx,
+                "step stats",
+                &vec![0f32; 2 * STAT_SLOTS as usize * SLOT],
+            )?,
+            decay_partials: Buffer::new(
+                ctx,
+                "hash decay partials",
+                nerf.field.grid().decay_partials() as usize,
+            )?,
+            ws,
+            nerf,
+            cfg,
+            step,
+        })
+    }
+
+    /// Steps taken so far.
+    pub fn step(&self) -> u32 {
+        self.step
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &TrainConfig {
+        &self.cfg
+    }
+
+    /// The field being trained.
+    pub fn nerf(&self) -> &Nerf {
+        &self.nerf
+    }
+
+    /// Adam's moments (for checkpoints).
+    pub fn moments(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        self.adam.moments()
+    }
+
+    /// Samples per step.
+    pub fn samples_per_step(&self) -> u64 {
+        self.cfg.rays as u64 * self.cfg.samples as u64
+    }
+
+    /// Records training step `step` (1-based).
+    fn record_step<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        prims: &'a Prims,
+        data: &'a TrainData,
+        step: u32,
+    ) -> Result<()> {
+        let ws = &self.ws;
+        let n = ws.rays as u64;
+        let ns = n * ws.samples as u64;
+        let seed = (self.cfg.seed as u32) ^ step.wrapping_mul(0x9e37_79b9);
+        let p = kb::Params {
+            n_rays: ws.rays,
+            n_images: data.n_images,
+            seed,
+            _pad: 0,
+        };
+        let b = kb::sample_batch::Bindings {
+            image_info: data.info.binding(),
+            image_rgb: data.rgb.binding(),
+            image_depth: data.depth.binding(),
+            pixels: ws.pixels.binding(),
+            target_rgb: ws.target_rgb.binding(),
+            target_depth: ws.target_depth.binding(),
+        };
+        rec.dispatch(&self.batch, b.into_array(), &p, n)?;
+        let nerf = &self.nerf;
+        nerf.record_forward(
+            rec,
+            ws,
+            data.cameras.binding(),
+            data.n_images,
+            n,
+            Some(seed),
+        )?;
+        let samples = ws.samples(n);
+        if self.cfg.distortion_lambda > 0.0 {
+            nerf.comp.distortion(
+                rec,
+                &samples,
+                ws.s_ds.binding(),
+                self.cfg.distortion_lambda,
+                ws.dist_loss.binding(),
+                ws.d_weight.binding(),
+            )?;
+        } else {
+            rec.fill_words(ws.d_weight.binding(), ns, 0)?;
+        }
+        let targets = Targets {
+            rgb: ws.target_rgb.binding(),
+            depth: ws.target_depth.binding(),
+        };
+        self.loss.record(
+            rec,
+            &self.cfg.loss()?,
+            ws.out_rgba.binding(),
+            ws.out_depth.binding(),
+            &targets,
+            ws.loss.binding(),
+            ws.d_rgba.binding(),
+            ws.d_depth.binding(),
+            n,
+        )?;
+        let mp = kp::Params {
+            n: ws.rays,
+            camera: 0,
+            first: 0,
+            _pad: 0,
+        };
+        let b = kp::ray_mse::Bindings {
+            rendered: ws.out_rgba.binding(),
+            target_rgb: ws.target_rgb.binding(),
+            mse: ws.mse.binding(),
+        };
+        rec.dispatch(&self.ray_mse, b.into_array(), &mp, n)?;
+        let slot = ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT;
+        prims.reduce_sum(
+            rec,
+            &self.reduce,
+            ws.loss.binding(),
+            n,
+            self.stats.slice(slot, 1)?,
+        )?;
+        prims.reduce_sum(
+            rec,
+            &self.reduce,
+            ws.mse.binding(),
+            n,
+            self.stats.slice(slot + SLOT, 1)?,
+        )?;
+        // Backward.
+        rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
+        let g = RayGrads {
+            d_rgba: ws.d_rgba.binding(),
+            d_depth: ws.d_depth.binding(),
+            d_weight: ws.d_weight.binding(),
+            grad_scaling: self.cfg.grad_scaling,
+        };
+        nerf.comp.backward(
+            rec,
+            &samples,
+            nerf.background,
+            &g,
+            ws.d_sigma.binding(),
+            ws.d_rgb.binding(),
+        )?;
+        let params = nerf.sections(&nerf.params)?;
+        let d_params = nerf.sections(&self.grads)?;
+        nerf.field.backward(
+            rec,
+            params,
+            d_params,
+            &ws.io(),
+            &ws.field_grads(),
+            ns,
+            ws.samples,
+        )?;
+        if self.cfg.hash_decay_lambda > 0.0 {
+            nerf.field.grid().decay(
+                rec,
+                params[0],
+                d_params[0],
+                self.decay_partials.binding(),
+                self.cfg.hash_decay_lambda,
+            )?;
+        }
+        self.adam
+            .record_step(rec, nerf.params.binding(), self.grads.binding(), step, 1.0)
+    }
+
+    /// Runs `count` steps (at most [`STAT_SLOTS`]) in one submission and returns their mean
+    /// loss and MSE.
+    pub fn run_steps(
+        &mut self,
+        ctx: &Context,
+        prims: &Prims,
+        data: &TrainData,
+        count: u32,
+    ) -> Result<StepStats> {
+        if count == 0 || count > STAT_SLOTS {
+            return Err(GpuError::Usage(format!(
+                "run 1 to {STAT_SLOTS} steps per call, not {count}"
+            )));
+        }
+        let first = self.step + 1;
+        {
+            let mut rec = ctx.recorder("train steps")?;
+            for s in first..first + count {
+                self.record_step(&mut rec, prims, data, s)?;
+            }
+            ctx.run(rec)?;
+        }
+        self.step += count;
+        let stats = self.stats.read()?;
+        let (mut loss, mut mse) = (0.0, 0.0);
+        for s in first..first + count {
+            let slot = ((s - 1) % STAT_SLOTS) as usize * 2 * SLOT;
+            loss += stats[slot] as f64;
+            mse += stats[slot + SLOT] as f64 / self.cfg.rays as f64;
+        }
+        Ok(StepStats {
+            loss: loss / count as f64,
+            mse: mse / count as f64,
+        })
+    }
+}

@@ -1,0 +1,387 @@
+//! The BaseNeRF field end to end (forward against the f64 reference, gradients against finite
+//! differences of it, the extremes), checkpoints, and training on fern.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use extranerf_gpu::Buffer;
+use extranerf_nerf::model::{init_params, Field, FieldGrads, FieldIo, ModelConfig, ParamLayout};
+use extranerf_nerf::reference::field_forward;
+use extranerf_prims::reference::Rng;
+use extranerf_tests::{assert_no_validation_messages, engine, scratch_dir, shared_data};
+
+/// A model small enough for finite differences: 2 levels (one dense, one hashed), 8-wide MLPs.
+fn tiny() -> ModelConfig {
+    ModelConfig {
+        levels: 2,
+        features: 2,
+        log2_table: 6,
+        min_res: 2,
+        max_res: 16,
+        density_width: 8,
+        density_layers: 1,
+        geo_dims: 4,
+        color_width: 8,
+        color_layers: 2,
+        ..ModelConfig::default()
+    }
+}
+
+struct Run {
+    sigma: Vec<f32>,
+    rgb: Vec<[f32; 4]>,
+    grads: Vec<f32>,
+}
+
+/// Forward and backward on the device with dL/dsigma = `a`, dL/drgb = `b`.
+fn run_field(
+    cfg: &ModelConfig,
+    params: &[f32],
+    positions: &[f32],
+    dirs: &[[f32; 3]],
+    per_ray: u32,
+    a: &[f32],
+    b: &[[f32; 4]],
+) -> Run {
+    let e = engine();
+    let ctx = &e.ctx;
+    let field = Field::new(ctx, cfg.clone()).unwrap();
+    let n = positions.len() / 3;
+    let lay = *field.layout();
+    let pbuf = Buffer::from_slice(ctx, "params", params).unwrap();
+    let gbuf = Buffer::from_slice(ctx, "grads", &vec![0f32; lay.total]).unwrap();
+    let dirs4: Vec<[f32; 4]> = dirs.iter().map(|d| [d[0], d[1], d[2], 0.0]).collect();
+    let dbuf = Buffer::from_slice(ctx, "dirs", &dirs4).unwrap();
+    let per: Vec<Buffer<f32>> = field
+        .per_sample()
+        .iter()
+        .map(|(name, w)| Buffer::new(ctx, name, n * w).unwrap())
+        .collect();
+    per[0].write(positions).unwrap();
+    let d_sigma = Buffer::from_slice(ctx, "d_sigma", a).unwrap();
+    let d_rgb = Buffer::from_slice(ctx, "d_rgb", b).unwrap();
+    let io = FieldIo {
+        positions: per[0].binding(),
+        dirs: dbuf.binding(),
+        contracted: per[1].binding(),
+        encoded: per[2].binding(),
+        dens: per[3].binding(),
+        color_in: per[4].binding(),
+        color_out: per[5].binding(),
+        sigma: per[6].binding(),
+        rgb: per[7].binding(),
+    };
+    let g = FieldGrads {
+        d_sigma: d_sigma.binding(),
+        d_rgb: d_rgb.binding(),
+        d_color_out: per[8].binding(),
+        d_color_in: per[9].binding(),
+        d_dens: per[10].binding(),
+        d_encoded: per[11].binding(),
+        saved_density: per[12].binding(),
+        saved_color: per[13].binding(),
+    };
+    let mut rec = ctx.recorder("field test").unwrap();
+    field
+        .forward(
+            &mut rec,
+            lay.sections(&pbuf).unwrap(),
+            &io,
+            n as u64,
+            per_ray,
+        )
+        .unwrap();
+    field
+        .backward(
+            &mut rec,
+            lay.sections(&pbuf).unwrap(),
+            lay.sections(&gbuf).unwrap(),
+            &io,
+            &g,
+            n as u64,
+            per_ray,
+        )
+        .unwrap();
+    ctx.run(rec).unwrap();
+    let rgb = per[7].read().unwrap();
+    let out = Run {
+        sigma: per[6].read().unwrap(),
+        rgb: rgb
+            .chunks_exact(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect(),
+        grads: gbuf.read().unwrap(),
+    };
+    assert_no_validation_messages(ctx);
+    out
+}
+
+fn loss_ref(
+    cfg: &ModelConfig,
+    params: &[f32],
+    pos: &[f32],
+    dirs: &[[f32; 3]],
+    per_ray: usize,
+    a: &[f32],
+    b: &[[f32; 4]],
+) -> f64 {
+    field_forward(cfg, params, pos, dirs, per_ray)
+        .iter()
+        .enumerate()
+        .map(|(i, (s, c))| a[i] as f64 * s + (0..3).map(|k| b[i][k] as f64 * c[k]).sum::<f64>())
+        .sum()
+}
+
+#[test]
+fn field_forward_and_gradients_match_the_f64_reference() {
+    let cfg = tiny();
+    let mut rng = Rng::new(7);
+    let mut params = init_params(&cfg, 3);
+    // Larger table values than the initialisation so the grid matters.
+    let lay = ParamLayout::new(&cfg);
+    for v in &mut params[lay.table.0..lay.table.0 + lay.table.1] {
+        *v = rng.uniform(-1.0, 1.0);
+    }
+    let (rays, per_ray) = (5usize, 4u32);
+    let n = rays * per_ray as usize;
+    let pos: Vec<f32> = (0..3 * n).map(|_| rng.uniform(-0.95, 0.95)).collect();
+    let mut dirs: Vec<[f32; 3]> = (0..rays)
+        .map(|_| {
+            [
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            ]
+        })
+        .collect();
+    // A ray parallel to an axis, and a zero direction (taken as +z).
+    dirs[0] = [0.0, 0.0, -3.0];
+    dirs[1] = [0.0; 3];
+    let a: Vec<f32> = (0..n).map(|_| rng.uniform(-0.2, 0.2)).collect();
+    let b: Vec<[f32; 4]> = (0..n)
+        .map(|_| {
+            [
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                0.0,
+            ]
+        })
+        .collect();
+    let got = run_field(&cfg, &params, &pos, &dirs, per_ray, &a, &b);
+    let want = field_forward(&cfg, &params, &pos, &dirs, per_ray as usize);
+    for (i, &(s, c)) in want.iter().enumerate() {
+        assert!(
+            (got.sigma[i] as f64 - s).abs() <= 1e-4 * (1.0 + s),
+            "sigma {i}: {} vs {s}",
+            got.sigma[i]
+        );
+        for (k, ck) in c.iter().enumerate() {
+            assert!((got.rgb[i][k] as f64 - ck).abs() < 1e-5, "rgb {i}.{k}");
+        }
+    }
+    // Central differences of the reference on parameters of every section (those the batch
+    // touches: nonzero analytic gradient, plus a few zeros that must stay zero).
+    let mut checked = [0usize; 3];
+    let sections = [lay.table, lay.density, lay.color];
+    for (si, &(start, len)) in sections.iter().enumerate() {
+        for j in (start..start + len).step_by(1 + len / 40) {
+            let h = 1e-3f32;
+            let mut p = params.clone();
+            p[j] = params[j] + h;
+            let lp = loss_ref(&cfg, &p, &pos, &dirs, per_ray as usize, &a, &b);
+            p[j] = params[j] - h;
+            let lm = loss_ref(&cfg, &p, &pos, &dirs, per_ray as usize, &a, &b);
+            let fd = (lp - lm) / (2.0 * h as f64);
+            let g = got.grads[j] as f64;
+            assert!(
+                (g - fd).abs() <= 2e-3 + 2e-2 * fd.abs(),
+                "section {si} param {j}: analytic {g} vs finite difference {fd}"
+            );
+            checked[si] += usize::from(fd.abs() > 1e-6);
+        }
+    }
+    assert!(
+        checked.iter().all(|&c| c >= 3),
+        "too few informative parameters: {checked:?}"
+    );
+    // Gaps between sections receive no gradient.
+    for (s, l) in sections {
+        let end = (s + l).div_ceil(64) * 64;
+        assert!(got.grads[s + l..end].iter().all(|&v| v == 0.0));
+    }
+}
+
+#[test]
+fn field_extremes_stay_finite() {
+    let cfg = tiny();
+    let lay = ParamLayout::new(&cfg);
+    let n = 8usize;
+    for (scale, table) in [(0.0f32, 0.0f32), (1e3, 1e3), (-1e3, -1e3), (1e6, 0.0)] {
+        let mut params = init_params(&cfg, 1);
+        for v in &mut params[lay.density.0..] {
+            *v *= scale.abs().max(1.0) * scale.signum();
+        }
+        for v in &mut params[lay.table.0..lay.table.0 + lay.table.1] {
+            *v = table;
+        }
+        // Points far outside the box (clamped) and at its corners.
+        let pos: Vec<f32> = (0..3 * n)
+            .map(|i| [1e6f32, -1e6, 1.0, -1.0, 0.0, 1e-7][i % 6])
+            .collect();
+        let dirs = vec![[1.0, 0.0, 0.0], [0.0, 1e-30, 0.0]];
+        let a = vec![1.0f32; n];
+        let b = vec![[1.0f32, -1.0, 1.0, 0.0]; n];
+        let got = run_field(&cfg, &params, &pos, &dirs, 4, &a, &b);
+        assert!(got.sigma.iter().all(|v| v.is_finite() && *v >= 0.0));
+        assert!(got.rgb.iter().flatten().all(|v| v.is_finite()));
+        assert!(
+            got.grads.iter().all(|v| v.is_finite()),
+            "non-finite gradient at scale {scale}"
+        );
+    }
+}
+
+#[test]
+fn checkpoints_round_trip_and_bad_ones_are_refused() {
+    use extranerf_nerf::run::*;
+    use extranerf_nerf::trainer::TrainConfig;
+    let dir = scratch_dir("checkpoint");
+    let model = tiny();
+    let params = init_params(&model, 5);
+    let total = params.len();
+    let ck = Checkpoint {
+        config: RunConfig {
+            scene: SceneSpec {
+                dir: "scene".into(),
+                split: "all".into(),
+                fewshot_views: 3,
+                factor: 8,
+                sparse_depth: false,
+            },
+            model,
+            train: TrainConfig::default(),
+        },
+        step: 42,
+        params: params.clone(),
+        moments: Some((vec![0.5; total], vec![0.25; total])),
+    };
+    save_checkpoint(&dir, &ck).unwrap();
+    let back = load_checkpoint(&dir).unwrap();
+    assert_eq!(
+        (back.step, &back.params, &back.moments, &back.config),
+        (42, &params, &ck.moments, &ck.config)
+    );
+    let json: RunConfig =
+        serde_json::from_slice(&std::fs::read(dir.join(CONFIG_FILE)).unwrap()).unwrap();
+    assert_eq!(json, ck.config);
+    // Truncated, NaN parameters, missing: clear errors naming the file.
+    let path = dir.join(CHECKPOINT_FILE);
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() - 10]).unwrap();
+    let e = load_checkpoint(&dir).unwrap_err().to_string();
+    assert!(e.contains("checkpoint.safetensors"), "{e}");
+    let mut nan = ck.clone();
+    nan.params[3] = f32::NAN;
+    save_checkpoint(&dir, &nan).unwrap();
+    let e = load_checkpoint(&dir).unwrap_err().to_string();
+    assert!(e.contains("NaN"), "{e}");
+    let e = load_checkpoint(&dir.join("nope")).unwrap_err().to_string();
+    assert!(e.contains("nope"), "{e}");
+}
+
+#[test]
+fn training_on_fern_raises_psnr_and_renders() {
+    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer};
+    let e = engine();
+    let ctx = &e.ctx;
+    let spec = SceneSpec {
+        dir: shared_data().join("llff/fern"),
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 8,
+        sparse_depth: true,
+    };
+    let loaded = spec.load().unwrap();
+    let model = ModelConfig {
+        levels: 8,
+        log2_table: 14,
+        max_res: 512,
+        density_width: 32,
+        color_width: 32,
+        ..ModelConfig::default()
+    };
+    let views = training_views(&spec, &loaded, &model).unwrap();
+    assert_eq!(views.len(), 6);
+    let depth_targets = views
+        .iter()
+        .map(|v| v.2.as_ref().unwrap().iter().filter(|d| d[1] > 0.0).count())
+        .sum::<usize>();
+    assert!(depth_targets > 1000, "{depth_targets} sparse depth targets");
+    let cfg = TrainConfig {
+        steps: 60,
+        decay_steps: 60,
+        rays: 256,
+        samples: 16,
+        ..TrainConfig::default()
+    };
+    let nerf = Nerf::new(ctx, model.clone(), &init_params(&model, 0), cfg.background).unwrap();
+    let data = TrainData::new(ctx, &views).unwrap();
+    let mut t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
+    let first = t.run_steps(ctx, &e.prims, &data, 10).unwrap();
+    let mut last = first;
+    while t.step() < 60 {
+        last = t
+            .run_steps(ctx, &e.prims, &data, 25.min(60 - t.step()))
+            .unwrap();
+    }
+    eprintln!(
+        "fern: PSNR {:.2} dB over steps 1-10, {:.2} dB over the last window",
+        first.psnr(),
+        last.psnr()
+    );
+    assert!(last.loss.is_finite() && last.psnr() > first.psnr() + 2.0);
+    assert!(last.psnr() > 14.0, "training PSNR {:.2} dB", last.psnr());
+    // A quarter-size render of a training view is finite and resembles it.
+    let mut cam = views[0].0.clone();
+    let img = &views[0].1;
+    let (w, h) = (cam.width / 4, cam.height / 4);
+    cam.width = w;
+    cam.height = h;
+    cam.fx /= 4.0;
+    cam.fy /= 4.0;
+    cam.cx /= 4.0;
+    cam.cy /= 4.0;
+    let (rgb, depth, opacity) = t.nerf().render(ctx, &cam, 4096, 16).unwrap();
+    assert_eq!(
+        (rgb.len(), depth.len()),
+        (3 * (w * h) as usize, (w * h) as usize)
+    );
+    assert!(rgb
+        .iter()
+        .chain(&depth)
+        .chain(&opacity)
+        .all(|v| v.is_finite()));
+    // Box-downsampled ground truth.
+    let mut truth = vec![0f32; rgb.len()];
+    for y in 0..h as usize {
+        for x in 0..w as usize {
+            for c in 0..3 {
+                let mut s = 0.0;
+                for dy in 0..4 {
+                    for dx in 0..4 {
+                        s += img.rgb[((4 * y + dy) * img.width as usize + 4 * x + dx) * 3 + c];
+                    }
+                }
+                truth[(y * w as usize + x) * 3 + c] = s / 16.0;
+            }
+        }
+    }
+    let p = extranerf_nerf::metrics::psnr(&rgb, &truth).unwrap();
+    eprintln!(
+        "render of training view {}: {p:.2} dB",
+        loaded.split.train[0]
+    );
+    assert!(p > 12.0, "render PSNR {p:.2} dB");
+    assert_no_validation_messages(ctx);
+}
