@@ -364,6 +364,8 @@ fn hash_decay_matches_reference() {
     let g0: Vec<f32> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
     let tb = Buffer::from_slice(&e.ctx, "table", &table).unwrap();
     let gb = Buffer::from_slice(&e.ctx, "grad", &g0).unwrap();
+    // The gradient-only kernel of training steps, on a second copy.
+    let gb2 = Buffer::from_slice(&e.ctx, "grad only", &g0).unwrap();
     let partial = Buffer::<f32>::new(&e.ctx, "partial", grid.decay_partials() as usize).unwrap();
     let total = Buffer::<f32>::new(&e.ctx, "total", 1).unwrap();
     let plan = extranerf_prims::ReducePlan::new(&e.ctx).unwrap();
@@ -376,6 +378,8 @@ fn hash_decay_matches_reference() {
         0.25,
     )
     .unwrap();
+    grid.decay_grad(&mut rec, tb.binding(), gb2.binding(), 0.25)
+        .unwrap();
     e.prims
         .reduce_sum(
             &mut rec,
@@ -393,8 +397,16 @@ fn hash_decay_matches_reference() {
         "loss {got} vs {want_loss}"
     );
     let grad = gb.read().unwrap();
+    let grad2 = gb2.read().unwrap();
+    // Level offsets that are not multiples of 4 exercise the straddling path.
+    assert!(cfg.level_layout().iter().any(|l| l.offset % 4 != 0));
     for i in 0..n {
         let want = g0[i] as f64 + want_grad[i];
+        assert!(
+            (grad2[i] as f64 - want).abs() <= 1e-6,
+            "gradient-only kernel, entry {i}: {} vs {want}",
+            grad2[i]
+        );
         assert!(
             (grad[i] as f64 - want).abs() <= 1e-6,
             "entry {i}: {} vs {want}",

@@ -88,6 +88,7 @@ fn run_field(
             &io,
             n as u64,
             per_ray,
+            &mut None,
         )
         .unwrap();
     field
@@ -99,6 +100,7 @@ fn run_field(
             &g,
             n as u64,
             per_ray,
+            &mut None,
         )
         .unwrap();
     ctx.run(rec).unwrap();

@@ -60,6 +60,9 @@ enum BenchCommand {
     /// and size, GB/s and elements/s, and the ratio to vkCmdCopyBuffer bandwidth measured in
     /// the same run at the same size.
     Kernels(bench::KernelsArgs),
+    /// The BaseNeRF training step: samples/s over whole steps and the GPU time of every stage
+    /// (rays, sampling, hash grid, MLPs, compositing, losses, backward passes, Adam).
+    Train(nerf::BenchTrainArgs),
 }
 
 fn context(cli: &Cli) -> anyhow::Result<Context> {
@@ -107,6 +110,9 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Train(a) => nerf::train(&context(cli)?, a),
         Command::Render(a) => nerf::render(&context(cli)?, a),
         Command::Eval(a) => nerf::eval(&context(cli)?, a),
+        Command::Bench {
+            what: BenchCommand::Train(args),
+        } => nerf::bench_train(&context(cli)?, args),
         Command::Bench {
             what: BenchCommand::Kernels(args),
         } => {

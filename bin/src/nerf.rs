@@ -490,3 +490,128 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
     );
     Ok(())
 }
+
+/// Arguments of `extranerf bench train`.
+#[derive(clap::Args, Debug)]
+pub struct BenchTrainArgs {
+    /// Scene (default: $EXTRANERF_DATA/llff/fern, else ../shared/data/llff/fern).
+    #[arg(long, value_name = "DIR")]
+    scene: Option<PathBuf>,
+    /// Rays per step.
+    #[arg(long, default_value_t = 256)]
+    rays: u32,
+    /// Samples per ray.
+    #[arg(long, default_value_t = 32)]
+    samples: u32,
+    /// log2 of the hash table size per level.
+    #[arg(long, default_value_t = 19)]
+    log2_table: u32,
+    /// Hidden width of both MLPs.
+    #[arg(long, default_value_t = 64)]
+    width: u32,
+    /// Timed steps (after 2 warm-up steps that also compile the kernels).
+    #[arg(long, default_value_t = 10)]
+    steps: u32,
+    /// Also write the results as JSON.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+}
+
+/// `extranerf bench train`: samples/s of whole training steps (wall clock, one submission of
+/// `--steps` steps) and the GPU time of every stage of one profiled step.
+pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
+    let scene = a.scene.clone().unwrap_or_else(|| {
+        std::env::var_os("EXTRANERF_DATA")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("../shared/data"))
+            .join("llff/fern")
+    });
+    let spec = SceneSpec {
+        dir: scene,
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 8,
+        sparse_depth: true,
+    };
+    let loaded = spec.load()?;
+    let mut model = model_for_scene(&loaded.scene);
+    model.log2_table = a.log2_table;
+    model.density_width = a.width;
+    model.color_width = a.width;
+    let train = TrainConfig {
+        rays: a.rays,
+        samples: a.samples,
+        ..TrainConfig::default()
+    };
+    let views = training_views(&spec, &loaded, &model)?;
+    let params = extranerf_nerf::model::init_params(&model, 0);
+    let nerf = Nerf::new(ctx, model.clone(), &params, train.background)?;
+    let data = TrainData::new(ctx, &views)?;
+    let prims = Prims::new(ctx)?;
+    let mut t = Trainer::new(ctx, nerf, train, 0, None)?;
+    let warm = Instant::now();
+    t.run_steps(ctx, &prims, &data, 2)?;
+    let warm_s = warm.elapsed().as_secs_f64();
+    let mut done = 0;
+    let t0 = Instant::now();
+    while done < a.steps {
+        let c = (a.steps - done).min(STAT_SLOTS);
+        t.run_steps(ctx, &prims, &data, c)?;
+        done += c;
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    let sps = a.steps as f64 * t.samples_per_step() as f64 / secs;
+    let stages = t.profile_step(ctx, &prims, &data)?;
+    let total: f64 = stages.iter().map(|s| s.1).sum();
+    println!("device: {}", ctx.info().name);
+    println!(
+        "model: hash grid {}x{}x2^{}, MLPs {:?} + {:?}; {} rays x {} samples = {} samples/step",
+        model.levels,
+        model.features,
+        model.log2_table,
+        model.density_mlp().dims,
+        model.color_mlp().dims,
+        a.rays,
+        a.samples,
+        t.samples_per_step()
+    );
+    println!(
+        "train step: {:.1} ms wall ({} steps), {:.3e} samples/s; warm-up incl. kernel compilation {:.1} s",
+        secs * 1e3 / a.steps as f64,
+        a.steps,
+        sps,
+        warm_s
+    );
+    println!(
+        "{:<44} {:>10} {:>7} {:>12}",
+        "stage (one profiled step)", "ms", "%", "samples/s"
+    );
+    for (name, ms) in &stages {
+        println!(
+            "{name:<44} {ms:>10.3} {:>6.1}% {:>12.3e}",
+            100.0 * ms / total,
+            t.samples_per_step() as f64 / (ms * 1e-3)
+        );
+    }
+    println!("{:<44} {total:>10.3}", "total (GPU timestamps)");
+    if let Some(path) = &a.json {
+        let v = serde_json::json!({
+            "device": ctx.info().name,
+            "driver": format!("{} {}", ctx.info().driver_name, ctx.info().driver_info),
+            "model": model,
+            "rays": a.rays,
+            "samples_per_ray": a.samples,
+            "steps": a.steps,
+            "step_ms_wall": secs * 1e3 / a.steps as f64,
+            "samples_per_s": sps,
+            "warmup_s": warm_s,
+            "stages_ms": stages.iter().map(|(n, ms)| serde_json::json!({"stage": n, "ms": ms})).collect::<Vec<_>>(),
+        });
+        extranerf_nerf::safetensors::write_atomic(
+            path,
+            serde_json::to_string_pretty(&v)?.as_bytes(),
+        )?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}

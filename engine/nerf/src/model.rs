@@ -5,7 +5,9 @@
 use serde::{Deserialize, Serialize};
 
 use extranerf_gpu::kernels::render::field_heads as kh;
-use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{
+    count_u32, Binding, Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result,
+};
 use extranerf_prims::reference::Rng;
 
 use crate::field::encodings::{Contraction, Encodings, SceneBox};
@@ -238,6 +240,41 @@ pub fn init_params(cfg: &ModelConfig, seed: u64) -> Vec<f32> {
     p
 }
 
+/// Timestamps between the stages of a recording, for per-kernel timings (`bench train`).
+#[derive(Debug)]
+pub struct Profiler<'a> {
+    timer: &'a GpuTimer,
+    names: Vec<&'static str>,
+}
+
+impl<'a> Profiler<'a> {
+    /// Profiles into `timer` (reset it in the recording first; one slot per mark).
+    pub fn new(timer: &'a GpuTimer) -> Profiler<'a> {
+        Profiler {
+            timer,
+            names: Vec::new(),
+        }
+    }
+
+    /// The stage names, in order: the time between mark i - 1 and mark i is stage i's.
+    pub fn names(&self) -> &[&'static str] {
+        &self.names
+    }
+}
+
+/// Writes a timestamp ending stage `name` when profiling.
+pub fn mark<'a>(
+    prof: &mut Option<Profiler<'a>>,
+    rec: &mut Recorder<'a>,
+    name: &'static str,
+) -> Result<()> {
+    if let Some(p) = prof {
+        rec.timestamp(p.timer, p.names.len() as u32)?;
+        p.names.push(name);
+    }
+    Ok(())
+}
+
 /// Per-sample work buffers of one field evaluation, as bindings (the caller owns them).
 #[derive(Clone, Copy, Debug)]
 pub struct FieldIo<'a> {
@@ -375,14 +412,18 @@ impl Field {
         io: &FieldIo<'a>,
         n: u64,
         per_ray: u32,
+        prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let [table, wd, wc] = params;
         let hp = self.heads_params(n, per_ray)?;
         self.enc
             .contract(rec, io.positions, io.contracted, n, &self.scene)?;
+        mark(prof, rec, "contract")?;
         self.grid
             .forward(rec, io.contracted, table, io.encoded, n)?;
+        mark(prof, rec, "hash grid fwd")?;
         self.density.forward(rec, wd, io.encoded, io.dens, n)?;
+        mark(prof, rec, "density MLP fwd")?;
         let b = kh::density_head_fwd::Bindings {
             dirs: io.dirs,
             dens: io.dens,
@@ -390,12 +431,15 @@ impl Field {
             color_in: io.color_in,
         };
         rec.dispatch(&self.density_fwd, b.into_array(), &hp, n)?;
+        mark(prof, rec, "density head fwd (trunc_exp, SH4, concat)")?;
         self.color.forward(rec, wc, io.color_in, io.color_out, n)?;
+        mark(prof, rec, "colour MLP fwd")?;
         let b = kh::color_head_fwd::Bindings {
             color_out: io.color_out,
             rgb: io.rgb,
         };
-        rec.dispatch(&self.color_fwd, b.into_array(), &hp, n)
+        rec.dispatch(&self.color_fwd, b.into_array(), &hp, n)?;
+        mark(prof, rec, "colour head fwd (sigmoid)")
     }
 
     /// Records the backward pass after [`Field::forward`] on the same buffers: adds the
@@ -410,6 +454,7 @@ impl Field {
         g: &FieldGrads<'a>,
         n: u64,
         per_ray: u32,
+        prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let [_, wd, wc] = params;
         let [dt, dwd, dwc] = d_params;
@@ -420,6 +465,7 @@ impl Field {
             d_rgb: g.d_rgb,
         };
         rec.dispatch(&self.color_bwd, b.into_array(), &hp, n)?;
+        mark(prof, rec, "colour head bwd")?;
         self.color.backward(
             rec,
             wc,
@@ -430,6 +476,7 @@ impl Field {
             dwc,
             n,
         )?;
+        mark(prof, rec, "colour MLP bwd (data + weights)")?;
         let b = kh::density_head_bwd::Bindings {
             dens: io.dens,
             d_dens: g.d_dens,
@@ -437,6 +484,7 @@ impl Field {
             d_color_in: g.d_color_in,
         };
         rec.dispatch(&self.density_bwd, b.into_array(), &hp, n)?;
+        mark(prof, rec, "density head bwd")?;
         self.density.backward(
             rec,
             wd,
@@ -447,6 +495,8 @@ impl Field {
             dwd,
             n,
         )?;
-        self.grid.backward(rec, io.contracted, g.d_encoded, dt, n)
+        mark(prof, rec, "density MLP bwd (data + weights)")?;
+        self.grid.backward(rec, io.contracted, g.d_encoded, dt, n)?;
+        mark(prof, rec, "hash grid bwd (atomics)")
     }
 }

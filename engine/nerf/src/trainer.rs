@@ -7,11 +7,13 @@
 use serde::{Deserialize, Serialize};
 
 use extranerf_gpu::kernels::render::{batch as kb, pixels as kp};
-use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{
+    count_u32, Binding, Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result,
+};
 use extranerf_prims::{Prims, ReducePlan};
 
 use crate::data::{Camera, Image};
-use crate::model::{Field, FieldGrads, FieldIo, ModelConfig};
+use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler};
 use crate::optim::{Adam, AdamConfig};
 use crate::render::composite::{Compositor, RayGrads, Samples};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
@@ -363,6 +365,7 @@ impl Nerf {
 
     /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`), the field and the
     /// compositing into `ws.out_rgba` / `ws.out_depth`.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
     fn record_forward<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
@@ -371,6 +374,7 @@ impl Nerf {
         n_cameras: u32,
         n: u64,
         seed: Option<u32>,
+        prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let space = self.space;
         self.raygen.generate(
@@ -393,6 +397,7 @@ impl Nerf {
             n,
             RaySpace::World,
         )?;
+        mark(prof, rec, "rays (NDC + world)")?;
         let io = ws.io();
         let out = SampleOutputs {
             positions: io.positions,
@@ -415,16 +420,18 @@ impl Nerf {
             spacing,
             seed,
         )?;
+        mark(prof, rec, "stratified samples")?;
         let ns = n * ws.samples as u64;
         self.field
-            .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples)?;
+            .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples, prof)?;
         self.comp.forward(
             rec,
             &ws.samples(n),
             self.background,
             ws.out_rgba.binding(),
             ws.out_depth.binding(),
-        )
+        )?;
+        mark(prof, rec, "composite fwd")
     }
 
     /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
@@ -463,7 +470,7 @@ impl Nerf {
                 pixels: ws.pixels.binding(),
             };
             rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-            self.record_forward(&mut rec, &ws, cams.binding(), 1, n, None)?;
+            self.record_forward(&mut rec, &ws, cams.binding(), 1, n, None, &mut None)?;
             rec.copy(
                 ws.out_rgba.binding(),
                 0,
@@ -518,7 +525,6 @@ pub struct Trainer {
     ray_mse: Kernel,
     reduce: ReducePlan,
     stats: Buffer<f32>,
-    decay_partials: Buffer<f32>,
     step: u32,
 }
 
@@ -557,11 +563,6 @@ impl Trainer {
                 ctx,
                 "step stats",
                 &vec![0f32; 2 * STAT_SLOTS as usize * SLOT],
-            )?,
-            decay_partials: Buffer::new(
-                ctx,
-                "hash decay partials",
-                nerf.field.grid().decay_partials() as usize,
             )?,
             ws,
             nerf,
@@ -602,6 +603,7 @@ impl Trainer {
         prims: &'a Prims,
         data: &'a TrainData,
         step: u32,
+        prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let ws = &self.ws;
         let n = ws.rays as u64;
@@ -622,6 +624,7 @@ impl Trainer {
             target_depth: ws.target_depth.binding(),
         };
         rec.dispatch(&self.batch, b.into_array(), &p, n)?;
+        mark(prof, rec, "batch (pixels, targets)")?;
         let nerf = &self.nerf;
         nerf.record_forward(
             rec,
@@ -630,6 +633,7 @@ impl Trainer {
             data.n_images,
             n,
             Some(seed),
+            prof,
         )?;
         let samples = ws.samples(n);
         if self.cfg.distortion_lambda > 0.0 {
@@ -644,6 +648,7 @@ impl Trainer {
         } else {
             rec.fill_words(ws.d_weight.binding(), ns, 0)?;
         }
+        mark(prof, rec, "distortion loss")?;
         let targets = Targets {
             rgb: ws.target_rgb.binding(),
             depth: ws.target_depth.binding(),
@@ -686,8 +691,10 @@ impl Trainer {
             n,
             self.stats.slice(slot + SLOT, 1)?,
         )?;
+        mark(prof, rec, "losses, MSE, stats")?;
         // Backward.
         rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
+        mark(prof, rec, "zero gradients")?;
         let g = RayGrads {
             d_rgba: ws.d_rgba.binding(),
             d_depth: ws.d_depth.binding(),
@@ -702,6 +709,7 @@ impl Trainer {
             ws.d_sigma.binding(),
             ws.d_rgb.binding(),
         )?;
+        mark(prof, rec, "composite bwd")?;
         let params = nerf.sections(&nerf.params)?;
         let d_params = nerf.sections(&self.grads)?;
         nerf.field.backward(
@@ -712,18 +720,48 @@ impl Trainer {
             &ws.field_grads(),
             ns,
             ws.samples,
+            prof,
         )?;
         if self.cfg.hash_decay_lambda > 0.0 {
-            nerf.field.grid().decay(
+            nerf.field.grid().decay_grad(
                 rec,
                 params[0],
                 d_params[0],
-                self.decay_partials.binding(),
                 self.cfg.hash_decay_lambda,
             )?;
         }
+        mark(prof, rec, "hash decay")?;
         self.adam
-            .record_step(rec, nerf.params.binding(), self.grads.binding(), step, 1.0)
+            .record_step(rec, nerf.params.binding(), self.grads.binding(), step, 1.0)?;
+        mark(prof, rec, "adam")
+    }
+
+    /// Runs one training step with a timestamp after every stage: `(stage, ms)` in order.
+    pub fn profile_step(
+        &mut self,
+        ctx: &Context,
+        prims: &Prims,
+        data: &TrainData,
+    ) -> Result<Vec<(&'static str, f64)>> {
+        let timer = GpuTimer::new(ctx, "train step profile", 64)?;
+        let step = self.step + 1;
+        let names = {
+            let mut rec = ctx.recorder("profiled train step")?;
+            rec.reset_timer(&timer)?;
+            let mut prof = Some(Profiler::new(&timer));
+            mark(&mut prof, &mut rec, "start")?;
+            self.record_step(&mut rec, prims, data, step, &mut prof)?;
+            ctx.run(rec)?;
+            prof.map(|p| p.names().to_vec()).unwrap_or_default()
+        };
+        self.step = step;
+        let t = timer.read_ns(names.len() as u32)?;
+        Ok(names
+            .iter()
+            .skip(1)
+            .zip(t.windows(2))
+            .map(|(&name, w)| (name, (w[1] - w[0]) * 1e-6))
+            .collect())
     }
 
     /// Runs `count` steps (at most [`STAT_SLOTS`]) in one submission and returns their mean
@@ -744,7 +782,7 @@ impl Trainer {
         {
             let mut rec = ctx.recorder("train steps")?;
             for s in first..first + count {
-                self.record_step(&mut rec, prims, data, s)?;
+                self.record_step(&mut rec, prims, data, s, &mut None)?;
             }
             ctx.run(rec)?;
         }

@@ -55,3 +55,37 @@ fn hash_decay(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         partial[g] = t;
     }
 }
+
+// The gradient alone (no loss value): what a training step needs. Four floats per thread; the
+// level is looked up once unless the four straddle a level boundary.
+@compute @workgroup_size(64)
+fn hash_decay_grad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                   @builtin(local_invocation_index) lid: u32) {
+    let i0 = (linear_group(wid, nwg) * 64u + lid) * 4u;
+    if i0 >= params.n {
+        return;
+    }
+    let s0 = level_size(i0);
+    let straddles = level_size(min(i0 + 3u, params.n - 1u)) != s0;
+    for (var j = 0u; j < 4u; j += 1u) {
+        let i = i0 + j;
+        if i < params.n {
+            var size = s0;
+            if straddles {
+                size = level_size(i);
+            }
+            d_table[i] += 2.0 * params.lambda / f32(size * params.features) * table[i];
+        }
+    }
+}
+
+// Entries per feature of the level holding float i (levels are few; a linear scan).
+fn level_size(i: u32) -> u32 {
+    var size = level_info[0].size;
+    for (var k = 1u; k < params.levels; k += 1u) {
+        if i >= level_info[k].offset {
+            size = level_info[k].size;
+        }
+    }
+    return size;
+}

@@ -122,6 +122,7 @@ pub struct HashGrid {
     /// Generic kernels (any F) or the F = 2 specialisation.
     kernels: Kernels,
     decay: Kernel,
+    decay_grad: Kernel,
 }
 
 #[derive(Debug)]
@@ -157,6 +158,7 @@ impl HashGrid {
                 }
             },
             decay: Kernel::new(ctx, &kdecay::hash_decay::DESC)?,
+            decay_grad: Kernel::new(ctx, &kdecay::hash_decay_grad::DESC)?,
         })
     }
 
@@ -197,6 +199,37 @@ impl HashGrid {
             partial,
         };
         rec.dispatch(&self.decay, b.into_array(), &p, n)
+    }
+
+    /// Records only the gradient of [`HashGrid::decay`] (no loss value): cheaper, for
+    /// training steps that do not report the decay term.
+    pub fn decay_grad<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        table: Binding<'a>,
+        d_table: Binding<'a>,
+        lambda: f32,
+    ) -> Result<()> {
+        let n = self.config.param_count();
+        table.check_fits(n, 4, "hash grid table")?;
+        d_table.check_fits(n, 4, "hash grid gradient")?;
+        if !(lambda >= 0.0 && lambda.is_finite()) {
+            return Err(GpuError::Usage(format!(
+                "hash decay weight {lambda} must be >= 0"
+            )));
+        }
+        let p = kdecay::Params {
+            n: n as u32,
+            levels: self.config.levels,
+            features: self.config.features,
+            lambda,
+        };
+        let b = kdecay::hash_decay_grad::Bindings {
+            level_info: self.levels.binding(),
+            table,
+            d_table,
+        };
+        rec.dispatch(&self.decay_grad, b.into_array(), &p, n.div_ceil(4))
     }
 
     /// The configuration.
