@@ -149,6 +149,36 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             cfg.train.steps = s;
         }
     }
+    let run = TrainRun {
+        out: a.out.clone(),
+        start,
+        log_every: a.log_every,
+        checkpoint_every: a.checkpoint_every,
+    };
+    train_loop(ctx, &cfg, &run, params, moments)
+}
+
+/// Where and how a training loop runs.
+pub struct TrainRun {
+    /// Run folder.
+    pub out: PathBuf,
+    /// Steps already done (resume).
+    pub start: u32,
+    /// Steps between progress lines.
+    pub log_every: u32,
+    /// Steps between checkpoints.
+    pub checkpoint_every: u32,
+}
+
+/// Trains `cfg` from `params` (None: initialise) and `moments`, logging and checkpointing.
+pub fn train_loop(
+    ctx: &Context,
+    cfg: &RunConfig,
+    a: &TrainRun,
+    params: Option<Vec<f32>>,
+    moments: Option<(Vec<f32>, Vec<f32>)>,
+) -> anyhow::Result<()> {
+    let start = a.start;
     cfg.model.validate()?;
     cfg.train.validate()?;
     let loaded = cfg.scene.load()?;
@@ -613,5 +643,125 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         )?;
         println!("wrote {}", path.display());
     }
+    Ok(())
+}
+
+/// Arguments of `extranerf demo`.
+#[derive(clap::Args, Debug)]
+pub struct DemoArgs {
+    /// Output folder: scene/ (the generated capture), run/ (checkpoint, renders, metrics).
+    #[arg(long, default_value = "runs/demo")]
+    out: PathBuf,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = 300)]
+    steps: u32,
+    /// Image width of the generated views (height is 3/4 of it).
+    #[arg(long, default_value_t = 96)]
+    width: u32,
+}
+
+/// `extranerf demo`: generate the procedural scene, train on its 6-camera rig, render the 8
+/// views outside the rig and score them against the ray-traced ground truth.
+pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
+    use extranerf_nerf::demo::{write_demo_scene, RIG_VIEWS, RING_VIEWS};
+    let t0 = Instant::now();
+    let scene_dir = a.out.join("scene");
+    let run = a.out.join("run");
+    // A folder the demo made (marked) is replaced; anything else is left alone.
+    let marker = a.out.join(".extranerf-demo");
+    if a.out.exists() && std::fs::read_dir(&a.out)?.next().is_some() {
+        if !marker.exists() {
+            bail!(
+                "{} exists and was not made by `extranerf demo`; pass another --out",
+                a.out.display()
+            );
+        }
+        for d in [&scene_dir, &run] {
+            if d.exists() {
+                std::fs::remove_dir_all(d)
+                    .with_context(|| format!("replacing the previous demo in {}", d.display()))?;
+            }
+        }
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    std::fs::write(
+        &marker,
+        b"made by extranerf demo; the demo replaces this folder's scene/ and run/\n",
+    )
+    .with_context(|| format!("writing {}", marker.display()))?;
+    let height = a.width * 3 / 4;
+    eprintln!(
+        "demo: ray tracing the procedural scene ({RIG_VIEWS} rig views + {RING_VIEWS} views outside the rig, {}x{height}) into {}",
+        a.width,
+        scene_dir.display()
+    );
+    write_demo_scene(&scene_dir, a.width, height)?;
+    let cfg = RunConfig {
+        scene: SceneSpec {
+            dir: scene_dir,
+            split: "extrapolation".into(),
+            fewshot_views: 3,
+            factor: 1,
+            sparse_depth: false,
+        },
+        model: extranerf_nerf::model::ModelConfig {
+            levels: 8,
+            log2_table: 15,
+            max_res: 512,
+            density_width: 32,
+            color_width: 32,
+            ..Default::default()
+        },
+        train: TrainConfig {
+            steps: a.steps,
+            decay_steps: a.steps,
+            rays: 512,
+            samples: 24,
+            ..TrainConfig::default()
+        },
+    };
+    train_loop(
+        ctx,
+        &cfg,
+        &TrainRun {
+            out: run.clone(),
+            start: 0,
+            log_every: 25,
+            checkpoint_every: a.steps.max(1),
+        },
+        None,
+        None,
+    )?;
+    let lpips_dir = std::env::var_os("EXTRANERF_MODELS")
+        .map(|m| PathBuf::from(m).join("lpips"))
+        .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"));
+    let nets = if lpips_dir.join("lpips_alex_v0.1.safetensors").exists() {
+        vec!["alex".to_string(), "vgg".to_string()]
+    } else {
+        eprintln!(
+            "LPIPS weights not found in {} (set EXTRANERF_MODELS); scoring PSNR and SSIM only",
+            lpips_dir.display()
+        );
+        vec![]
+    };
+    eval(
+        ctx,
+        &EvalArgs {
+            run: run.clone(),
+            out: None,
+            lpips: Some(lpips_dir),
+            samples: None,
+            chunk: 8192,
+            save_images: true,
+            views: "all".into(),
+            lpips_nets: nets,
+        },
+    )?;
+    eprintln!(
+        "demo done in {:.0} s: renders of the held-out views in {}, metrics in {}",
+        t0.elapsed().as_secs_f64(),
+        run.join("eval").display(),
+        run.join("metrics.json").display()
+    );
     Ok(())
 }

@@ -211,3 +211,47 @@ fn train_resume_render_eval_on_fern() {
     );
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// The demo end to end at a small size: scene, training, renders of the held-out views,
+/// metrics; a second run replaces the first; a foreign folder is refused.
+#[test]
+fn demo_runs_and_replaces_its_own_output() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-demo-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = dir.join("demo");
+    let args = [
+        "demo",
+        "--out",
+        out.to_str().unwrap(),
+        "--steps",
+        "10",
+        "--width",
+        "48",
+    ];
+    let (ok, out_text, err) = extranerf(&args);
+    assert!(ok, "{err}");
+    assert!(out_text.contains("test: PSNR"), "{out_text}");
+    assert!(err.contains("step    10/10"), "{err}");
+    for k in 6..14 {
+        let p = out.join(format!("run/eval/test_{k:03}.png"));
+        let img = image::open(&p).unwrap();
+        assert_eq!((img.width(), img.height()), (48, 36), "{}", p.display());
+    }
+    assert_eq!(
+        std::fs::read_dir(out.join("scene/images")).unwrap().count(),
+        14
+    );
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run/metrics.json")).unwrap()).unwrap();
+    assert!(m["test"]["psnr"].as_f64().unwrap() > 5.0, "{m}");
+    assert!(m["train"]["psnr"].as_f64().unwrap() > 5.0, "{m}");
+    let (ok, _, err) = extranerf(&args);
+    assert!(ok, "second demo into its own folder: {err}");
+    let foreign = dir.join("foreign");
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("precious.txt"), b"x").unwrap();
+    let (ok, _, err) = extranerf(&["demo", "--out", foreign.to_str().unwrap()]);
+    assert!(!ok && err.contains("not made by"), "{err}");
+    assert!(foreign.join("precious.txt").exists());
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -8,6 +8,7 @@
 #![forbid(unsafe_code)]
 
 pub mod data;
+pub mod demo;
 pub mod field;
 pub mod metrics;
 pub mod model;

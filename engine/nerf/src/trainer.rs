@@ -641,7 +641,8 @@ impl Trainer {
                 rec,
                 &samples,
                 ws.s_ds.binding(),
-                self.cfg.distortion_lambda,
+                // The kernel's loss is per ray; the batch mean (like the photometric loss).
+                self.cfg.distortion_lambda / n as f32,
                 ws.dist_loss.binding(),
                 ws.d_weight.binding(),
             )?;

@@ -1,0 +1,270 @@
+//! The demo scene, generated in code: textured spheres at several depths in front of a striped
+//! wall above a checkered floor, ray traced analytically (2x2 supersampling) and written as an
+//! LLFF capture (`poses_bounds.npy` + `images/`). Six cameras form a small forward-facing rig
+//! near the origin; eight more on a wider ring, turned towards the scene, are the views
+//! "outside the rig" whose ground truth the extrapolation split holds out.
+
+use std::path::Path;
+
+use glam::{DMat4, DVec3};
+
+use crate::data::DataError;
+use crate::run::{write_png, Result, RunError};
+
+/// Cameras of the rig (trained on) and of the outer ring (held out).
+pub const RIG_VIEWS: usize = 6;
+/// See [`RIG_VIEWS`].
+pub const RING_VIEWS: usize = 8;
+
+struct Sphere {
+    c: DVec3,
+    r: f64,
+    kind: u32,
+}
+
+const SPHERES: [Sphere; 3] = [
+    Sphere {
+        c: DVec3::new(-0.9, -0.35, -3.0),
+        r: 0.6,
+        kind: 0,
+    },
+    Sphere {
+        c: DVec3::new(0.85, 0.05, -4.5),
+        r: 0.9,
+        kind: 1,
+    },
+    Sphere {
+        c: DVec3::new(-0.1, 1.0, -6.0),
+        r: 0.8,
+        kind: 2,
+    },
+];
+const WALL_Z: f64 = -8.0;
+const FLOOR_Y: f64 = -1.2;
+
+fn hit_sphere(o: DVec3, d: DVec3, s: &Sphere) -> Option<f64> {
+    let oc = o - s.c;
+    let b = oc.dot(d);
+    let c = oc.length_squared() - s.r * s.r;
+    let disc = b * b - c;
+    if disc < 0.0 {
+        return None;
+    }
+    let t = -b - disc.sqrt();
+    (t > 1e-6).then_some(t)
+}
+
+fn checker(a: f64, b: f64) -> bool {
+    (a.floor() as i64 + b.floor() as i64).rem_euclid(2) == 0
+}
+
+/// Colour of the ray `o + t d` (`d` unit length).
+fn shade(o: DVec3, d: DVec3) -> DVec3 {
+    let mut best = (f64::INFINITY, DVec3::ZERO, DVec3::ZERO);
+    for s in &SPHERES {
+        if let Some(t) = hit_sphere(o, d, s) {
+            if t < best.0 {
+                let p = o + t * d;
+                let n = (p - s.c) / s.r;
+                let (u, v) = (n.z.atan2(n.x), n.y.asin());
+                let col = match s.kind {
+                    0 => {
+                        if (u * 4.0).sin() > 0.0 {
+                            DVec3::new(0.9, 0.2, 0.15)
+                        } else {
+                            DVec3::new(0.95, 0.8, 0.2)
+                        }
+                    }
+                    1 => {
+                        if checker(
+                            u * 6.0 / std::f64::consts::PI,
+                            v * 6.0 / std::f64::consts::PI,
+                        ) {
+                            DVec3::new(0.15, 0.3, 0.85)
+                        } else {
+                            DVec3::new(0.92, 0.92, 0.95)
+                        }
+                    }
+                    _ => {
+                        let w = ((u * 5.0).sin() * (v * 8.0).sin()).abs();
+                        DVec3::new(0.1, 0.45 + 0.4 * w, 0.2)
+                    }
+                };
+                best = (t, col, n);
+            }
+        }
+    }
+    if d.y < 0.0 {
+        let t = (FLOOR_Y - o.y) / d.y;
+        let p = o + t * d;
+        if t > 0.0 && t < best.0 && p.z > WALL_Z {
+            let col = if checker(p.x * 1.5, p.z * 1.5) {
+                DVec3::new(0.55, 0.4, 0.3)
+            } else {
+                DVec3::new(0.85, 0.8, 0.7)
+            };
+            best = (t, col, DVec3::Y);
+        }
+    }
+    if d.z < 0.0 {
+        let t = (WALL_Z - o.z) / d.z;
+        if t > 0.0 && t < best.0 {
+            let p = o + t * d;
+            let stripe = (p.x * 1.7 + 0.5 * (p.y * 2.0).sin()).rem_euclid(2.0) < 1.0;
+            let col = if stripe {
+                DVec3::new(0.95, 0.55, 0.2)
+            } else {
+                DVec3::new(0.3, 0.2, 0.5)
+            };
+            best = (t, col, DVec3::Z);
+        }
+    }
+    if !best.0.is_finite() {
+        return DVec3::splat(0.7);
+    }
+    let light = DVec3::new(0.4, 0.8, 0.5).normalize();
+    best.1 * (0.35 + 0.65 * best.2.dot(light).max(0.0))
+}
+
+/// Camera-to-world (OpenGL: x right, y up, looking along -z) at `eye` looking at `target`.
+fn look_at(eye: DVec3, target: DVec3) -> DMat4 {
+    let back = (eye - target).normalize();
+    let right = DVec3::Y.cross(back).normalize();
+    let up = back.cross(right);
+    DMat4::from_cols(
+        right.extend(0.0),
+        up.extend(0.0),
+        back.extend(0.0),
+        eye.extend(1.0),
+    )
+}
+
+/// The demo's cameras: the rig (a centre view and five on a 0.2 circle, all looking straight
+/// ahead) then the ring (eight on a 0.9 circle, turned towards the middle sphere).
+pub fn demo_cameras() -> Vec<DMat4> {
+    let mut c = Vec::new();
+    for k in 0..RIG_VIEWS {
+        let eye = if k == 0 {
+            DVec3::ZERO
+        } else {
+            let a = (k - 1) as f64 / (RIG_VIEWS - 1) as f64 * std::f64::consts::TAU;
+            DVec3::new(0.2 * a.cos(), 0.15 * a.sin(), 0.0)
+        };
+        c.push(look_at(eye, eye - DVec3::Z));
+    }
+    for k in 0..RING_VIEWS {
+        let a = k as f64 / RING_VIEWS as f64 * std::f64::consts::TAU + 0.3;
+        let eye = DVec3::new(0.9 * a.cos(), 0.5 * a.sin(), 0.1);
+        c.push(look_at(eye, DVec3::new(0.0, 0.0, -4.5)));
+    }
+    c
+}
+
+/// Writes the scene into `dir` (`poses_bounds.npy`, `images/view_NN.png`) at `width x height`.
+pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
+    if width < 16 || height < 16 {
+        return Err(RunError::Config(format!(
+            "demo images of {width}x{height}: use at least 16x16"
+        )));
+    }
+    let img_dir = dir.join("images");
+    std::fs::create_dir_all(&img_dir).map_err(|e| DataError::Io {
+        path: img_dir.clone(),
+        source: e,
+    })?;
+    let focal = 0.9 * width as f64;
+    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+    let mut rows = Vec::new();
+    for (i, c2w) in demo_cameras().iter().enumerate() {
+        let mut rgb = vec![0f32; (width * height * 3) as usize];
+        for y in 0..height {
+            for x in 0..width {
+                let mut acc = DVec3::ZERO;
+                for s in 0..4 {
+                    let px = x as f64 + 0.25 + 0.5 * (s % 2) as f64;
+                    let py = y as f64 + 0.25 + 0.5 * (s / 2) as f64;
+                    let dc = DVec3::new((px - cx) / focal, -(py - cy) / focal, -1.0);
+                    let d = c2w.transform_vector3(dc).normalize();
+                    acc += shade(c2w.w_axis.truncate(), d);
+                }
+                let k = ((y * width + x) * 3) as usize;
+                for ch in 0..3 {
+                    rgb[k + ch] = (acc[ch] / 4.0) as f32;
+                }
+            }
+        }
+        write_png(
+            &img_dir.join(format!("view_{i:02}.png")),
+            width,
+            height,
+            &rgb,
+        )?;
+        // LLFF rows: [down, right, backwards, translation, (H, W, focal)] then near, far.
+        let (r, u, b, t) = (c2w.x_axis, c2w.y_axis, c2w.z_axis, c2w.w_axis);
+        let mut row = Vec::with_capacity(17);
+        for k in 0..3 {
+            row.extend([
+                -u[k],
+                r[k],
+                b[k],
+                t[k],
+                [height as f64, width as f64, focal][k],
+            ]);
+        }
+        row.extend([1.5, 10.0]);
+        rows.push(row);
+    }
+    write_npy_f64(&dir.join("poses_bounds.npy"), &rows)
+}
+
+/// A 2-D little-endian f64 `.npy` file (format 1.0).
+fn write_npy_f64(path: &Path, rows: &[Vec<f64>]) -> Result<()> {
+    let cols = rows.first().map_or(0, Vec::len);
+    let mut header = format!(
+        "{{'descr': '<f8', 'fortran_order': False, 'shape': ({}, {cols}), }}",
+        rows.len()
+    );
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for r in rows {
+        for v in r {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    crate::safetensors::write_atomic(path, &out)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rays_hit_what_is_in_front() {
+        // Straight ahead from the origin: the wall (no sphere is on the axis) at z = -8.
+        let c = shade(DVec3::ZERO, -DVec3::Z);
+        assert!(c.max_element() > 0.0 && c.max_element() <= 1.0);
+        // Towards the first sphere's centre: its red/yellow texture.
+        let d = SPHERES[0].c.normalize();
+        let hit = hit_sphere(DVec3::ZERO, d, &SPHERES[0]).unwrap();
+        assert!((hit - (SPHERES[0].c.length() - SPHERES[0].r)).abs() < 1e-9);
+        // Looking up and back: nothing, the grey background.
+        assert_eq!(shade(DVec3::ZERO, DVec3::Y), DVec3::splat(0.7));
+    }
+
+    #[test]
+    fn cameras_are_proper_rotations() {
+        for c in demo_cameras() {
+            let m = glam::DMat3::from_mat4(c);
+            assert!((m.determinant() - 1.0).abs() < 1e-9);
+            assert!(
+                (m.transpose() * m - glam::DMat3::IDENTITY).abs_diff_eq(glam::DMat3::ZERO, 1e-9)
+            );
+        }
+    }
+}
