@@ -259,6 +259,7 @@ fn checkpoints_round_trip_and_bad_ones_are_refused() {
                 fewshot_views: 3,
                 factor: 8,
                 sparse_depth: false,
+                depth_dir: None,
             },
             model,
             train: TrainConfig::default(),
@@ -303,6 +304,7 @@ fn training_on_fern_raises_psnr_and_renders() {
         fewshot_views: 3,
         factor: 8,
         sparse_depth: true,
+        depth_dir: None,
     };
     let loaded = spec.load().unwrap();
     let model = ModelConfig {
@@ -386,4 +388,72 @@ fn training_on_fern_raises_psnr_and_renders() {
     );
     assert!(p > 12.0, "render PSNR {p:.2} dB");
     assert_no_validation_messages(ctx);
+}
+
+#[test]
+fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
+    use extranerf_nerf::data::npy::{read_npy, write_npy_f64};
+    use extranerf_nerf::demo::write_demo_scene;
+    use extranerf_nerf::run::{training_views, SceneSpec};
+    let dir = scratch_dir("dense-depth");
+    let scene = dir.join("scene");
+    write_demo_scene(&scene, 32, 24).unwrap();
+    let mut spec = SceneSpec {
+        dir: scene.clone(),
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: Some(dir.join("depth")),
+    };
+    let loaded = spec.load().unwrap();
+    let model = ModelConfig::default();
+    // Missing maps: the error names the expected files.
+    let e = training_views(&spec, &loaded, &model)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("view_00.npy") && e.contains("view_00.exr"),
+        "{e}"
+    );
+    // Constant view depth 4 (capture units) everywhere, NaN and negative holes in one corner.
+    std::fs::create_dir_all(dir.join("depth")).unwrap();
+    for &i in &loaded.split.train {
+        let stem = loaded.scene.cameras[i]
+            .image
+            .file_stem()
+            .unwrap()
+            .to_owned();
+        let mut z = vec![4.0f64; 32 * 24];
+        z[0] = f64::NAN;
+        z[1] = -1.0;
+        let p = dir.join("depth").join(stem).with_extension("npy");
+        write_npy_f64(&p, &[24, 32], &z).unwrap();
+        assert_eq!(read_npy(&p).unwrap().shape, vec![24, 32]);
+    }
+    let views = training_views(&spec, &loaded, &model).unwrap();
+    // LLFF rescale: the nearest bound (1.5) becomes 1 / 0.75.
+    let scale = 1.0 / (1.5 * 0.75);
+    for (cam, _, d) in &views {
+        let d = d.as_ref().unwrap();
+        assert_eq!(d[0], [0.0, 0.0]);
+        assert_eq!(d[1], [0.0, 0.0]);
+        let (x, y) = (17u32, 9u32);
+        let dir = glam::DVec3::new(
+            (x as f64 + 0.5 - cam.cx) / cam.fx,
+            -(y as f64 + 0.5 - cam.cy) / cam.fy,
+            -1.0,
+        );
+        let pw = cam.c2w.transform_point3(dir * 4.0 * scale);
+        let want = 1.0 + 1.0 / pw.z;
+        let got = d[(y * 32 + x) as usize];
+        assert!(
+            (got[0] as f64 - want).abs() < 1e-5 && got[1] == 1.0,
+            "{got:?} vs {want}"
+        );
+    }
+    // Without the folder, no targets (the demo has no sparse points).
+    spec.depth_dir = None;
+    let views = training_views(&spec, &loaded, &model).unwrap();
+    assert!(views.iter().all(|v| v.2.is_none()));
 }

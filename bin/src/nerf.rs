@@ -57,7 +57,11 @@ pub struct TrainArgs {
     /// Hidden width of both MLPs (paper: 64).
     #[arg(long)]
     width: Option<u32>,
-    /// Depth loss weight on the COLMAP sparse points (0: off).
+    /// Dense depth maps for the training views (`<image stem>.npy` or `.exr`, view depth in the
+    /// capture's units); without it the COLMAP sparse points are used when present.
+    #[arg(long, value_name = "DIR")]
+    depth_dir: Option<PathBuf>,
+    /// Depth loss weight (0: off).
     #[arg(long)]
     depth_lambda: Option<f32>,
     /// Distortion loss weight (0: off).
@@ -111,6 +115,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             fewshot_views: a.fewshot_views,
             factor: a.factor,
             sparse_depth: true,
+            depth_dir: a.depth_dir.clone(),
         };
         let loaded = scene.load()?;
         let mut model = model_for_scene(&loaded.scene);
@@ -189,7 +194,7 @@ pub fn train_loop(
         .map(|d| d.iter().filter(|p| p[1] > 0.0).count())
         .sum();
     eprintln!(
-        "scene {}: {} views, training on {:?}, testing on {:?}; {} sparse depth targets; space {}",
+        "scene {}: {} views, training on {:?}, testing on {:?}; {} depth targets; space {}",
         cfg.scene.dir.display(),
         loaded.scene.cameras.len(),
         loaded.split.train,
@@ -562,6 +567,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         fewshot_views: 3,
         factor: 8,
         sparse_depth: true,
+        depth_dir: None,
     };
     let loaded = spec.load()?;
     let mut model = model_for_scene(&loaded.scene);
@@ -703,6 +709,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             fewshot_views: 3,
             factor: 1,
             sparse_depth: false,
+            depth_dir: None,
         },
         model: extranerf_nerf::model::ModelConfig {
             levels: 8,

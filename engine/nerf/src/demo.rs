@@ -214,29 +214,8 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
         row.extend([1.5, 10.0]);
         rows.push(row);
     }
-    write_npy_f64(&dir.join("poses_bounds.npy"), &rows)
-}
-
-/// A 2-D little-endian f64 `.npy` file (format 1.0).
-fn write_npy_f64(path: &Path, rows: &[Vec<f64>]) -> Result<()> {
-    let cols = rows.first().map_or(0, Vec::len);
-    let mut header = format!(
-        "{{'descr': '<f8', 'fortran_order': False, 'shape': ({}, {cols}), }}",
-        rows.len()
-    );
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for r in rows {
-        for v in r {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    crate::safetensors::write_atomic(path, &out)?;
+    let flat: Vec<f64> = rows.concat();
+    crate::data::npy::write_npy_f64(&dir.join("poses_bounds.npy"), &[rows.len(), 17], &flat)?;
     Ok(())
 }
 

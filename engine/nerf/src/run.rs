@@ -8,7 +8,7 @@ use glam::DVec3;
 use image::ImageEncoder;
 use serde::{Deserialize, Serialize};
 
-use crate::data::depth::sparse_depth;
+use crate::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
 use crate::data::llff::{load_llff, LlffOptions};
 use crate::data::split::{Split, SplitIndices};
 use crate::data::transforms::load_transforms;
@@ -48,6 +48,10 @@ pub struct SceneSpec {
     pub factor: u32,
     /// Supervise depth with the COLMAP sparse points when `sparse/0/points3D.bin` exists.
     pub sparse_depth: bool,
+    /// Dense depth maps (`<image stem>.npy` or `.exr`, view depth in the capture's units) for
+    /// every training view; they replace the sparse targets.
+    #[serde(default)]
+    pub depth_dir: Option<PathBuf>,
 }
 
 /// Everything a run was trained with.
@@ -168,6 +172,8 @@ pub fn training_views(
         None
     };
     let world = points.as_ref().map(|p| loaded.scene.transform_points(p));
+    // View depth in source units -> scene units (the load's uniform scale).
+    let scale = loaded.scene.world_from_source.x_axis.truncate().length();
     let mut views = Vec::new();
     for &i in &loaded.split.train {
         let cam = loaded.scene.cameras[i].clone();
@@ -182,31 +188,64 @@ pub fn training_views(
             }
             .into());
         }
-        let depth = match (&points, &world) {
-            (Some(p), Some(w)) => {
-                let mut d = vec![[0f32; 2]; cam.width as usize * cam.height as usize];
-                for s in sparse_depth(&cam, w, p) {
-                    let t = if model.space == "ndc" {
-                        // World point of the pixel centre at that view depth; NDC t = 1 + near / z
-                        // (near = 1, the camera looks along -z).
-                        let dir = DVec3::new(
-                            (s.x as f64 + 0.5 - cam.cx) / cam.fx,
-                            -(s.y as f64 + 0.5 - cam.cy) / cam.fy,
-                            -1.0,
-                        );
-                        let pw = cam.c2w.transform_point3(dir * s.depth);
-                        if pw.z >= -1.0 {
-                            continue;
-                        }
-                        1.0 + 1.0 / pw.z
-                    } else {
-                        s.depth
-                    };
-                    d[(s.y * cam.width + s.x) as usize] = [t as f32, s.confidence as f32];
-                }
-                Some(d)
+        let target = |x: u32, y: u32, depth: f64| -> Option<f32> {
+            if model.space != "ndc" {
+                return Some(depth as f32);
             }
-            _ => None,
+            // World point of the pixel centre at that view depth; NDC t = 1 + near / z
+            // (near = 1, the camera looks along -z).
+            let dir = DVec3::new(
+                (x as f64 + 0.5 - cam.cx) / cam.fx,
+                -(y as f64 + 0.5 - cam.cy) / cam.fy,
+                -1.0,
+            );
+            let pw = cam.c2w.transform_point3(dir * depth);
+            (pw.z < -1.0).then(|| (1.0 + 1.0 / pw.z) as f32)
+        };
+        let mut d = vec![[0f32; 2]; cam.width as usize * cam.height as usize];
+        let depth = if let Some(dir) = &spec.depth_dir {
+            let stem = cam
+                .image
+                .file_stem()
+                .map(|s| s.to_string_lossy().to_string())
+                .unwrap_or_default();
+            let (npy, exr) = (
+                dir.join(format!("{stem}.npy")),
+                dir.join(format!("{stem}.exr")),
+            );
+            let map = if npy.exists() {
+                read_depth_npy(&npy, &cam)?
+            } else if exr.exists() {
+                read_depth_exr(&exr, &cam)?
+            } else {
+                return Err(DataError::Malformed {
+                    path: dir.clone(),
+                    problem: format!(
+                        "no depth map for training view {i}: expected {} or {}",
+                        npy.display(),
+                        exr.display()
+                    ),
+                }
+                .into());
+            };
+            for (k, &z) in map.iter().enumerate() {
+                if z > 0.0 {
+                    let (x, y) = (k as u32 % cam.width, k as u32 / cam.width);
+                    if let Some(t) = target(x, y, z as f64 * scale) {
+                        d[k] = [t, 1.0];
+                    }
+                }
+            }
+            Some(d)
+        } else if let (Some(p), Some(w)) = (&points, &world) {
+            for s in sparse_depth(&cam, w, p) {
+                if let Some(t) = target(s.x, s.y, s.depth) {
+                    d[(s.y * cam.width + s.x) as usize] = [t, s.confidence as f32];
+                }
+            }
+            Some(d)
+        } else {
+            None
         };
         views.push((cam, img, depth));
     }

@@ -14,6 +14,34 @@ pub struct NpyArray {
     pub data: Vec<f64>,
 }
 
+/// Writes a little-endian f64 `.npy` file (format 1.0, C order), atomically.
+pub fn write_npy_f64(path: &Path, shape: &[usize], data: &[f64]) -> Result<()> {
+    if shape.iter().product::<usize>() != data.len() {
+        return Err(DataError::malformed(
+            path,
+            format!("{} values for shape {shape:?}", data.len()),
+        ));
+    }
+    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+    let tuple = if dims.len() == 1 {
+        format!("({},)", dims[0])
+    } else {
+        format!("({})", dims.join(", "))
+    };
+    let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {tuple}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    crate::safetensors::write_atomic(path, &out)
+}
+
 /// Reads a `.npy` file with dtype `<f8` or `<f4` in C order.
 pub fn read_npy(path: &Path) -> Result<NpyArray> {
     parse_npy(&read_file(path)?, path)
