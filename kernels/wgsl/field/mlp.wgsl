@@ -133,26 +133,23 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-// One thread per (parameter, chunk of points): d_weights[param] += sum over the chunk of
-// delta[o] * input[j] (weights) or delta[o] (biases).
-@compute @workgroup_size(64)
-fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-             @builtin(local_invocation_index) lid: u32) {
-    let t = linear_group(wid, nwg) * 64u + lid;
-    let s = shape_buf[0];
-    let chunks = (params.n + params.chunk - 1u) / params.chunk;
-    if t >= s.params * chunks {
-        return;
-    }
-    let param = t % s.params;
-    let chunk = t / s.params;
-    // Find the layer, and the (output, input) the parameter belongs to.
+// Where parameter `param` sits: (layer's offset in `saved`, inputs of the layer, output row o,
+// input column j, is a bias).
+struct WSlot {
+    at: u32,
+    ni: u32,
+    o: u32,
+    j: u32,
+    bias: bool,
+}
+
+fn wslot(s: MlpShape, param: u32) -> WSlot {
     var l = 0u;
     var off = 0u;
     var at = 0u;
     loop {
         let size = (mlp_dim(s, l) + 1u) * mlp_dim(s, l + 1u);
-        if param < off + size {
+        if param < off + size || l + 1u >= s.layers {
             break;
         }
         off += size;
@@ -162,18 +159,56 @@ fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
     let ni = mlp_dim(s, l);
     let no = mlp_dim(s, l + 1u);
     let local = param - off;
-    let is_bias = local >= no * ni;
-    let o = select(local / ni, local - no * ni, is_bias);
-    let j = select(local % ni, 0u, is_bias);
+    let bias = local >= no * ni;
+    return WSlot(at, ni, select(local / ni, local - no * ni, bias), select(local % ni, 0u, bias), bias);
+}
+
+// One thread per (4 consecutive parameters, chunk of points): d_weights[param] += sum over the
+// chunk of delta[o] * input[j] (weights) or delta[o] (biases). When the four are weights of one
+// output row (the common case), each point costs one delta and four input loads for four FMAs.
+@compute @workgroup_size(64)
+fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+             @builtin(local_invocation_index) lid: u32) {
+    let t = linear_group(wid, nwg) * 64u + lid;
+    let s = shape_buf[0];
+    let chunks = (params.n + params.chunk - 1u) / params.chunk;
+    let quads = (s.params + 3u) / 4u;
+    if t >= quads * chunks {
+        return;
+    }
+    let q = t % quads;
+    let chunk = t / quads;
+    let p0 = 4u * q;
+    let w0 = wslot(s, p0);
+    let w3 = wslot(s, min(p0 + 3u, s.params - 1u));
+    let row = p0 + 3u < s.params && !w0.bias && !w3.bias && w0.at == w3.at && w0.o == w3.o;
     let first = chunk * params.chunk;
     let last = min(first + params.chunk, params.n);
-    var acc = 0.0;
-    for (var p = first; p < last; p += 1u) {
-        let base = p * params.saved_stride + at;
-        let d = saved[base + ni + o];
-        acc = fma(d, select(saved[base + j], 1.0, is_bias), acc);
+    var acc = vec4<f32>(0.0);
+    if row {
+        for (var p = first; p < last; p += 1u) {
+            let base = p * params.saved_stride + w0.at;
+            let d = saved[base + w0.ni + w0.o];
+            let j = base + w0.j;
+            acc = fma(vec4<f32>(d), vec4<f32>(saved[j], saved[j + 1u], saved[j + 2u], saved[j + 3u]), acc);
+        }
+    } else {
+        for (var k = 0u; k < 4u; k += 1u) {
+            if p0 + k >= s.params {
+                break;
+            }
+            let w = wslot(s, p0 + k);
+            var a = 0.0;
+            for (var p = first; p < last; p += 1u) {
+                let base = p * params.saved_stride + w.at;
+                a = fma(saved[base + w.ni + w.o], select(saved[base + w.j], 1.0, w.bias), a);
+            }
+            acc[k] = a;
+        }
     }
-    if acc != 0.0 {
-        atomicAdd(&d_weights[param], acc);
+    for (var k = 0u; k < 4u; k += 1u) {
+        if p0 + k < s.params && acc[k] != 0.0 {
+            atomicAdd(&d_weights[p0 + k], acc[k]);
+        }
     }
 }

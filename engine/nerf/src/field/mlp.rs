@@ -171,7 +171,7 @@ impl Mlp {
             &self.wgrad,
             b.into_array(),
             &p,
-            c.param_count() as u64 * chunks,
+            (c.param_count() as u64).div_ceil(4) * chunks,
         )
     }
 }
