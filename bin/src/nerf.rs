@@ -544,6 +544,9 @@ pub struct BenchTrainArgs {
     /// Hidden width of both MLPs.
     #[arg(long, default_value_t = 64)]
     width: u32,
+    /// Hash-grid levels.
+    #[arg(long, default_value_t = 16)]
+    levels: u32,
     /// Timed steps (after 2 warm-up steps that also compile the kernels).
     #[arg(long, default_value_t = 10)]
     steps: u32,
@@ -572,6 +575,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     let loaded = spec.load()?;
     let mut model = model_for_scene(&loaded.scene);
     model.log2_table = a.log2_table;
+    model.levels = a.levels;
     model.density_width = a.width;
     model.color_width = a.width;
     let train = TrainConfig {
