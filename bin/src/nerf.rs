@@ -98,6 +98,34 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
     if a.checkpoint_every == 0 {
         bail!("--checkpoint-every must be positive");
     }
+    if a.resume {
+        let given: Vec<&str> = [
+            ("--scene", a.scene.is_some()),
+            ("--rays", a.rays.is_some()),
+            ("--samples", a.samples.is_some()),
+            ("--log2-table", a.log2_table.is_some()),
+            ("--levels", a.levels.is_some()),
+            ("--max-res", a.max_res.is_some()),
+            ("--width", a.width.is_some()),
+            ("--depth-dir", a.depth_dir.is_some()),
+            ("--depth-lambda", a.depth_lambda.is_some()),
+            ("--distortion-lambda", a.distortion_lambda.is_some()),
+            ("--hash-decay", a.hash_decay.is_some()),
+            ("--grad-scaling", a.grad_scaling),
+            ("--seed", a.seed.is_some()),
+        ]
+        .iter()
+        .filter(|g| g.1)
+        .map(|g| g.0)
+        .collect();
+        if !given.is_empty() {
+            bail!(
+                "--resume continues with the run's saved settings (see {}); drop {}",
+                a.out.join(extranerf_nerf::run::CONFIG_FILE).display(),
+                given.join(", ")
+            );
+        }
+    }
     let (mut cfg, start, params, moments) = if a.resume {
         let ck = load_checkpoint(&a.out).context("resuming")?;
         eprintln!("resuming {} at step {}", a.out.display(), ck.step);

@@ -169,6 +169,8 @@ fn train_resume_render_eval_on_fern() {
     // A second plain train into the same folder is refused; --resume extends it.
     let (ok, _, err) = extranerf(&args);
     assert!(!ok && err.contains("--resume"), "{err}");
+    let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--rays", "9"]);
+    assert!(!ok && err.contains("drop --rays"), "{err}");
     let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--steps", "9"]);
     assert!(
         ok && err.contains("resuming") && err.contains("step     9/9"),
