@@ -457,3 +457,54 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
     let views = training_views(&spec, &loaded, &model).unwrap();
     assert!(views.iter().all(|v| v.2.is_none()));
 }
+
+#[test]
+fn all_black_and_all_white_images_train_without_nan() {
+    use extranerf_nerf::demo::write_demo_scene;
+    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer};
+    let e = engine();
+    let ctx = &e.ctx;
+    let dir = scratch_dir("black-white");
+    write_demo_scene(&dir, 32, 24).unwrap();
+    let spec = SceneSpec {
+        dir: dir.clone(),
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec.load().unwrap();
+    let model = tiny();
+    for value in [0.0f32, 1.0] {
+        let mut views = training_views(&spec, &loaded, &model).unwrap();
+        for v in &mut views {
+            v.1.rgb.iter_mut().for_each(|c| *c = value);
+        }
+        let cfg = TrainConfig {
+            steps: 20,
+            decay_steps: 20,
+            rays: 64,
+            samples: 8,
+            grad_scaling: true,
+            ..TrainConfig::default()
+        };
+        let nerf = Nerf::new(ctx, model.clone(), &init_params(&model, 1), cfg.background).unwrap();
+        let data = TrainData::new(ctx, &views).unwrap();
+        let mut t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
+        let first = t.run_steps(ctx, &e.prims, &data, 10).unwrap();
+        let last = t.run_steps(ctx, &e.prims, &data, 10).unwrap();
+        assert!(first.loss.is_finite() && last.loss.is_finite());
+        // Learning a constant colour: the loss falls.
+        assert!(last.mse < first.mse, "{value}: {first:?} -> {last:?}");
+        let params = t.nerf().params().read().unwrap();
+        assert!(
+            params.iter().all(|p| p.is_finite()),
+            "non-finite parameter for {value}"
+        );
+        let (m, v) = t.moments().unwrap();
+        assert!(m.iter().chain(&v).all(|p| p.is_finite()));
+    }
+    assert_no_validation_messages(ctx);
+}
