@@ -443,6 +443,14 @@ pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Where LPIPS weights are looked for by default: `$EXTRANERF_MODELS/lpips`, else
+/// `../shared/models/lpips` (the project's shared folder beside the checkout).
+fn default_lpips_dir() -> PathBuf {
+    std::env::var_os("EXTRANERF_MODELS")
+        .map(|m| PathBuf::from(m).join("lpips"))
+        .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"))
+}
+
 /// Arguments of `extranerf eval`.
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
@@ -476,11 +484,7 @@ pub struct EvalArgs {
 /// `extranerf eval`: PSNR, SSIM, LPIPS (AlexNet and VGG) on the held-out views, PSNR on the
 /// training views.
 pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
-    let dir = a.lpips.clone().unwrap_or_else(|| {
-        std::env::var_os("EXTRANERF_MODELS")
-            .map(|m| PathBuf::from(m).join("lpips"))
-            .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"))
-    });
+    let dir = a.lpips.clone().unwrap_or_else(default_lpips_dir);
     let mut nets = Vec::new();
     for n in &a.lpips_nets {
         let (net, file) = match n.as_str() {
@@ -592,6 +596,12 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             .unwrap_or_else(|| PathBuf::from("../shared/data"))
             .join("llff/fern")
     });
+    if !scene.exists() {
+        bail!(
+            "scene {} not found: pass --scene or set EXTRANERF_DATA to the folder holding llff/fern",
+            scene.display()
+        );
+    }
     let spec = SceneSpec {
         dir: scene,
         split: "extrapolation".into(),
@@ -771,9 +781,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
         None,
         None,
     )?;
-    let lpips_dir = std::env::var_os("EXTRANERF_MODELS")
-        .map(|m| PathBuf::from(m).join("lpips"))
-        .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"));
+    let lpips_dir = default_lpips_dir();
     let nets = if lpips_dir.join("lpips_alex_v0.1.safetensors").exists() {
         vec!["alex".to_string(), "vgg".to_string()]
     } else {

@@ -110,18 +110,7 @@ fn bad_arguments_are_clear_errors() {
 }
 
 fn fern() -> std::path::PathBuf {
-    let p = std::env::var_os("EXTRANERF_DATA")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| {
-            std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
-        })
-        .join("llff/fern");
-    assert!(
-        p.join("poses_bounds.npy").exists(),
-        "shared data missing: {} (set EXTRANERF_DATA to the folder holding llff/fern)",
-        p.display()
-    );
-    p
+    extranerf_tests::shared_data().join("llff/fern")
 }
 
 /// train -> checkpoint -> resume -> render -> eval through the real binary, on fern with a
