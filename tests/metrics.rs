@@ -1,13 +1,9 @@
 //! Image-quality metrics on real images: the LPIPS goldens of the authors' example images (both
 //! backbones), identity and symmetry, PSNR / SSIM sanity on fern, and the weights-file errors.
-//!
-//! `cargo test --release -p extranerf-tests --test metrics -- --ignored --nocapture` also times
-//! LPIPS on a 504x378 pair.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
 use std::path::PathBuf;
-use std::time::Instant;
 
 use extranerf_nerf::data::{load_image, Image};
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet, MetricsError};
@@ -97,21 +93,4 @@ fn psnr_and_ssim_on_fern() {
     assert!(s > 0.0 && s < 1.0, "{s}");
     assert_eq!(psnr(&a.rgb, &a.rgb).unwrap(), f64::INFINITY);
     assert!((ssim(&a.rgb, &a.rgb, a.width, a.height).unwrap() - 1.0).abs() < 1e-12);
-}
-
-#[test]
-#[ignore = "timing; run with --release --ignored --nocapture"]
-fn lpips_timing_504x378() {
-    let (a, b) = (fern(0), fern(1));
-    assert_eq!((a.width, a.height), (504, 378));
-    for net in [LpipsNet::Alex, LpipsNet::Vgg] {
-        let m = Lpips::load(&weights(net), net).unwrap();
-        let t = Instant::now();
-        let d = m.distance(&a.rgb, &b.rgb, a.width, a.height).unwrap();
-        eprintln!(
-            "LPIPS-{net:?} 504x378 fern 0 vs 1: {d:.6} in {:.2} s",
-            t.elapsed().as_secs_f64()
-        );
-        assert!(d > 0.0 && d < 1.5, "{d}");
-    }
 }
