@@ -11,8 +11,8 @@ mod nerf;
 
 /// extranerf: a Vulkan-native ExtraNeRF engine (neural radiance fields viewed from outside the
 /// cameras that took them). This build trains the BaseNeRF field (hash grid + tiny MLPs) on
-/// posed photos, renders and evaluates it, and benchmarks the kernels. Visibility, the
-/// diffusion stages and the demo scene follow.
+/// posed photos, renders and evaluates it, runs a self-contained demo, and benchmarks the
+/// kernels and the training step. Visibility and the diffusion stages follow.
 #[derive(Parser, Debug)]
 #[command(name = "extranerf", version, propagate_version = true)]
 struct Cli {
