@@ -167,20 +167,16 @@ impl HashGrid {
         self.config.param_count().div_ceil(256)
     }
 
-    /// Records hash decay (Zip-NeRF): adds the gradient of `lambda * sum_l mean(V_l^2)` to
-    /// `d_table` and writes [`HashGrid::decay_partials`] partial losses into `partial`.
-    pub fn decay<'a>(
-        &'a self,
-        rec: &mut Recorder<'a>,
-        table: Binding<'a>,
-        d_table: Binding<'a>,
-        partial: Binding<'a>,
+    /// The checks and parameters both decay kernels share: (table floats, Params).
+    fn decay_params(
+        &self,
+        table: &Binding<'_>,
+        d_table: &Binding<'_>,
         lambda: f32,
-    ) -> Result<()> {
+    ) -> Result<(u64, kdecay::Params)> {
         let n = self.config.param_count();
         table.check_fits(n, 4, "hash grid table")?;
         d_table.check_fits(n, 4, "hash grid gradient")?;
-        partial.check_fits(self.decay_partials(), 4, "hash decay partial losses")?;
         if !(lambda >= 0.0 && lambda.is_finite()) {
             return Err(GpuError::Usage(format!(
                 "hash decay weight {lambda} must be >= 0"
@@ -192,6 +188,21 @@ impl HashGrid {
             features: self.config.features,
             lambda,
         };
+        Ok((n, p))
+    }
+
+    /// Records hash decay (Zip-NeRF): adds the gradient of `lambda * sum_l mean(V_l^2)` to
+    /// `d_table` and writes [`HashGrid::decay_partials`] partial losses into `partial`.
+    pub fn decay<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        table: Binding<'a>,
+        d_table: Binding<'a>,
+        partial: Binding<'a>,
+        lambda: f32,
+    ) -> Result<()> {
+        let (n, p) = self.decay_params(&table, &d_table, lambda)?;
+        partial.check_fits(self.decay_partials(), 4, "hash decay partial losses")?;
         let b = kdecay::hash_decay::Bindings {
             level_info: self.levels.binding(),
             table,
@@ -210,20 +221,7 @@ impl HashGrid {
         d_table: Binding<'a>,
         lambda: f32,
     ) -> Result<()> {
-        let n = self.config.param_count();
-        table.check_fits(n, 4, "hash grid table")?;
-        d_table.check_fits(n, 4, "hash grid gradient")?;
-        if !(lambda >= 0.0 && lambda.is_finite()) {
-            return Err(GpuError::Usage(format!(
-                "hash decay weight {lambda} must be >= 0"
-            )));
-        }
-        let p = kdecay::Params {
-            n: n as u32,
-            levels: self.config.levels,
-            features: self.config.features,
-            lambda,
-        };
+        let (n, p) = self.decay_params(&table, &d_table, lambda)?;
         let b = kdecay::hash_decay_grad::Bindings {
             level_info: self.levels.binding(),
             table,
