@@ -172,7 +172,15 @@ fn train_resume_render_eval_on_fern() {
     assert!(ok, "{err}");
     let png = image::open(run.join("render/train_002.png")).unwrap();
     assert_eq!((png.width(), png.height()), (504, 378));
-    assert!(run.join("render/train_002.exr").exists());
+    let scene = extranerf_nerf::data::llff::load_llff(&scene, &Default::default()).unwrap();
+    let depth = extranerf_nerf::data::depth::read_depth_exr(
+        &run.join("render/train_002.exr"),
+        &scene.cameras[2],
+    )
+    .unwrap();
+    // NDC t of the expected depth: inside (0, 1] wherever the field has density.
+    assert!(depth.iter().all(|d| (0.0..=1.0).contains(d)));
+    assert!(depth.iter().any(|&d| d > 0.0));
     let (ok, _, err) = extranerf(&["render", run_s, "--views", "99"]);
     assert!(!ok && err.contains("view 99"), "{err}");
     // Evaluate one held-out view with AlexNet LPIPS.

@@ -404,15 +404,12 @@ pub fn write_depth_exr(path: &Path, width: u32, height: u32, depth: &[f32]) -> R
         Encoding::FAST_LOSSLESS,
         AnyChannels::sort(list),
     );
-    let mut tmp = path.to_path_buf();
-    tmp.set_extension("exr.tmp");
+    // Encoded in memory, then written like every other output (synced temp file + rename).
+    let mut bytes = Vec::new();
     exr::image::Image::from_layer(layer)
         .write()
-        .to_file(&tmp)
-        .map_err(|e| RunError::Config(format!("{}: cannot write EXR: {e}", path.display())))?;
-    std::fs::rename(&tmp, path).map_err(|e| DataError::Io {
-        path: path.to_path_buf(),
-        source: e,
-    })?;
+        .to_buffered(std::io::Cursor::new(&mut bytes))
+        .map_err(|e| RunError::Config(format!("{}: cannot encode EXR: {e}", path.display())))?;
+    write_atomic(path, &bytes)?;
     Ok(())
 }
