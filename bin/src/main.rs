@@ -67,6 +67,10 @@ enum BenchCommand {
     /// The BaseNeRF training step: samples/s over whole steps and the GPU time of every stage
     /// (rays, sampling, hash grid, MLPs, compositing, losses, backward passes, Adam).
     Train(nerf::BenchTrainArgs),
+    /// Rendering a trained run: the standalone training kernels against the fused march
+    /// (exact, early termination, colour cut, occupancy grids), with time per view, rays/s,
+    /// samples/s, PSNR and the difference from the exact render for each.
+    Render(nerf::BenchRenderArgs),
 }
 
 fn context(cli: &Cli) -> anyhow::Result<Context> {
@@ -118,6 +122,9 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Bench {
             what: BenchCommand::Train(args),
         } => nerf::bench_train(&context(cli)?, args),
+        Command::Bench {
+            what: BenchCommand::Render(args),
+        } => nerf::bench_render(&context(cli)?, args),
         Command::Bench {
             what: BenchCommand::Kernels(args),
         } => {

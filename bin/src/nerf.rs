@@ -7,11 +7,13 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
+use extranerf_nerf::render::march::MarchCuts;
+use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::run::{
     load_checkpoint, model_for_scene, save_checkpoint, training_views, write_depth_exr, write_png,
     Checkpoint, RunConfig, SceneSpec,
 };
-use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, STAT_SLOTS};
+use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer, STAT_SLOTS};
 use extranerf_prims::Prims;
 
 /// Arguments of `extranerf train`.
@@ -326,6 +328,113 @@ pub fn train_loop(
     Ok(())
 }
 
+/// How `render` and `eval` evaluate the field (`Default` equals the command-line defaults).
+#[derive(clap::Args, Debug, Clone)]
+pub struct MarchArgs {
+    /// fused: one kernel per chunk of rays (samples, hash grid, both MLPs and compositing in
+    /// registers, with occupancy skipping and early termination). standalone: the training
+    /// kernels, which store every sample between stages (exact, slower, no cuts).
+    #[arg(long, default_value = "fused", value_parser = ["fused", "standalone"])]
+    pub march: String,
+    /// Occupancy grid cells per axis, built from the field before rendering, so empty space is
+    /// skipped (fused only; 0: no grid). Points outside the grid are always evaluated. Off by
+    /// default: a BaseNeRF trained on fern fills 99.9% of a 64^3 grid above the threshold, so
+    /// the grid costs its build (5 s) and saves nothing there (results/bench_render_lavapipe).
+    #[arg(long, default_value_t = MarchArgs::default().occupancy_res)]
+    pub occupancy_res: u32,
+    /// Jittered density evaluations per occupancy cell; the largest counts.
+    #[arg(long, default_value_t = MarchArgs::default().occupancy_passes)]
+    pub occupancy_passes: u32,
+    /// Density above which a cell counts as occupied (lowered to the mean density when that is
+    /// lower, as in Instant-NGP).
+    #[arg(long, default_value_t = MarchArgs::default().occupancy_threshold)]
+    pub occupancy_threshold: f32,
+    /// Skip the colour MLP for samples whose weight is at most this (fused only; 0: exact).
+    #[arg(long, default_value_t = MarchArgs::default().min_weight)]
+    pub min_weight: f32,
+    /// Stop a ray once its transmittance falls below this (fused only; 0: exact).
+    #[arg(long, default_value_t = MarchArgs::default().min_transmittance)]
+    pub min_transmittance: f32,
+}
+
+impl Default for MarchArgs {
+    fn default() -> Self {
+        MarchArgs {
+            march: "fused".into(),
+            occupancy_res: 0,
+            occupancy_passes: 4,
+            occupancy_threshold: 0.01,
+            min_weight: 1e-4,
+            min_transmittance: 1e-4,
+        }
+    }
+}
+
+impl MarchArgs {
+    /// The evaluation path.
+    pub fn march(&self) -> anyhow::Result<March> {
+        Ok(match self.march.as_str() {
+            "standalone" => March::Standalone,
+            _ => {
+                for (flag, v) in [
+                    ("--min-weight", self.min_weight),
+                    ("--min-transmittance", self.min_transmittance),
+                ] {
+                    if !(0.0..1.0).contains(&v) {
+                        bail!("{flag} {v}: use a value in [0, 1)");
+                    }
+                }
+                March::Fused(MarchCuts {
+                    min_weight: self.min_weight,
+                    min_transmittance: self.min_transmittance,
+                })
+            }
+        })
+    }
+
+    /// The occupancy grid for a model, if one is wanted: one cascade covers NDC's cube; world
+    /// scenes get cascades out to 16 scene radii.
+    pub fn occupancy(
+        &self,
+        model: &extranerf_nerf::model::ModelConfig,
+    ) -> anyhow::Result<Option<OccupancyConfig>> {
+        if self.march == "standalone" || self.occupancy_res == 0 {
+            return Ok(None);
+        }
+        if !(1..=512).contains(&self.occupancy_res) || self.occupancy_passes == 0 {
+            bail!(
+                "--occupancy-res {} / --occupancy-passes {}: use 0-512 cells per axis and at least one pass",
+                self.occupancy_res,
+                self.occupancy_passes
+            );
+        }
+        if !(self.occupancy_threshold >= 0.0 && self.occupancy_threshold.is_finite()) {
+            bail!(
+                "--occupancy-threshold {}: use a density >= 0",
+                self.occupancy_threshold
+            );
+        }
+        Ok(Some(OccupancyConfig {
+            res: self.occupancy_res,
+            cascades: if model.space == "ndc" { 1 } else { 5 },
+            threshold: self.occupancy_threshold,
+            ..OccupancyConfig::default()
+        }))
+    }
+
+    /// The settings as JSON, for metrics files.
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "march": self.march,
+            "occupancy_res": self.occupancy_res,
+            "occupancy_passes": self.occupancy_passes,
+            "occupancy_threshold": self.occupancy_threshold,
+            "min_weight": self.min_weight,
+            "min_transmittance": self.min_transmittance,
+        })
+    }
+}
+
 /// Arguments of `extranerf render`.
 #[derive(clap::Args, Debug)]
 pub struct RenderArgs {
@@ -343,6 +452,8 @@ pub struct RenderArgs {
     /// Rays per pass.
     #[arg(long, default_value_t = 8192)]
     chunk: u32,
+    #[command(flatten)]
+    march: MarchArgs,
 }
 
 /// A view rendered from a run, with its ground truth.
@@ -354,14 +465,17 @@ struct Rendered {
     rgb: Vec<f32>,
     depth: Vec<f32>,
     truth: Vec<f32>,
+    seconds: f64,
 }
 
+#[allow(clippy::too_many_arguments)] // each is a distinct setting
 fn render_views(
     ctx: &Context,
     run: &Path,
     which: &str,
     samples: Option<u32>,
     chunk: u32,
+    march: &MarchArgs,
     mut each: impl FnMut(&Rendered) -> anyhow::Result<()>,
 ) -> anyhow::Result<RunConfig> {
     let ck = load_checkpoint(run)?;
@@ -403,18 +517,33 @@ fn render_views(
             v
         }
     };
-    let nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
+    let mut nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
     let samples = samples.unwrap_or(cfg.train.samples);
+    let how = march.march()?;
+    if let Some(occ) = march.occupancy(&cfg.model)? {
+        let t = Instant::now();
+        let prims = Prims::new(ctx)?;
+        if let Some(st) = nerf.build_occupancy(ctx, &prims, Some(occ), march.occupancy_passes)? {
+            eprintln!(
+                "occupancy grid {}^3 x {} cascade(s): {} of {} cells occupied ({:.1}%), built in {:.1} s",
+                occ.res,
+                occ.cascades,
+                st.occupied,
+                st.cells,
+                100.0 * st.occupied as f64 / st.cells as f64,
+                t.elapsed().as_secs_f64()
+            );
+        }
+    }
     for (i, role) in list {
         let cam = &loaded.scene.cameras[i];
         let t = Instant::now();
-        let (rgb, depth, _) = nerf.render(ctx, cam, chunk, samples)?;
+        let (rgb, depth, _) = nerf.render_with(ctx, cam, chunk, samples, how)?;
+        let seconds = t.elapsed().as_secs_f64();
         let truth = extranerf_nerf::data::load_image(&cam.image)?;
         eprintln!(
-            "rendered {role} view {i} ({}x{}) in {:.1} s",
-            cam.width,
-            cam.height,
-            t.elapsed().as_secs_f64()
+            "rendered {role} view {i} ({}x{}, {} march) in {seconds:.2} s",
+            cam.width, cam.height, march.march
         );
         each(&Rendered {
             index: i,
@@ -424,6 +553,7 @@ fn render_views(
             rgb,
             depth,
             truth: truth.rgb,
+            seconds,
         })?;
     }
     Ok(cfg)
@@ -433,7 +563,7 @@ fn render_views(
 pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
     let out = a.out.clone().unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, |r| {
+    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {
         let base = out.join(format!("{}_{:03}", r.role, r.index));
         write_png(&base.with_extension("png"), r.width, r.height, &r.rgb)?;
         write_depth_exr(&base.with_extension("exr"), r.width, r.height, &r.depth)?;
@@ -479,6 +609,8 @@ pub struct EvalArgs {
     /// on two cores).
     #[arg(long, default_value = "alex,vgg", value_delimiter = ',')]
     lpips_nets: Vec<String>,
+    #[command(flatten)]
+    march: MarchArgs,
 }
 
 /// `extranerf eval`: PSNR, SSIM, LPIPS (AlexNet and VGG) on the held-out views, PSNR on the
@@ -500,9 +632,14 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
     if a.save_images {
         std::fs::create_dir_all(&img_dir)?;
     }
-    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, |r| {
+    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {
         let p = psnr(&r.rgb, &r.truth)?;
-        let mut m = serde_json::json!({"view": r.index, "role": r.role, "psnr": p});
+        let mut m = serde_json::json!({
+            "view": r.index,
+            "role": r.role,
+            "psnr": p,
+            "render_seconds": r.seconds,
+        });
         if r.role == "test" {
             m["ssim"] = ssim(&r.rgb, &r.truth, r.width, r.height)?.into();
             for (key, net) in &nets {
@@ -539,6 +676,7 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         "train": {"psnr": mean("train", "psnr")},
         "views": per_view,
         "seconds": t0.elapsed().as_secs_f64(),
+        "render": a.march.json(),
         "device": ctx.info().name,
     });
     let out = a.out.clone().unwrap_or_else(|| a.run.join("metrics.json"));
@@ -802,6 +940,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             save_images: true,
             views: "all".into(),
             lpips_nets: nets,
+            march: MarchArgs::default(),
         },
     )?;
     eprintln!(
@@ -810,5 +949,124 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
         run.join("eval").display(),
         run.join("metrics.json").display()
     );
+    Ok(())
+}
+
+/// Arguments of `extranerf bench render`.
+#[derive(clap::Args, Debug)]
+pub struct BenchRenderArgs {
+    /// Run folder written by `extranerf train` (a trained field: empty space and early
+    /// termination depend on what was learned).
+    run: PathBuf,
+    /// Which views: test, train, all, or indices such as 0,4,9.
+    #[arg(long, default_value = "test")]
+    views: String,
+    /// Samples per ray (default: the training setting).
+    #[arg(long)]
+    samples: Option<u32>,
+    /// Rays per pass.
+    #[arg(long, default_value_t = 8192)]
+    chunk: u32,
+    /// Also write the results as JSON.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+}
+
+/// `extranerf bench render`: the standalone training kernels against the fused march, exact
+/// and with each accuracy cut, on a trained run's views. For each: wall time per view, rays/s,
+/// samples/s (rays x samples per ray, skipped or not), PSNR against the photos and the largest
+/// and mean colour difference from the exact render.
+pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
+    let fused = |res: u32, w: f32, t: f32| MarchArgs {
+        occupancy_res: res,
+        min_weight: w,
+        min_transmittance: t,
+        ..MarchArgs::default()
+    };
+    let configs: Vec<(&str, MarchArgs)> = vec![
+        (
+            "standalone kernels",
+            MarchArgs {
+                march: "standalone".into(),
+                ..MarchArgs::default()
+            },
+        ),
+        ("fused, exact", fused(0, 0.0, 0.0)),
+        ("fused, early stop 1e-4", fused(0, 0.0, 1e-4)),
+        ("fused, cuts (default)", MarchArgs::default()),
+        ("fused, cuts + occupancy 32^3", fused(32, 1e-4, 1e-4)),
+        ("fused, cuts + occupancy 64^3", fused(64, 1e-4, 1e-4)),
+        ("fused, cuts + occupancy 128^3", fused(128, 1e-4, 1e-4)),
+    ];
+    let mut exact: Vec<Vec<f32>> = Vec::new();
+    let mut rows = Vec::new();
+    println!("device: {}", ctx.info().name);
+    println!(
+        "{:<40} {:>9} {:>11} {:>11} {:>8} {:>10} {:>10}",
+        "render path", "s/view", "rays/s", "samples/s", "PSNR", "max |d|", "mean |d|"
+    );
+    // Kernels compile when each path's pipelines are created, before the timed renders.
+    for (ci, (name, m)) in configs.iter().enumerate() {
+        let mut secs = 0.0;
+        let mut rays = 0u64;
+        let mut psnrs = Vec::new();
+        let (mut max_d, mut sum_d, mut count) = (0f32, 0f64, 0u64);
+        let mut view = 0;
+        let cfg = render_views(ctx, &a.run, &a.views, a.samples, a.chunk, m, |r| {
+            secs += r.seconds;
+            rays += (r.width * r.height) as u64;
+            psnrs.push(psnr(&r.rgb, &r.truth)?);
+            if ci == 0 {
+                exact.push(r.rgb.clone());
+            } else {
+                for (p, q) in r.rgb.iter().zip(&exact[view]) {
+                    let d = (p - q).abs();
+                    max_d = max_d.max(d);
+                    sum_d += d as f64;
+                    count += 1;
+                }
+            }
+            view += 1;
+            Ok(())
+        })?;
+        let samples = a.samples.unwrap_or(cfg.train.samples);
+        let views = psnrs.len().max(1) as f64;
+        let mean_psnr = psnrs.iter().sum::<f64>() / views;
+        let rays_s = rays as f64 / secs;
+        let mean_d = if count > 0 { sum_d / count as f64 } else { 0.0 };
+        println!(
+            "{:<40} {:>9.3} {:>11.3e} {:>11.3e} {:>8.3} {:>10.2e} {:>10.2e}",
+            name,
+            secs / views,
+            rays_s,
+            rays_s * samples as f64,
+            mean_psnr,
+            max_d,
+            mean_d
+        );
+        rows.push(serde_json::json!({
+            "path": name,
+            "settings": m.json(),
+            "seconds_per_view": secs / views,
+            "rays_per_s": rays_s,
+            "samples_per_s": rays_s * samples as f64,
+            "samples_per_ray": samples,
+            "psnr": mean_psnr,
+            "max_abs_diff_vs_standalone": max_d,
+            "mean_abs_diff_vs_standalone": mean_d,
+        }));
+    }
+    if let Some(path) = &a.json {
+        crate::bench::write_json(
+            path,
+            &serde_json::json!({
+                "device": ctx.info().name,
+                "run": a.run,
+                "views": a.views,
+                "results": rows,
+            }),
+        )?;
+        println!("wrote {}", path.display());
+    }
     Ok(())
 }

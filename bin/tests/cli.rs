@@ -181,6 +181,51 @@ fn train_resume_render_eval_on_fern() {
     // NDC t of the expected depth: inside (0, 1] wherever the field has density.
     assert!(depth.iter().all(|d| (0.0..=1.0).contains(d)));
     assert!(depth.iter().any(|&d| d > 0.0));
+    // The standalone kernels give the same image as the fused march (default path) up to its
+    // 1e-4 cuts and PNG rounding.
+    let alt = run.join("render_standalone");
+    let (ok, _, err) = extranerf(&[
+        "render",
+        run_s,
+        "--views",
+        "2",
+        "--samples",
+        "4",
+        "--march",
+        "standalone",
+        "--out",
+        alt.to_str().unwrap(),
+    ]);
+    assert!(ok && err.contains("standalone march"), "{err}");
+    let a = png.to_rgb8();
+    let b = image::open(alt.join("train_002.png")).unwrap().to_rgb8();
+    let worst = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(&p, &q)| (p as i32 - q as i32).abs())
+        .max()
+        .unwrap();
+    assert!(
+        worst <= 1,
+        "fused and standalone renders differ by {worst}/255"
+    );
+    // With an occupancy grid the render still works and says what the grid holds.
+    let (ok, _, err) = extranerf(&[
+        "render",
+        run_s,
+        "--views",
+        "2",
+        "--samples",
+        "4",
+        "--occupancy-res",
+        "16",
+        "--out",
+        alt.to_str().unwrap(),
+    ]);
+    assert!(ok && err.contains("cells occupied"), "{err}");
+    let (ok, _, err) = extranerf(&["render", run_s, "--min-weight", "2"]);
+    assert!(!ok && err.contains("--min-weight 2"), "{err}");
     let (ok, _, err) = extranerf(&["render", run_s, "--views", "99"]);
     assert!(!ok && err.contains("view 99"), "{err}");
     // Evaluate one held-out view with AlexNet LPIPS.
@@ -206,6 +251,11 @@ fn train_resume_render_eval_on_fern() {
     let ssim = m["test"]["ssim"].as_f64().unwrap();
     assert!(
         psnr > 5.0 && psnr < 40.0 && lp > 0.0 && lp.is_finite() && ssim < 1.0,
+        "{m}"
+    );
+    assert_eq!(m["render"]["march"], "fused", "{m}");
+    assert!(
+        m["views"][0]["render_seconds"].as_f64().unwrap() > 0.0,
         "{m}"
     );
     let _ = std::fs::remove_dir_all(dir);

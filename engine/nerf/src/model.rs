@@ -369,6 +369,21 @@ impl Field {
         &self.grid
     }
 
+    /// The density MLP.
+    pub fn density(&self) -> &Mlp {
+        &self.density
+    }
+
+    /// The colour MLP.
+    pub fn color(&self) -> &Mlp {
+        &self.color
+    }
+
+    /// The scene box of the contraction.
+    pub fn scene(&self) -> &SceneBox {
+        &self.scene
+    }
+
     /// Floats per sample of each buffer in [`FieldIo`] and [`FieldGrads`], by name.
     pub fn per_sample(&self) -> [(&'static str, usize); 14] {
         let enc = (self.config.levels * self.config.features) as usize;

@@ -631,6 +631,71 @@ pub fn field_forward(
         .collect()
 }
 
+/// The fused march (`render/march.wgsl`) for one pixel in f64: the camera ray (NDC when the
+/// model's space is "ndc", near plane 1), `samples` stratum midpoints (linear in t, or in
+/// disparity for world space), the field per sample ([`field_forward`]) and compositing.
+/// Samples where `occupied(u)` is false, for u the sample's scene-normalised position, are
+/// skipped. Returns (r, g, b, opacity, depth).
+pub fn march_pixel(
+    cfg: &crate::model::ModelConfig,
+    params: &[f32],
+    cam: &crate::data::Camera,
+    pixel: u32,
+    samples: u32,
+    background: [f32; 3],
+    occupied: &dyn Fn([f32; 3]) -> bool,
+) -> [f64; 5] {
+    let px = [
+        (pixel % cam.width) as f64 + 0.5,
+        (pixel / cam.width) as f64 + 0.5,
+    ];
+    let (wo, wd) = camera_ray(cam, px);
+    let ndc = cfg.space == "ndc";
+    let (o, d) = if ndc {
+        ndc_ray(cam, wo, wd, 1.0)
+    } else {
+        (wo, wd)
+    };
+    let (near, far) = (cfg.near as f64, cfg.far as f64);
+    let t_of = |s: f64| {
+        if ndc {
+            near + (far - near) * s
+        } else {
+            1.0 / (1.0 / near + (1.0 / far - 1.0 / near) * s)
+        }
+    };
+    let k = samples as f64;
+    let mut pos = Vec::new();
+    let mut t_dt = Vec::new();
+    for j in 0..samples {
+        let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
+        let t = t_of(0.5 * (s0 + s1));
+        let p = [0, 1, 2].map(|a| (o[a] + t * d[a]) as f32);
+        let u = [0, 1, 2].map(|a| (p[a] - cfg.center[a]) / cfg.radius);
+        if occupied(u) {
+            pos.extend(p);
+            t_dt.push([t as f32, (t_of(s1) - t_of(s0)) as f32]);
+        }
+    }
+    if t_dt.is_empty() {
+        return [
+            background[0] as f64,
+            background[1] as f64,
+            background[2] as f64,
+            0.0,
+            0.0,
+        ];
+    }
+    let dir = [wd[0] as f32, wd[1] as f32, wd[2] as f32];
+    let field = field_forward(cfg, params, &pos, &[dir], t_dt.len());
+    let sigma: Vec<f32> = field.iter().map(|f| f.0 as f32).collect();
+    let rgb: Vec<[f32; 4]> = field
+        .iter()
+        .map(|f| [f.1[0] as f32, f.1[1] as f32, f.1[2] as f32, 0.0])
+        .collect();
+    composite_forward(&sigma, &rgb, &t_dt, background)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -17,6 +17,8 @@ use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler};
 use crate::optim::{Adam, AdamConfig};
 use crate::render::composite::{Compositor, RayGrads, Samples};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
+use crate::render::march::{MarchCuts, Marcher};
+use crate::render::occupancy::{Occupancy, OccupancyConfig};
 use crate::render::rays::{gpu_camera, GpuCamera, RayGen, RaySpace};
 use crate::render::sample::{SampleOutputs, Sampler, Spacing};
 
@@ -315,6 +317,28 @@ pub struct Nerf {
     comp: Compositor,
     pixel_range: Kernel,
     background: [f32; 3],
+    marcher: Marcher,
+    occupancy: Option<Occupancy>,
+}
+
+/// How [`Nerf::render_with`] evaluates the field.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum March {
+    /// The training chain: rays, samples, the field's standalone kernels, compositing (every
+    /// sample stored in memory between kernels; no cuts, no occupancy).
+    Standalone,
+    /// The fused march kernel with these cuts, skipping empty space when the occupancy grid
+    /// has been built ([`Nerf::build_occupancy`]).
+    Fused(MarchCuts),
+}
+
+/// What [`Nerf::build_occupancy`] found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OccupancyStats {
+    /// Cells in the grid.
+    pub cells: u64,
+    /// Cells marked occupied.
+    pub occupied: u64,
 }
 
 impl Nerf {
@@ -346,6 +370,8 @@ impl Nerf {
             pixel_range: Kernel::new(ctx, &kp::pixel_range::DESC)?,
             field,
             background,
+            marcher: Marcher::new(ctx)?,
+            occupancy: None,
         })
     }
 
@@ -434,8 +460,61 @@ impl Nerf {
         mark(prof, rec, "composite fwd")
     }
 
+    /// The occupancy grid fused renders use, when built.
+    pub fn occupancy(&self) -> Option<&Occupancy> {
+        self.occupancy.as_ref()
+    }
+
+    /// Builds the occupancy grid from the field: `passes` jittered density evaluations per
+    /// cell (the maximum is kept), thresholded as [`Occupancy::record_bits`] does. Fused
+    /// renders skip the empty cells from then on; `None` removes the grid.
+    pub fn build_occupancy(
+        &mut self,
+        ctx: &Context,
+        prims: &Prims,
+        config: Option<OccupancyConfig>,
+        passes: u32,
+    ) -> Result<Option<OccupancyStats>> {
+        let Some(config) = config else {
+            self.occupancy = None;
+            return Ok(None);
+        };
+        if passes == 0 {
+            return Err(GpuError::Usage(
+                "the occupancy grid needs at least one pass".into(),
+            ));
+        }
+        let occ = Occupancy::new(ctx, config)?;
+        let cells = config.cells();
+        let mut rec = ctx.recorder("occupancy build")?;
+        for pass in 0..passes {
+            let decay = if pass == 0 { 0.0 } else { 1.0 };
+            self.marcher.update_occupancy(
+                &mut rec,
+                &self.field,
+                self.sections(&self.params)?,
+                &occ,
+                0,
+                cells,
+                pass,
+                decay,
+            )?;
+        }
+        occ.record_bits(&mut rec, prims)?;
+        ctx.run(rec)?;
+        let occupied = occ
+            .bits()
+            .read()?
+            .iter()
+            .map(|w| w.count_ones() as u64)
+            .sum();
+        self.occupancy = Some(occ);
+        Ok(Some(OccupancyStats { cells, occupied }))
+    }
+
     /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
-    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass.
+    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass, midpoint samples,
+    /// through the standalone training kernels (see [`Nerf::render_with`]).
     pub fn render(
         &self,
         ctx: &Context,
@@ -443,14 +522,42 @@ impl Nerf {
         chunk_rays: u32,
         samples: u32,
     ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        self.render_with(ctx, camera, chunk_rays, samples, March::Standalone)
+    }
+
+    /// [`Nerf::render`] with a choice of evaluation path.
+    pub fn render_with(
+        &self,
+        ctx: &Context,
+        camera: &Camera,
+        chunk_rays: u32,
+        samples: u32,
+        march: March,
+    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        if chunk_rays == 0 {
+            return Err(GpuError::Usage("the render chunk must be positive".into()));
+        }
+        // The standalone chain needs per-sample buffers; the fused march only per-ray ones.
         let ws = Workspace::new(
             ctx,
             &self.field,
             self.field.config(),
-            chunk_rays,
+            if march == March::Standalone {
+                chunk_rays
+            } else {
+                1
+            },
             samples,
             false,
         )?;
+        let fused_io = match march {
+            March::Standalone => None,
+            March::Fused(_) => Some((
+                Buffer::<[u32; 2]>::new(ctx, "march pixels", chunk_rays as usize)?,
+                Buffer::<[f32; 4]>::new(ctx, "march colour", chunk_rays as usize)?,
+                Buffer::<f32>::new(ctx, "march depth", chunk_rays as usize)?,
+            )),
+        };
         let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
         let total = camera.width as u64 * camera.height as u64;
         count_u32(total, "pixels")?;
@@ -466,25 +573,40 @@ impl Nerf {
                 first: first as u32,
                 _pad: 0,
             };
-            let b = kp::pixel_range::Bindings {
-                pixels: ws.pixels.binding(),
+            let (rgba, depth) = match (&fused_io, march) {
+                (Some((px, rgba, depth)), March::Fused(cuts)) => {
+                    let b = kp::pixel_range::Bindings {
+                        pixels: px.binding(),
+                    };
+                    rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
+                    self.marcher.render(
+                        &mut rec,
+                        &self.field,
+                        self.sections(&self.params)?,
+                        cams.binding(),
+                        1,
+                        px.binding(),
+                        n,
+                        samples,
+                        cuts,
+                        self.occupancy.as_ref(),
+                        self.background,
+                        rgba.binding(),
+                        depth.binding(),
+                    )?;
+                    (rgba.binding(), depth.binding())
+                }
+                _ => {
+                    let b = kp::pixel_range::Bindings {
+                        pixels: ws.pixels.binding(),
+                    };
+                    rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
+                    self.record_forward(&mut rec, &ws, cams.binding(), 1, n, None, &mut None)?;
+                    (ws.out_rgba.binding(), ws.out_depth.binding())
+                }
             };
-            rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-            self.record_forward(&mut rec, &ws, cams.binding(), 1, n, None, &mut None)?;
-            rec.copy(
-                ws.out_rgba.binding(),
-                0,
-                rgba_all.binding(),
-                first * 16,
-                n * 16,
-            )?;
-            rec.copy(
-                ws.out_depth.binding(),
-                0,
-                depth_all.binding(),
-                first * 4,
-                n * 4,
-            )?;
+            rec.copy(rgba, 0, rgba_all.binding(), first * 16, n * 16)?;
+            rec.copy(depth, 0, depth_all.binding(), first * 4, n * 4)?;
             ctx.run(rec)?;
             first += n;
         }

@@ -230,6 +230,11 @@ impl HashGrid {
         rec.dispatch(&self.decay_grad, b.into_array(), &p, n.div_ceil(4))
     }
 
+    /// The level layout on the device (common/hash_grid.wgsl's `HashLevel` per level).
+    pub fn levels(&self) -> &Buffer<HashLevel> {
+        &self.levels
+    }
+
     /// The configuration.
     pub fn config(&self) -> &HashGridConfig {
         &self.config

@@ -87,6 +87,11 @@ impl Mlp {
         })
     }
 
+    /// The shape record on the device (common/mlp.wgsl's `MlpShape`).
+    pub fn shape(&self) -> &Buffer<MlpShape> {
+        &self.shape
+    }
+
     /// The configuration.
     pub fn config(&self) -> &MlpConfig {
         &self.config

@@ -1,9 +1,10 @@
-//! Rendering on the device: ray generation, stratified sampling, compositing, the photometric, depth and
-//! distortion losses so far (the fused march that
-//! samples, queries the field and composites in one kernel builds on the same WGSL functions).
+//! Rendering on the device: ray generation, stratified sampling, compositing, the photometric,
+//! depth and distortion losses, the occupancy grid, and the fused march that samples, queries
+//! the field and composites in one kernel (built on the same WGSL functions).
 
 pub mod composite;
 pub mod loss;
+pub mod march;
 pub mod occupancy;
 pub mod rays;
 pub mod sample;

@@ -1,0 +1,209 @@
+//! The fused march (`render/march.wgsl`): one kernel per chunk of pixels. It makes the rays,
+//! places the samples, skips empty occupancy cells, evaluates the hash grid and both MLPs in
+//! registers, and composites with early termination. A second kernel is the fused occupancy
+//! update, which evaluates the field's density at one jittered point per cell.
+//!
+//! This path is forward only (rendering, evaluation, occupancy). Training keeps the standalone
+//! chain (`model::Field` + `render::composite`), which stores what its backward needs.
+
+use extranerf_gpu::kernels::render::march as k;
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+
+use crate::model::Field;
+use crate::render::occupancy::Occupancy;
+
+/// The accuracy cuts of the fused march (0 and 0: exact).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MarchCuts {
+    /// Skip the colour MLP for samples whose weight is at most this much. Each skipped sample
+    /// drops at most this much colour.
+    pub min_weight: f32,
+    /// Stop a ray once its transmittance falls below this. That drops at most this much colour
+    /// and opacity.
+    pub min_transmittance: f32,
+}
+
+impl MarchCuts {
+    /// No cuts: every sample is evaluated in full.
+    pub const EXACT: MarchCuts = MarchCuts {
+        min_weight: 0.0,
+        min_transmittance: 0.0,
+    };
+
+    /// Instant-NGP's early termination (transmittance 1e-4) and colour skipped below the same
+    /// weight.
+    pub const FAST: MarchCuts = MarchCuts {
+        min_weight: 1e-4,
+        min_transmittance: 1e-4,
+    };
+
+    fn validate(&self) -> Result<()> {
+        let ok = |v: f32| (0.0..1.0).contains(&v);
+        if !ok(self.min_weight) || !ok(self.min_transmittance) {
+            return Err(GpuError::Usage(format!(
+                "march cuts {self:?}: each must be in [0, 1)"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The fused march kernels.
+#[derive(Debug)]
+pub struct Marcher {
+    render: Kernel,
+    occupancy: Kernel,
+    /// Bound as the occupancy bitfield when no grid is used (the kernel does not read it).
+    no_bits: Buffer<u32>,
+}
+
+impl Marcher {
+    /// Builds the kernels.
+    pub fn new(ctx: &Context) -> Result<Marcher> {
+        Ok(Marcher {
+            render: Kernel::new(ctx, &k::march_render::DESC)?,
+            occupancy: Kernel::new(ctx, &k::march_occupancy::DESC)?,
+            no_bits: Buffer::from_slice(ctx, "no occupancy bits", &[u32::MAX])?,
+        })
+    }
+
+    fn params(field: &Field, samples: u32, background: [f32; 3]) -> Result<k::Params> {
+        let cfg = field.config();
+        let scene = field.scene();
+        if samples == 0 {
+            return Err(GpuError::Usage("samples per ray must be positive".into()));
+        }
+        let ndc = cfg.space == "ndc";
+        let range_ok = cfg.near > 0.0 && cfg.far > cfg.near;
+        if !ndc && !range_ok {
+            return Err(GpuError::Usage(format!(
+                "world-space sampling is linear in disparity and needs 0 < near < far, not {} and {}",
+                cfg.near, cfg.far
+            )));
+        }
+        Ok(k::Params {
+            n: 0,
+            samples,
+            spacing: u32::from(!ndc),
+            ndc: u32::from(ndc),
+            near: cfg.near,
+            far: cfg.far,
+            ndc_near: 1.0,
+            contraction: scene.contraction as u32,
+            inv_radius: 1.0 / scene.radius,
+            occ_res: 0,
+            occ_cascades: 0,
+            levels: cfg.levels,
+            features: cfg.features,
+            geo_dims: cfg.geo_dims,
+            min_weight: 0.0,
+            min_transmittance: 0.0,
+            center: [scene.center[0], scene.center[1], scene.center[2], 0.0],
+            background: [background[0], background[1], background[2], 0.0],
+            first: 0,
+            seed: 0,
+            decay: 0.0,
+            n_cameras: 0,
+        })
+    }
+
+    /// Records the render of `n` rays given as (camera, pixel) pairs in `pixels` into
+    /// `out_rgba[n]` (colour plus opacity) and `out_depth[n]` (expected depth in the ray space's
+    /// units). `params` are the field's parameter sections. With `occupancy`, samples in cells
+    /// its bitfield marks empty are skipped (samples outside the grid are evaluated).
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn render<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        field: &'a Field,
+        params: [Binding<'a>; 3],
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        pixels: Binding<'a>,
+        n: u64,
+        samples: u32,
+        cuts: MarchCuts,
+        occupancy: Option<&'a Occupancy>,
+        background: [f32; 3],
+        out_rgba: Binding<'a>,
+        out_depth: Binding<'a>,
+    ) -> Result<()> {
+        cuts.validate()?;
+        pixels.check_fits(2 * n, 4, "march pixels")?;
+        out_rgba.check_fits(4 * n, 4, "march colour output")?;
+        out_depth.check_fits(n, 4, "march depth output")?;
+        let mut p = Self::params(field, samples, background)?;
+        p.n = count_u32(n, "march rays")?;
+        p.n_cameras = n_cameras;
+        p.min_weight = cuts.min_weight;
+        p.min_transmittance = cuts.min_transmittance;
+        let occ_bits = match occupancy {
+            Some(o) => {
+                p.occ_res = o.config().res;
+                p.occ_cascades = o.config().cascades;
+                o.bits().binding()
+            }
+            None => self.no_bits.binding(),
+        };
+        let [table, density_weights, color_weights] = params;
+        let b = k::march_render::Bindings {
+            cameras,
+            pixels,
+            level_info: field.grid().levels().binding(),
+            table,
+            density_shape: field.density().shape().binding(),
+            density_weights,
+            color_shape: field.color().shape().binding(),
+            color_weights,
+            occ_bits,
+            out_rgba,
+            out_depth,
+        };
+        rec.dispatch(&self.render, b.into_array(), &p, n)
+    }
+
+    /// Records the fused occupancy update of the window of `count` cells from `first`
+    /// (wrapping): the field's density at one point per cell, jittered by `seed`, folded into
+    /// the grid's EMA with `decay` (0 replaces, the grid's own decay averages).
+    /// Follow with [`Occupancy::record_bits`].
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn update_occupancy<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        field: &'a Field,
+        params: [Binding<'a>; 3],
+        occupancy: &'a Occupancy,
+        first: u64,
+        count: u64,
+        seed: u32,
+        decay: f32,
+    ) -> Result<()> {
+        let cells = occupancy.config().cells();
+        if count > cells {
+            return Err(GpuError::Usage(format!(
+                "a window of {count} cells exceeds the grid's {cells}"
+            )));
+        }
+        if !(0.0..=1.0).contains(&decay) {
+            return Err(GpuError::Usage(format!(
+                "occupancy decay {decay} must be in [0, 1]"
+            )));
+        }
+        let mut p = Self::params(field, 1, [0.0; 3])?;
+        p.n = count_u32(count, "occupancy cells")?;
+        p.occ_res = occupancy.config().res;
+        p.occ_cascades = occupancy.config().cascades;
+        p.first = (first % cells) as u32;
+        p.seed = seed;
+        p.decay = decay;
+        let [table, density_weights, _] = params;
+        let b = k::march_occupancy::Bindings {
+            level_info: field.grid().levels().binding(),
+            table,
+            density_shape: field.density().shape().binding(),
+            density_weights,
+            occ_grid: occupancy.grid().binding(),
+        };
+        rec.dispatch(&self.occupancy, b.into_array(), &p, count)
+    }
+}

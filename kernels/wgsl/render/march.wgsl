@@ -1,0 +1,272 @@
+// Fused march: one thread per ray does everything between a pixel and its colour. It builds the
+// ray from the camera (NDC for forward-facing scenes), places the samples (stratum midpoints,
+// linear in t or in disparity), skips samples in cells the occupancy grid marks empty (points
+// outside the grid are evaluated), and evaluates the
+// field per sample in registers: contraction, every hash-grid level, the density MLP,
+// trunc-exp, SH4 of the world direction, and the colour MLP. It composites front to back and
+// writes only (rgb, opacity) and the expected depth. Nothing per sample touches memory.
+//
+// Two cuts trade accuracy for speed. Each is exact at 0 and bounded otherwise:
+//   min_weight: the colour MLP is skipped for a sample whose weight is <= min_weight, which
+//     drops at most min_weight of colour per skipped sample;
+//   min_transmittance: the march stops once the transmittance falls below it, which drops at
+//     most that much of colour and opacity (the background term keeps the true tail).
+//
+// `march_occupancy` is the fused occupancy update. Per cell of a window it evaluates the
+// density at a jittered point, then folds it into the cell's EMA:
+// grid = max(decay * grid, density).
+//
+// The layouts match the standalone kernels: common/hash_grid.wgsl (levels, table),
+// common/mlp.wgsl (weights row-major, then the bias, per layer), common/occupancy.wgsl. The
+// standalone pipeline (render/sample.wgsl, field/*, render/field_heads.wgsl,
+// render/composite.wgsl) computes the same quantities sample by sample.
+//!include common/dispatch.wgsl
+//!include common/camera.wgsl
+//!include common/contract.wgsl
+//!include common/hash_grid.wgsl
+//!include common/mlp.wgsl
+//!include common/occupancy.wgsl
+//!include common/rng.wgsl
+//!include common/sh.wgsl
+//!include common/volume.wgsl
+
+struct Params {
+    // Rays (march_render) or cells in the window (march_occupancy).
+    n: u32,
+    // Samples per ray.
+    samples: u32,
+    // 0: linear in t, 1: linear in disparity.
+    spacing: u32,
+    // Non-zero: march in NDC (near plane at `ndc_near`).
+    ndc: u32,
+    // Sampling range along the ray.
+    near: f32,
+    far: f32,
+    ndc_near: f32,
+    // Contraction mode (common/contract.wgsl) and 1 / scene radius.
+    contraction: u32,
+    inv_radius: f32,
+    // Occupancy grid resolution and cascades; cascades = 0 disables skipping in the march.
+    occ_res: u32,
+    occ_cascades: u32,
+    // Hash-grid levels and features per level; floats per density-MLP output row.
+    levels: u32,
+    features: u32,
+    geo_dims: u32,
+    min_weight: f32,
+    min_transmittance: f32,
+    // Scene centre (xyz).
+    center: vec4<f32>,
+    // Background colour (xyz).
+    background: vec4<f32>,
+    // Occupancy update: first cell of the window, jitter seed, EMA decay.
+    first: u32,
+    seed: u32,
+    decay: f32,
+    n_cameras: u32,
+}
+var<immediate> params: Params;
+
+@group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
+// (camera, pixel = y * width + x) per ray.
+@group(0) @binding(1) var<storage, read> pixels: array<vec2<u32>>;
+@group(0) @binding(2) var<storage, read> level_info: array<HashLevel>;
+@group(0) @binding(3) var<storage, read> table: array<f32>;
+@group(0) @binding(4) var<storage, read> density_shape: array<MlpShape>;
+@group(0) @binding(5) var<storage, read> density_weights: array<f32>;
+@group(0) @binding(6) var<storage, read> color_shape: array<MlpShape>;
+@group(0) @binding(7) var<storage, read> color_weights: array<f32>;
+@group(0) @binding(8) var<storage, read> occ_bits: array<u32>;
+@group(0) @binding(9) var<storage, read_write> out_rgba: array<vec4<f32>>;
+@group(0) @binding(10) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(11) var<storage, read_write> occ_grid: array<f32>;
+
+const TRUNC: f32 = 15.0;
+
+fn sigmoid(v: f32) -> f32 {
+    if v >= 0.0 {
+        return 1.0 / (1.0 + exp(-v));
+    }
+    let e = exp(v);
+    return e / (1.0 + e);
+}
+
+// Hash-grid features of the contracted point x into a[0 .. levels * features]. A NaN point
+// has all-zero features, as in the standalone kernel.
+fn encode(x: vec3<f32>, a: ptr<function, array<f32, 64>>) {
+    let F = params.features;
+    let n = params.levels * F;
+    for (var j = 0u; j < n; j += 1u) {
+        (*a)[j] = 0.0;
+    }
+    if !hg_valid(x) {
+        return;
+    }
+    for (var l = 0u; l < params.levels; l += 1u) {
+        let lv = level_info[l];
+        let cell = hg_cell(x, lv);
+        for (var k = 0u; k < 8u; k += 1u) {
+            let w = hg_weight(cell.frac, k);
+            let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
+            for (var f = 0u; f < F; f += 1u) {
+                (*a)[l * F + f] += w * table[e + f];
+            }
+        }
+    }
+}
+
+// The density MLP in place: a[0 .. inputs] -> a[0 .. outputs] (the same fma order as
+// field/mlp.wgsl's mlp_fwd).
+fn density_mlp(a: ptr<function, array<f32, 64>>) {
+    let s = density_shape[0];
+    var z: array<f32, 64>;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let w = mlp_offset(s, l);
+        let last = l + 1u == s.layers;
+        for (var o = 0u; o < no; o += 1u) {
+            var acc = density_weights[w + no * ni + o];
+            for (var j = 0u; j < ni; j += 1u) {
+                acc = fma(density_weights[w + o * ni + j], (*a)[j], acc);
+            }
+            z[o] = select(max(acc, 0.0), acc, last);
+        }
+        for (var o = 0u; o < no; o += 1u) {
+            (*a)[o] = z[o];
+        }
+    }
+}
+
+// The colour MLP in place, as density_mlp.
+fn color_mlp(a: ptr<function, array<f32, 64>>) {
+    let s = color_shape[0];
+    var z: array<f32, 64>;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let w = mlp_offset(s, l);
+        let last = l + 1u == s.layers;
+        for (var o = 0u; o < no; o += 1u) {
+            var acc = color_weights[w + no * ni + o];
+            for (var j = 0u; j < ni; j += 1u) {
+                acc = fma(color_weights[w + o * ni + j], (*a)[j], acc);
+            }
+            z[o] = select(max(acc, 0.0), acc, last);
+        }
+        for (var o = 0u; o < no; o += 1u) {
+            (*a)[o] = z[o];
+        }
+    }
+}
+
+// Density at the scene-normalised point u, leaving the density MLP's output row in a.
+fn density_at(u: vec3<f32>, a: ptr<function, array<f32, 64>>) -> f32 {
+    encode(contract_unit(u, params.contraction), a);
+    density_mlp(a);
+    return exp(min((*a)[0], TRUNC));
+}
+
+// Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of).
+fn t_of(s: f32) -> f32 {
+    if params.spacing == 1u {
+        return 1.0 / mix(1.0 / params.near, 1.0 / params.far, s);
+    }
+    return mix(params.near, params.far, s);
+}
+
+// False only inside a cell the grid marks empty: points outside the grid (or NaN) are
+// evaluated, so a grid smaller than the scene costs speed, never content.
+fn occupied(u: vec3<f32>) -> bool {
+    if params.occ_cascades == 0u {
+        return true;
+    }
+    let cell = occ_cell(u, OccGrid(params.occ_res, params.occ_cascades));
+    return cell == OCC_NONE || ((occ_bits[cell / 32u] >> (cell % 32u)) & 1u) != 0u;
+}
+
+@compute @workgroup_size(64)
+fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                @builtin(local_invocation_index) lid: u32) {
+    let i = linear_group(wid, nwg) * 64u + lid;
+    if i >= params.n {
+        return;
+    }
+    let pc = pixels[i];
+    // Out-of-range camera or pixel indices give a zero pixel rather than reading out of bounds.
+    if pc.x >= params.n_cameras {
+        out_rgba[i] = vec4<f32>(0.0);
+        out_depth[i] = 0.0;
+        return;
+    }
+    let cam = cameras[pc.x];
+    let width = cam.size.x;
+    if pc.y >= width * cam.size.y {
+        out_rgba[i] = vec4<f32>(0.0);
+        out_depth[i] = 0.0;
+        return;
+    }
+    let px = vec2<f32>(f32(pc.y % width) + 0.5, f32(pc.y / width) + 0.5);
+    let world = camera_ray(cam, px);
+    var ray = world;
+    if params.ndc != 0u {
+        ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
+    }
+    let sh = sh4(unit_dir(world[1]));
+    let g = params.geo_dims;
+    let inv_k = 1.0 / f32(params.samples);
+    var tau = 0.0;
+    var c = vec3<f32>(0.0);
+    var depth = 0.0;
+    var opacity = 0.0;
+    var a: array<f32, 64>;
+    for (var j = 0u; j < params.samples; j += 1u) {
+        let s0 = f32(j) * inv_k;
+        let s1 = f32(j + 1u) * inv_k;
+        let t = t_of(mix(s0, s1, 0.5));
+        let dt = t_of(s1) - t_of(s0);
+        let u = (ray[0] + t * ray[1] - params.center.xyz) * params.inv_radius;
+        if !occupied(u) {
+            continue;
+        }
+        let sigma = density_at(u, &a);
+        let w = next_weight(sigma, dt, &tau);
+        if w > params.min_weight {
+            // Colour MLP input: the density row, then SH4 of the direction.
+            for (var k = 0u; k < 16u; k += 1u) {
+                a[g + k] = sh[k];
+            }
+            color_mlp(&a);
+            c += w * vec3<f32>(sigmoid(a[0]), sigmoid(a[1]), sigmoid(a[2]));
+        }
+        depth += w * t;
+        opacity += w;
+        if exp(-tau) < params.min_transmittance {
+            break;
+        }
+    }
+    out_rgba[i] = vec4<f32>(c + exp(-tau) * params.background.xyz, opacity);
+    out_depth[i] = depth;
+}
+
+@compute @workgroup_size(64)
+fn march_occupancy(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                   @builtin(local_invocation_index) lid: u32) {
+    let k = linear_group(wid, nwg) * 64u + lid;
+    if k >= params.n {
+        return;
+    }
+    let grid = OccGrid(params.occ_res, params.occ_cascades);
+    let total = params.occ_res * params.occ_res * params.occ_res * params.occ_cascades;
+    let cell = (params.first + k) % total;
+    // The jitter of render/occupancy.wgsl's occ_sample.
+    let h = params.seed * 3u * total + 3u * cell;
+    let u = occ_cell_point(cell, vec3<f32>(rand01(h), rand01(h + 1u), rand01(h + 2u)), grid);
+    var a: array<f32, 64>;
+    var d = density_at(u, &a);
+    // A non-finite density must not freeze a cell as occupied forever.
+    if !(d == d) || d < 0.0 {
+        d = 0.0;
+    }
+    occ_grid[cell] = max(occ_grid[cell] * params.decay, min(d, 3.0e38));
+}
