@@ -246,13 +246,19 @@ fn compile_file(
                     g.name, rb.group
                 ));
             }
-            let read_only = match g.space {
+            let (read_only, uniform_bytes) = match g.space {
                 naga::AddressSpace::Storage { access } => {
-                    !access.contains(naga::StorageAccess::STORE)
+                    (!access.contains(naga::StorageAccess::STORE), 0)
+                }
+                // Uniform blocks: small read-only tables every lane reads at the same index
+                // (MLP weights); lavapipe gathers them without the per-lane branches of
+                // storage-buffer loads.
+                naga::AddressSpace::Uniform => {
+                    (true, module.types[g.ty].inner.size(module.to_ctx()))
                 }
                 other => {
                     return Err(format!(
-                        "{rel}: binding {:?} is in {other:?}; kernels bind storage buffers only",
+                        "{rel}: binding {:?} is in {other:?}; kernels bind storage and uniform buffers only",
                         g.name
                     ))
                 }
@@ -261,7 +267,7 @@ fn compile_file(
                 .name
                 .clone()
                 .ok_or_else(|| format!("{rel}: unnamed binding {}", rb.binding))?;
-            bindings.push((rb.binding, name, read_only));
+            bindings.push((rb.binding, name, read_only, uniform_bytes));
         }
         bindings.sort();
         let options = spv::Options {
@@ -290,19 +296,25 @@ fn compile_file(
         let _ = writeln!(code, "        /// SPIR-V 1.3 words of this entry point.\n        pub const SPIRV: &[u32] = &{words:?};");
         let [x, y, z] = ep.workgroup_size;
         let _ = writeln!(code, "        /// Workgroup size declared in the WGSL.\n        pub const WORKGROUP_SIZE: [u32; 3] = [{x}, {y}, {z}];");
-        let _ = writeln!(code, "        /// Storage buffers this entry point uses, by binding index (all in group 0).\n        #[derive(Clone, Copy, Debug)]\n        pub struct Bindings<B> {{");
-        for (b, name, ro) in &bindings {
+        let _ = writeln!(code, "        /// Buffers this entry point uses, by binding index (all in group 0).\n        #[derive(Clone, Copy, Debug)]\n        pub struct Bindings<B> {{");
+        for (b, name, ro, ub) in &bindings {
             let _ = writeln!(
                 code,
                 "            /// `@binding({b})`{}",
-                if *ro { ", read-only" } else { ", read-write" }
+                if *ub > 0 {
+                    ", uniform"
+                } else if *ro {
+                    ", read-only"
+                } else {
+                    ", read-write"
+                }
             );
             let _ = writeln!(code, "            pub {name}: B,");
         }
-        let _ = writeln!(code, "        }}\n        impl<B> Bindings<B> {{\n            /// The bindings in the order of [`DESC`]'s `bindings`.\n            pub fn into_array(self) -> [B; {}] {{\n                [{}]\n            }}\n        }}", bindings.len(), bindings.iter().map(|(_, n, _)| format!("self.{n}")).collect::<Vec<_>>().join(", "));
+        let _ = writeln!(code, "        }}\n        impl<B> Bindings<B> {{\n            /// The bindings in the order of [`DESC`]'s `bindings`.\n            pub fn into_array(self) -> [B; {}] {{\n                [{}]\n            }}\n        }}", bindings.len(), bindings.iter().map(|(_, n, _, _)| format!("self.{n}")).collect::<Vec<_>>().join(", "));
         let _ = writeln!(code, "        /// Everything the engine needs to build this kernel.\n        pub const DESC: crate::KernelDesc = crate::KernelDesc {{\n            name: \"{mod_name}::{ep_mod}\",\n            entry: \"{}\",\n            spirv: SPIRV,\n            workgroup_size: WORKGROUP_SIZE,\n            params_size: {params_size},\n            bindings: &[{}],\n            needs_subgroups: {uses_subgroup},\n            needs_float32_atomic_add: {uses_f32_atomic},\n        }};\n    }}",
             ep.name,
-            bindings.iter().map(|(b, n, ro)| format!("crate::BindingDesc {{ binding: {b}, name: \"{n}\", read_only: {ro} }}")).collect::<Vec<_>>().join(", "));
+            bindings.iter().map(|(b, n, ro, ub)| format!("crate::BindingDesc {{ binding: {b}, name: \"{n}\", read_only: {ro}, uniform_bytes: {ub} }}")).collect::<Vec<_>>().join(", "));
         entries.push(format!("{mod_name}::{ep_mod}"));
     }
     code.push_str("}\n\n");

@@ -247,11 +247,20 @@ fn check_mlp(dims: Vec<u32>, n: usize, seed: u64) {
 fn mlp_forward_and_gradients_match_reference() {
     // Instant-NGP's density MLP (32 -> 64 -> 16) and colour MLP (32 -> 64 -> 64 -> 3), an odd
     // shape, a single linear layer, and the widest 4-layer net; n not a multiple of the chunk.
-    check_mlp(vec![32, 64, 16], 1000, 11);
-    check_mlp(vec![32, 64, 64, 3], 777, 12);
-    check_mlp(vec![5, 7, 6, 3], 300, 13);
-    check_mlp(vec![4, 1], 257, 14);
-    check_mlp(vec![64, 64, 64, 64, 64], 130, 15);
+    // The first two and [4, 1] run the uniform-block kernels; the odd shape (widths not
+    // multiples of 4) and the widest net (16,640 weights > 16,384) the storage-buffer ones.
+    for (dims, n, seed, block) in [
+        (vec![32, 64, 16], 1000, 11, true),
+        (vec![32, 64, 64, 3], 777, 12, true),
+        (vec![5, 7, 6, 3], 300, 13, false),
+        (vec![4, 1], 257, 14, true),
+        (vec![64, 64, 64, 64, 64], 130, 15, false),
+    ] {
+        let cfg = extranerf_nerf::field::mlp::MlpConfig { dims: dims.clone() };
+        let mlp = extranerf_nerf::field::mlp::Mlp::new(&engine().ctx, cfg).unwrap();
+        assert_eq!(mlp.uses_block(), block, "{dims:?}");
+        check_mlp(dims, n, seed);
+    }
     let bad = extranerf_nerf::field::mlp::MlpConfig {
         dims: vec![3, 65, 1],
     };

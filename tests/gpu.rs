@@ -181,6 +181,52 @@ fn kernel_interface_mismatch_is_an_error() {
     assert_no_validation_messages(&e.ctx);
 }
 
+/// A uniform block must be covered by the bound range and fit the device's uniform range; each
+/// violation is a clear error, not a validation failure. (Slices already enforce the storage
+/// offset alignment, which on lavapipe equals the uniform one.)
+#[test]
+fn uniform_block_bindings_are_checked() {
+    use kernels::field::mlp::{mlp_fwd_block as kb, Params};
+    let e = engine();
+    assert_eq!(
+        kb::DESC
+            .bindings
+            .iter()
+            .filter(|b| b.uniform_bytes == 65536)
+            .count(),
+        1
+    );
+    let kernel = Kernel::new(&e.ctx, &kb::DESC).unwrap();
+    let small = Buffer::<f32>::new(&e.ctx, "small block", 1024).unwrap();
+    let big = Buffer::<f32>::new(&e.ctx, "big block", 16384 + 64).unwrap();
+    let any = Buffer::<f32>::new(&e.ctx, "any", 64).unwrap();
+    let p = Params {
+        n: 1,
+        chunk: 1,
+        saved_stride: 0,
+        _pad: 0,
+    };
+    let mut rec = e.ctx.recorder("uniform checks").unwrap();
+    for (block, what) in [
+        (small.binding(), "too small"),
+        (big.binding(), "beyond the uniform range"),
+    ] {
+        let b = kb::Bindings {
+            shape_buf: any.binding(),
+            inputs: any.binding(),
+            outputs: any.binding(),
+            mlp: block,
+        };
+        let r = rec.dispatch(&kernel, b.into_array(), &p, 1);
+        match r {
+            Err(GpuError::Usage(m)) => assert!(m.contains("uniform block"), "{what}: {m}"),
+            other => panic!("{what}: {other:?}"),
+        }
+    }
+    drop(rec);
+    assert_no_validation_messages(&e.ctx);
+}
+
 #[test]
 fn workgroup_folding() {
     assert_eq!(fold_groups(0, 65535, 65535).unwrap(), [0, 1]);

@@ -16,6 +16,9 @@ pub struct BindingDesc {
     pub name: &'static str,
     /// True when the kernel never stores to it.
     pub read_only: bool,
+    /// Bytes of the `var<uniform>` block when the binding is a uniform buffer (which the
+    /// bound range must cover); 0 for storage buffers.
+    pub uniform_bytes: u32,
 }
 
 /// A compiled compute entry point and what the engine needs to build its pipeline.

@@ -90,6 +90,10 @@ pub struct DeviceInfo {
     pub max_storage_buffer_range: u64,
     /// `minStorageBufferOffsetAlignment`.
     pub min_storage_buffer_offset_alignment: u64,
+    /// `maxUniformBufferRange`.
+    pub max_uniform_buffer_range: u64,
+    /// `minUniformBufferOffsetAlignment`.
+    pub min_uniform_buffer_offset_alignment: u64,
     /// `maxComputeWorkGroupCount[0]`.
     pub max_workgroup_count_x: u32,
     /// `maxComputeWorkGroupCount[1]`.
@@ -953,6 +957,8 @@ fn probe_device(
             && subgroup.supported_operations.contains(ops),
         max_storage_buffer_range: p.limits.max_storage_buffer_range as u64,
         min_storage_buffer_offset_alignment: p.limits.min_storage_buffer_offset_alignment,
+        max_uniform_buffer_range: p.limits.max_uniform_buffer_range as u64,
+        min_uniform_buffer_offset_alignment: p.limits.min_uniform_buffer_offset_alignment,
         max_workgroup_count_x: p.limits.max_compute_work_group_count[0],
         max_workgroup_count_y: p.limits.max_compute_work_group_count[1],
         max_shared_memory: p.limits.max_compute_shared_memory_size,

@@ -53,6 +53,17 @@ impl Kernel {
                 ),
             });
         }
+        for b in desc.bindings {
+            if b.uniform_bytes as u64 > info.max_uniform_buffer_range {
+                return Err(GpuError::KernelMismatch {
+                    kernel: desc.name,
+                    problem: format!(
+                        "uniform block `{}` has {} bytes; the device allows {}",
+                        b.name, b.uniform_bytes, info.max_uniform_buffer_range
+                    ),
+                });
+            }
+        }
         let device = &ctx.inner.device;
         let bindings: Vec<_> = desc
             .bindings
@@ -60,7 +71,7 @@ impl Kernel {
             .map(|b| {
                 vk::DescriptorSetLayoutBinding::default()
                     .binding(b.binding)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_type(descriptor_type(b))
                     .descriptor_count(1)
                     .stage_flags(vk::ShaderStageFlags::COMPUTE)
             })
@@ -155,5 +166,14 @@ impl Drop for Kernel {
                 module: self.module,
             },
         );
+    }
+}
+
+/// The descriptor type of a reflected binding.
+pub(crate) fn descriptor_type(b: &extranerf_kernels::BindingDesc) -> vk::DescriptorType {
+    if b.uniform_bytes > 0 {
+        vk::DescriptorType::UNIFORM_BUFFER
+    } else {
+        vk::DescriptorType::STORAGE_BUFFER
     }
 }

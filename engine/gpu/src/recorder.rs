@@ -257,11 +257,32 @@ impl<'a> Recorder<'a> {
                 ),
             });
         }
+        let info = &self.ctx.inner.info;
+        for (b, d) in bindings.iter().zip(desc.bindings) {
+            if d.uniform_bytes == 0 {
+                continue;
+            }
+            let align = info.min_uniform_buffer_offset_alignment.max(1);
+            if b.bytes < d.uniform_bytes as u64
+                || b.bytes > info.max_uniform_buffer_range
+                || !b.offset.is_multiple_of(align)
+            {
+                return Err(GpuError::Usage(format!(
+                    "kernel {}: `{}` bound as uniform block `{}` must cover its {} bytes, stay within {} bytes and start on a multiple of {align} (it has {} bytes at offset {})",
+                    desc.name,
+                    b.name,
+                    d.name,
+                    d.uniform_bytes,
+                    info.max_uniform_buffer_range,
+                    b.bytes,
+                    b.offset
+                )));
+            }
+        }
         if threads == 0 {
             return Ok(());
         }
         let wg = desc.workgroup_size[0].max(1) as u64;
-        let info = &self.ctx.inner.info;
         let [gx, gy] = fold_groups(
             threads.div_ceil(wg),
             info.max_workgroup_count_x,
@@ -290,7 +311,7 @@ impl<'a> Recorder<'a> {
             .map(|(d, info)| {
                 vk::WriteDescriptorSet::default()
                     .dst_binding(d.binding)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_type(crate::kernel::descriptor_type(d))
                     .buffer_info(info)
             })
             .collect();

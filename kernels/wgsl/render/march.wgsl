@@ -18,6 +18,7 @@
 //
 // The layouts match the standalone kernels: common/hash_grid.wgsl (levels, table),
 // common/mlp.wgsl (weights row-major, then the bias, per layer), common/occupancy.wgsl. The
+// MLPs' inputs and hidden widths must be multiples of 4 and both MLPs fit 16384 floats. The
 // standalone pipeline (render/sample.wgsl, field/*, render/field_heads.wgsl,
 // render/composite.wgsl) computes the same quantities sample by sample.
 //!include common/dispatch.wgsl
@@ -25,6 +26,7 @@
 //!include common/contract.wgsl
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
+//!include common/mlp_block.wgsl
 //!include common/occupancy.wgsl
 //!include common/rng.wgsl
 //!include common/sh.wgsl
@@ -64,6 +66,11 @@ struct Params {
     seed: u32,
     decay: f32,
     n_cameras: u32,
+    // Float offset of the colour MLP in the uniform weight block (the density MLP is at 0).
+    color_base: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 var<immediate> params: Params;
 
@@ -73,13 +80,15 @@ var<immediate> params: Params;
 @group(0) @binding(2) var<storage, read> level_info: array<HashLevel>;
 @group(0) @binding(3) var<storage, read> table: array<f32>;
 @group(0) @binding(4) var<storage, read> density_shape: array<MlpShape>;
-@group(0) @binding(5) var<storage, read> density_weights: array<f32>;
 @group(0) @binding(6) var<storage, read> color_shape: array<MlpShape>;
-@group(0) @binding(7) var<storage, read> color_weights: array<f32>;
 @group(0) @binding(8) var<storage, read> occ_bits: array<u32>;
 @group(0) @binding(9) var<storage, read_write> out_rgba: array<vec4<f32>>;
 @group(0) @binding(10) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(11) var<storage, read_write> occ_grid: array<f32>;
+// Both MLPs' weights (common/mlp.wgsl layout; density at 0, colour at params.color_base),
+// copied here from the parameter buffer before each pass. Every lane reads the same entry; a
+// uniform block lets lavapipe load it without the per-lane branches of a storage buffer.
+@group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
 
 const TRUNC: f32 = 15.0;
 
@@ -93,11 +102,10 @@ fn sigmoid(v: f32) -> f32 {
 
 // Hash-grid features of the contracted point x into a[0 .. levels * features]. A NaN point
 // has all-zero features, as in the standalone kernel.
-fn encode(x: vec3<f32>, a: ptr<function, array<f32, 64>>) {
+fn encode(x: vec3<f32>, a: ptr<function, Act>) {
     let F = params.features;
-    let n = params.levels * F;
-    for (var j = 0u; j < n; j += 1u) {
-        (*a)[j] = 0.0;
+    for (var j = 0u; j < 16u; j += 1u) {
+        (*a)[j] = vec4<f32>(0.0);
     }
     if !hg_valid(x) {
         return;
@@ -105,66 +113,33 @@ fn encode(x: vec3<f32>, a: ptr<function, array<f32, 64>>) {
     for (var l = 0u; l < params.levels; l += 1u) {
         let lv = level_info[l];
         let cell = hg_cell(x, lv);
-        for (var k = 0u; k < 8u; k += 1u) {
-            let w = hg_weight(cell.frac, k);
-            let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
-            for (var f = 0u; f < F; f += 1u) {
-                (*a)[l * F + f] += w * table[e + f];
+        if F == 2u {
+            // The paper's setting: one hash per corner for both features.
+            var acc = vec2<f32>(0.0);
+            for (var k = 0u; k < 8u; k += 1u) {
+                let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * 2u;
+                acc += hg_weight(cell.frac, k) * vec2<f32>(table[e], table[e + 1u]);
             }
+            act_set(a, 2u * l, acc.x);
+            act_set(a, 2u * l + 1u, acc.y);
+            continue;
         }
-    }
-}
-
-// The density MLP in place: a[0 .. inputs] -> a[0 .. outputs] (the same fma order as
-// field/mlp.wgsl's mlp_fwd).
-fn density_mlp(a: ptr<function, array<f32, 64>>) {
-    let s = density_shape[0];
-    var z: array<f32, 64>;
-    for (var l = 0u; l < s.layers; l += 1u) {
-        let ni = mlp_dim(s, l);
-        let no = mlp_dim(s, l + 1u);
-        let w = mlp_offset(s, l);
-        let last = l + 1u == s.layers;
-        for (var o = 0u; o < no; o += 1u) {
-            var acc = density_weights[w + no * ni + o];
-            for (var j = 0u; j < ni; j += 1u) {
-                acc = fma(density_weights[w + o * ni + j], (*a)[j], acc);
+        for (var f = 0u; f < F; f += 1u) {
+            var acc = 0.0;
+            for (var k = 0u; k < 8u; k += 1u) {
+                let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
+                acc += hg_weight(cell.frac, k) * table[e + f];
             }
-            z[o] = select(max(acc, 0.0), acc, last);
-        }
-        for (var o = 0u; o < no; o += 1u) {
-            (*a)[o] = z[o];
-        }
-    }
-}
-
-// The colour MLP in place, as density_mlp.
-fn color_mlp(a: ptr<function, array<f32, 64>>) {
-    let s = color_shape[0];
-    var z: array<f32, 64>;
-    for (var l = 0u; l < s.layers; l += 1u) {
-        let ni = mlp_dim(s, l);
-        let no = mlp_dim(s, l + 1u);
-        let w = mlp_offset(s, l);
-        let last = l + 1u == s.layers;
-        for (var o = 0u; o < no; o += 1u) {
-            var acc = color_weights[w + no * ni + o];
-            for (var j = 0u; j < ni; j += 1u) {
-                acc = fma(color_weights[w + o * ni + j], (*a)[j], acc);
-            }
-            z[o] = select(max(acc, 0.0), acc, last);
-        }
-        for (var o = 0u; o < no; o += 1u) {
-            (*a)[o] = z[o];
+            act_set(a, l * F + f, acc);
         }
     }
 }
 
 // Density at the scene-normalised point u, leaving the density MLP's output row in a.
-fn density_at(u: vec3<f32>, a: ptr<function, array<f32, 64>>) -> f32 {
+fn density_at(u: vec3<f32>, a: ptr<function, Act>) -> f32 {
     encode(contract_unit(u, params.contraction), a);
-    density_mlp(a);
-    return exp(min((*a)[0], TRUNC));
+    mlp_forward(density_shape[0], 0u, a);
+    return exp(min((*a)[0].x, TRUNC));
 }
 
 // Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of).
@@ -219,7 +194,7 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     var c = vec3<f32>(0.0);
     var depth = 0.0;
     var opacity = 0.0;
-    var a: array<f32, 64>;
+    var a: Act;
     for (var j = 0u; j < params.samples; j += 1u) {
         let s0 = f32(j) * inv_k;
         let s1 = f32(j + 1u) * inv_k;
@@ -233,11 +208,11 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
         let w = next_weight(sigma, dt, &tau);
         if w > params.min_weight {
             // Colour MLP input: the density row, then SH4 of the direction.
-            for (var k = 0u; k < 16u; k += 1u) {
-                a[g + k] = sh[k];
+            for (var k = 0u; k < 4u; k += 1u) {
+                a[(g >> 2u) + k] = vec4<f32>(sh[4u * k], sh[4u * k + 1u], sh[4u * k + 2u], sh[4u * k + 3u]);
             }
-            color_mlp(&a);
-            c += w * vec3<f32>(sigmoid(a[0]), sigmoid(a[1]), sigmoid(a[2]));
+            mlp_forward(color_shape[0], params.color_base, &a);
+            c += w * vec3<f32>(sigmoid(a[0].x), sigmoid(a[0].y), sigmoid(a[0].z));
         }
         depth += w * t;
         opacity += w;
@@ -262,7 +237,7 @@ fn march_occupancy(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
     // The jitter of render/occupancy.wgsl's occ_sample.
     let h = params.seed * 3u * total + 3u * cell;
     let u = occ_cell_point(cell, vec3<f32>(rand01(h), rand01(h + 1u), rand01(h + 2u)), grid);
-    var a: array<f32, 64>;
+    var a: Act;
     var d = density_at(u, &a);
     // A non-finite density must not freeze a cell as occupied forever.
     if !(d == d) || d < 0.0 {

@@ -17,6 +17,10 @@ pub struct MlpConfig {
 /// Points per chunk of the weight-gradient reduction (one atomic per parameter per chunk).
 pub const WGRAD_CHUNK: u32 = 256;
 
+/// Floats of the uniform weight block (64 KiB, the smallest `maxUniformBufferRange` Vulkan
+/// allows); see `common/mlp_block.wgsl`.
+pub const BLOCK_FLOATS: usize = 16384;
+
 impl MlpConfig {
     /// Checks the limits of the kernels.
     pub fn validate(&self) -> Result<()> {
@@ -39,6 +43,13 @@ impl MlpConfig {
         (0..l)
             .map(|k| (self.dims[k] as usize + 1) * self.dims[k + 1] as usize)
             .sum()
+    }
+
+    /// True when every layer's input width and weight offset are multiples of 4, so the
+    /// weights can be read as vec4 rows from a uniform block (`common/mlp_block.wgsl`).
+    pub fn vec4_rows(&self) -> bool {
+        (0..self.layers())
+            .all(|l| self.dims[l].is_multiple_of(4) && self.offset(l).is_multiple_of(4))
     }
 
     /// Weights and biases of all layers.
@@ -72,13 +83,32 @@ pub struct Mlp {
     fwd: Kernel,
     bwd: Kernel,
     wgrad: Kernel,
+    /// The uniform-block kernels and their weight block, when the shape suits them.
+    block: Option<Block>,
+}
+
+#[derive(Debug)]
+struct Block {
+    fwd: Kernel,
+    bwd: Kernel,
+    weights: Buffer<f32>,
 }
 
 impl Mlp {
     /// Builds the kernels.
     pub fn new(ctx: &Context, config: MlpConfig) -> Result<Mlp> {
         config.validate()?;
+        let block = if config.vec4_rows() && config.param_count() <= BLOCK_FLOATS {
+            Some(Block {
+                fwd: Kernel::new(ctx, &k::mlp_fwd_block::DESC)?,
+                bwd: Kernel::new(ctx, &k::mlp_bwd_data_block::DESC)?,
+                weights: Buffer::new(ctx, "mlp weight block", BLOCK_FLOATS)?,
+            })
+        } else {
+            None
+        };
         Ok(Mlp {
+            block,
             shape: Buffer::from_slice(ctx, "mlp shape", &[config.shape()])?,
             config,
             fwd: Kernel::new(ctx, &k::mlp_fwd::DESC)?,
@@ -90,6 +120,11 @@ impl Mlp {
     /// The shape record on the device (common/mlp.wgsl's `MlpShape`).
     pub fn shape(&self) -> &Buffer<MlpShape> {
         &self.shape
+    }
+
+    /// True when the uniform-block kernels run this MLP (see `common/mlp_block.wgsl`).
+    pub fn uses_block(&self) -> bool {
+        self.block.is_some()
     }
 
     /// The configuration.
@@ -120,6 +155,22 @@ impl Mlp {
         weights.check_fits(c.param_count() as u64, 4, "MLP weights")?;
         inputs.check_fits(n * c.dims[0] as u64, 4, "MLP inputs")?;
         outputs.check_fits(n * c.dims[c.layers()] as u64, 4, "MLP outputs")?;
+        if let Some(block) = &self.block {
+            rec.copy(
+                weights,
+                0,
+                block.weights.binding(),
+                0,
+                c.param_count() as u64 * 4,
+            )?;
+            let b = k::mlp_fwd_block::Bindings {
+                shape_buf: self.shape.binding(),
+                inputs,
+                outputs,
+                mlp: block.weights.binding(),
+            };
+            return rec.dispatch(&block.fwd, b.into_array(), &self.params(n)?, n);
+        }
         let b = k::mlp_fwd::Bindings {
             shape_buf: self.shape.binding(),
             weights,
@@ -157,15 +208,34 @@ impl Mlp {
         )?;
         let p = self.params(n)?;
         let shape_buf = self.shape.binding();
-        let b = k::mlp_bwd_data::Bindings {
-            shape_buf,
-            weights,
-            inputs,
-            d_outputs,
-            d_inputs,
-            saved,
-        };
-        rec.dispatch(&self.bwd, b.into_array(), &p, n)?;
+        if let Some(block) = &self.block {
+            rec.copy(
+                weights,
+                0,
+                block.weights.binding(),
+                0,
+                c.param_count() as u64 * 4,
+            )?;
+            let b = k::mlp_bwd_data_block::Bindings {
+                shape_buf,
+                inputs,
+                d_outputs,
+                d_inputs,
+                saved,
+                mlp: block.weights.binding(),
+            };
+            rec.dispatch(&block.bwd, b.into_array(), &p, n)?;
+        } else {
+            let b = k::mlp_bwd_data::Bindings {
+                shape_buf,
+                weights,
+                inputs,
+                d_outputs,
+                d_inputs,
+                saved,
+            };
+            rec.dispatch(&self.bwd, b.into_array(), &p, n)?;
+        }
         let chunks = n.div_ceil(WGRAD_CHUNK as u64);
         let b = k::mlp_wgrad::Bindings {
             shape_buf,

@@ -48,6 +48,8 @@ impl MarchCuts {
     }
 }
 
+use crate::field::mlp::BLOCK_FLOATS as MLP_BLOCK_FLOATS;
+
 /// The fused march kernels.
 #[derive(Debug)]
 pub struct Marcher {
@@ -55,6 +57,26 @@ pub struct Marcher {
     occupancy: Kernel,
     /// Bound as the occupancy bitfield when no grid is used (the kernel does not read it).
     no_bits: Buffer<u32>,
+    /// Both MLPs' weights, copied from the parameter buffer before each pass.
+    mlp_block: Buffer<f32>,
+}
+
+/// Where the colour MLP starts in the uniform block, after checking that both MLPs fit and
+/// that every layer's input width and offset are multiples of 4 (vec4 rows).
+pub fn color_base(field: &Field) -> Result<usize> {
+    let cfg = field.config();
+    let (d, c) = (cfg.density_mlp(), cfg.color_mlp());
+    let base = d.param_count().div_ceil(4) * 4;
+    if !d.vec4_rows() || !c.vec4_rows() || base + c.param_count() > MLP_BLOCK_FLOATS {
+        return Err(GpuError::Usage(format!(
+            "the fused march needs MLP input and hidden widths that are multiples of 4 and at most {MLP_BLOCK_FLOATS} weights in both MLPs together (density {:?}: {}, colour {:?}: {}); render with the standalone kernels instead",
+            d.dims,
+            d.param_count(),
+            c.dims,
+            c.param_count()
+        )));
+    }
+    Ok(base)
 }
 
 impl Marcher {
@@ -64,7 +86,24 @@ impl Marcher {
             render: Kernel::new(ctx, &k::march_render::DESC)?,
             occupancy: Kernel::new(ctx, &k::march_occupancy::DESC)?,
             no_bits: Buffer::from_slice(ctx, "no occupancy bits", &[u32::MAX])?,
+            mlp_block: Buffer::new(ctx, "march MLP weights", MLP_BLOCK_FLOATS)?,
         })
+    }
+
+    /// Records the copy of both MLPs into the uniform block; returns the colour MLP's offset.
+    fn record_mlp_block<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        field: &'a Field,
+        params: &[Binding<'a>; 3],
+    ) -> Result<u32> {
+        let base = color_base(field)?;
+        let cfg = field.config();
+        let dn = cfg.density_mlp().param_count() as u64 * 4;
+        let cn = cfg.color_mlp().param_count() as u64 * 4;
+        rec.copy(params[1], 0, self.mlp_block.binding(), 0, dn)?;
+        rec.copy(params[2], 0, self.mlp_block.binding(), base as u64 * 4, cn)?;
+        Ok(base as u32)
     }
 
     fn params(field: &Field, samples: u32, background: [f32; 3]) -> Result<k::Params> {
@@ -104,6 +143,10 @@ impl Marcher {
             seed: 0,
             decay: 0.0,
             n_cameras: 0,
+            color_base: 0,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
         })
     }
 
@@ -145,19 +188,18 @@ impl Marcher {
             }
             None => self.no_bits.binding(),
         };
-        let [table, density_weights, color_weights] = params;
+        p.color_base = self.record_mlp_block(rec, field, &params)?;
         let b = k::march_render::Bindings {
             cameras,
             pixels,
             level_info: field.grid().levels().binding(),
-            table,
+            table: params[0],
             density_shape: field.density().shape().binding(),
-            density_weights,
             color_shape: field.color().shape().binding(),
-            color_weights,
             occ_bits,
             out_rgba,
             out_depth,
+            mlp: self.mlp_block.binding(),
         };
         rec.dispatch(&self.render, b.into_array(), &p, n)
     }
@@ -196,13 +238,13 @@ impl Marcher {
         p.first = (first % cells) as u32;
         p.seed = seed;
         p.decay = decay;
-        let [table, density_weights, _] = params;
+        p.color_base = self.record_mlp_block(rec, field, &params)?;
         let b = k::march_occupancy::Bindings {
             level_info: field.grid().levels().binding(),
-            table,
+            table: params[0],
             density_shape: field.density().shape().binding(),
-            density_weights,
             occ_grid: occupancy.grid().binding(),
+            mlp: self.mlp_block.binding(),
         };
         rec.dispatch(&self.occupancy, b.into_array(), &p, count)
     }
