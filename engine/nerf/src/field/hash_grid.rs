@@ -119,6 +119,9 @@ impl HashGridConfig {
 pub struct HashGrid {
     config: HashGridConfig,
     levels: Buffer<HashLevel>,
+    /// Per level (first float, size * features, 0, 0), then (floats, 1, 0, 0), padded to 65
+    /// entries: the uniform block of `hash_decay_grad`.
+    level_block: Buffer<[u32; 4]>,
     /// Generic kernels (any F) or the F = 2 specialisation.
     kernels: Kernels,
     decay: Kernel,
@@ -143,9 +146,17 @@ impl HashGrid {
                 limit: ctx.info().max_storage_buffer_range,
             });
         }
+        let layout = config.level_layout();
+        let mut block: Vec<[u32; 4]> = layout
+            .iter()
+            .map(|l| [l.offset, l.size * config.features, 0, 0])
+            .collect();
+        block.push([count as u32, 1, 0, 0]);
+        block.resize(65, [count as u32, 1, 0, 0]);
         Ok(HashGrid {
             config,
-            levels: Buffer::from_slice(ctx, "hash grid levels", &config.level_layout())?,
+            levels: Buffer::from_slice(ctx, "hash grid levels", &layout)?,
+            level_block: Buffer::from_slice(ctx, "hash grid level block", &block)?,
             kernels: if config.features == 2 {
                 Kernels::F2 {
                     fwd: Kernel::new(ctx, &k2::encode_fwd_f2::DESC)?,
@@ -223,9 +234,11 @@ impl HashGrid {
     ) -> Result<()> {
         let (n, p) = self.decay_params(&table, &d_table, lambda)?;
         let b = kdecay::hash_decay_grad::Bindings {
-            level_info: self.levels.binding(),
             table,
             d_table,
+            table4: table,
+            d_table4: d_table,
+            level_block: self.level_block.binding(),
         };
         rec.dispatch(&self.decay_grad, b.into_array(), &p, n.div_ceil(4))
     }
