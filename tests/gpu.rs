@@ -204,7 +204,7 @@ fn uniform_block_bindings_are_checked() {
         n: 1,
         chunk: 1,
         saved_stride: 0,
-        _pad: 0,
+        groups: 16,
     };
     let mut rec = e.ctx.recorder("uniform checks").unwrap();
     for (block, what) in [

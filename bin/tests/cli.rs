@@ -181,8 +181,8 @@ fn train_resume_render_eval_on_fern() {
     // NDC t of the expected depth: inside (0, 1] wherever the field has density.
     assert!(depth.iter().all(|d| (0.0..=1.0).contains(d)));
     assert!(depth.iter().any(|&d| d > 0.0));
-    // The standalone kernels give the same image as the fused march (default path) up to its
-    // 1e-4 cuts and PNG rounding.
+    // The standalone kernels give the same image as the fused march (default path) up to f32
+    // summation order and PNG rounding.
     let alt = run.join("render_standalone");
     let (ok, _, err) = extranerf(&[
         "render",

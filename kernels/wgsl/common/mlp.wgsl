@@ -30,3 +30,8 @@ fn mlp_offset(s: MlpShape, l: u32) -> u32 {
     }
     return off;
 }
+
+// x rounded up to a multiple of 4.
+fn pad4(x: u32) -> u32 {
+    return (x + 3u) & ~3u;
+}

@@ -11,9 +11,11 @@ struct Params {
     n: u32,
     // Points per chunk of the weight-gradient reduction.
     chunk: u32,
-    // Floats per point in `saved` (sum over layers of inputs + outputs).
+    // Floats per point in `saved`: per layer its inputs then its pre-activations, each segment
+    // padded to a multiple of 4 floats (so mlp_wgrad reads them as vec4s).
     saved_stride: u32,
-    _pad: u32,
+    // mlp_wgrad: point groups per weight block (a multiple of the subgroup size).
+    groups: u32,
 }
 var<immediate> params: Params;
 
@@ -25,6 +27,8 @@ var<immediate> params: Params;
 @group(0) @binding(5) var<storage, read_write> d_inputs: array<f32>;
 @group(0) @binding(6) var<storage, read_write> saved: array<f32>;
 @group(0) @binding(7) var<storage, read_write> d_weights: array<atomic<f32>>;
+// `saved` again as vec4s (mlp_wgrad).
+@group(0) @binding(9) var<storage, read> saved4: array<vec4<f32>>;
 // The weights again, copied into a uniform block, for the `_block` variants.
 @group(0) @binding(8) var<uniform> mlp: array<vec4<f32>, 4096>;
 
@@ -89,7 +93,7 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
         for (var j = 0u; j < ni; j += 1u) {
             saved[at + j] = a[j];
         }
-        at += ni;
+        at += pad4(ni);
         for (var o = 0u; o < no; o += 1u) {
             var acc = weights[w + no * ni + o];
             for (var j = 0u; j < ni; j += 1u) {
@@ -99,7 +103,7 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             saved[at + o] = acc;
             z[o] = select(max(acc, 0.0), acc, l + 1u == s.layers);
         }
-        at += no;
+        at += pad4(no);
         for (var o = 0u; o < no; o += 1u) {
             a[o] = z[o];
         }
@@ -115,7 +119,7 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
         let ni = mlp_dim(s, l);
         let no = mlp_dim(s, l + 1u);
         let w = mlp_offset(s, l);
-        at -= no;
+        at -= pad4(no);
         let last = l + 1u == s.layers;
         for (var o = 0u; o < no; o += 1u) {
             // ReLU'(pre) on hidden layers; identity on the output layer.
@@ -124,7 +128,7 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             saved[at + o] = d;
             z[o] = d;
         }
-        at -= ni;
+        at -= pad4(ni);
         for (var j = 0u; j < ni; j += 1u) {
             var acc = 0.0;
             for (var o = 0u; o < no; o += 1u) {
@@ -138,82 +142,103 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-// Where parameter `param` sits: (layer's offset in `saved`, inputs of the layer, output row o,
-// input column j, is a bias).
-struct WSlot {
-    at: u32,
-    ni: u32,
-    o: u32,
-    j: u32,
-    bias: bool,
-}
-
-fn wslot(s: MlpShape, param: u32) -> WSlot {
-    var l = 0u;
-    var off = 0u;
-    var at = 0u;
-    loop {
-        let size = (mlp_dim(s, l) + 1u) * mlp_dim(s, l + 1u);
-        if param < off + size || l + 1u >= s.layers {
-            break;
-        }
-        off += size;
-        at += mlp_dim(s, l) + mlp_dim(s, l + 1u);
-        l += 1u;
-    }
-    let ni = mlp_dim(s, l);
-    let no = mlp_dim(s, l + 1u);
-    let local = param - off;
-    let bias = local >= no * ni;
-    return WSlot(at, ni, select(local / ni, local - no * ni, bias), select(local % ni, 0u, bias), bias);
-}
-
-// One thread per (4 consecutive parameters, chunk of points): d_weights[param] += sum over the
-// chunk of delta[o] * input[j] (weights) or delta[o] (biases). When the four are weights of one
-// output row (the common case), each point costs one delta and four input loads for four FMAs.
+// Weight gradients: dW_l = sum over points of delta_l (x) input_l, db_l = sum of delta_l. One
+// thread per (block of 4 rows x 4 columns of one layer, group of points); the column block past
+// the last one holds the biases. Per point a thread loads one vec4 of deltas and one vec4 of
+// inputs for 16 FMAs. Lanes of a subgroup that share a block (groups is a multiple of the
+// subgroup size) sum in the subgroup; one lane adds the 16 sums with f32 atomics.
 @compute @workgroup_size(64)
 fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-             @builtin(local_invocation_index) lid: u32) {
+             @builtin(local_invocation_index) lid: u32,
+             @builtin(subgroup_invocation_id) lane: u32) {
     let t = linear_group(wid, nwg) * 64u + lid;
     let s = shape_buf[0];
-    let chunks = (params.n + params.chunk - 1u) / params.chunk;
-    let quads = (s.params + 3u) / 4u;
-    if t >= quads * chunks {
+    let groups = params.groups;
+    let blk = t / groups;
+    let grp = t % groups;
+    // Find the layer of the block: (weights offset, saved offset, widths, first block).
+    var valid = false;
+    var off = 0u;
+    var at = 0u;
+    var ni = 1u;
+    var no = 1u;
+    var local = 0u;
+    var first = 0u;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let a = mlp_dim(s, l);
+        let b = mlp_dim(s, l + 1u);
+        let nb = (pad4(b) / 4u) * (pad4(a) / 4u + 1u);
+        if !valid && blk < first + nb {
+            valid = true;
+            off = mlp_offset(s, l);
+            ni = a;
+            no = b;
+            local = blk - first;
+        }
+        if !valid {
+            at += pad4(a) + pad4(b);
+        }
+        first += nb;
+    }
+    let cols = pad4(ni) / 4u + 1u;
+    let o0 = (local / cols) * 4u;
+    let j4 = local % cols;
+    let bias = j4 + 1u == cols;
+    let j0 = j4 * 4u;
+    var acc0 = vec4<f32>(0.0);
+    var acc1 = vec4<f32>(0.0);
+    var acc2 = vec4<f32>(0.0);
+    var acc3 = vec4<f32>(0.0);
+    if valid {
+        let p0 = grp * params.chunk;
+        let p1 = min(p0 + params.chunk, params.n);
+        let stride4 = params.saved_stride / 4u;
+        let d_at = (at + pad4(ni) + o0) / 4u;
+        let x_at = (at + j0) / 4u;
+        for (var p = p0; p < p1; p += 1u) {
+            let d = saved4[p * stride4 + d_at];
+            var x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
+            if !bias {
+                x = saved4[p * stride4 + x_at];
+            }
+            acc0 += d.x * x;
+            acc1 += d.y * x;
+            acc2 += d.z * x;
+            acc3 += d.w * x;
+        }
+    }
+    // Every lane reaches the subgroup operations (no early return above).
+    let shared_block = subgroupAll(subgroupBroadcastFirst(blk) == blk);
+    if shared_block {
+        acc0 = subgroupAdd(acc0);
+        acc1 = subgroupAdd(acc1);
+        acc2 = subgroupAdd(acc2);
+        acc3 = subgroupAdd(acc3);
+    }
+    if !valid || (shared_block && lane != subgroupBroadcastFirst(lane)) {
         return;
     }
-    let q = t % quads;
-    let chunk = t / quads;
-    let p0 = 4u * q;
-    let w0 = wslot(s, p0);
-    let w3 = wslot(s, min(p0 + 3u, s.params - 1u));
-    let row = p0 + 3u < s.params && !w0.bias && !w3.bias && w0.at == w3.at && w0.o == w3.o;
-    let first = chunk * params.chunk;
-    let last = min(first + params.chunk, params.n);
-    var acc = vec4<f32>(0.0);
-    if row {
-        for (var p = first; p < last; p += 1u) {
-            let base = p * params.saved_stride + w0.at;
-            let d = saved[base + w0.ni + w0.o];
-            let j = base + w0.j;
-            acc = fma(vec4<f32>(d), vec4<f32>(saved[j], saved[j + 1u], saved[j + 2u], saved[j + 3u]), acc);
+    for (var r = 0u; r < 4u; r += 1u) {
+        let o = o0 + r;
+        if o >= no {
+            break;
         }
-    } else {
-        for (var k = 0u; k < 4u; k += 1u) {
-            if p0 + k >= s.params {
-                break;
-            }
-            let w = wslot(s, p0 + k);
-            var a = 0.0;
-            for (var p = first; p < last; p += 1u) {
-                let base = p * params.saved_stride + w.at;
-                a = fma(saved[base + w.ni + w.o], select(saved[base + w.j], 1.0, w.bias), a);
-            }
-            acc[k] = a;
+        var v = acc0;
+        if r == 1u {
+            v = acc1;
+        } else if r == 2u {
+            v = acc2;
+        } else if r == 3u {
+            v = acc3;
         }
-    }
-    for (var k = 0u; k < 4u; k += 1u) {
-        if p0 + k < s.params && acc[k] != 0.0 {
-            atomicAdd(&d_weights[p0 + k], acc[k]);
+        if bias {
+            atomicAdd(&d_weights[off + no * ni + o], v.x);
+            continue;
+        }
+        for (var c = 0u; c < 4u; c += 1u) {
+            if j0 + c < ni {
+                atomicAdd(&d_weights[off + o * ni + j0 + c], v[c]);
+            }
         }
     }
 }
@@ -261,13 +286,13 @@ fn mlp_bwd_data_block(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgr
         for (var j = 0u; j < ni; j += 1u) {
             saved[at + j] = act_get(&a, j);
         }
-        at += ni;
+        at += pad4(ni);
         mlp_layer(mlp_offset(s, l), ni, no, &a, &z);
         // Pre-activations for now; replaced by their gradients below.
         for (var o = 0u; o < no; o += 1u) {
             saved[at + o] = act_get(&z, o);
         }
-        at += no;
+        at += pad4(no);
         mlp_activate(&z, &a, l + 1u < s.layers);
     }
     // Backward: g holds dL/d(layer output); walk the layers in reverse.
@@ -280,7 +305,7 @@ fn mlp_bwd_data_block(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgr
         let l = s.layers - 1u - li;
         let ni = mlp_dim(s, l);
         let no = mlp_dim(s, l + 1u);
-        at -= no;
+        at -= pad4(no);
         let last = l + 1u == s.layers;
         for (var o = 0u; o < no; o += 1u) {
             // ReLU'(pre) on hidden layers; identity on the output layer.
@@ -289,7 +314,7 @@ fn mlp_bwd_data_block(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgr
             saved[at + o] = d;
             act_set(&z, o, d);
         }
-        at -= ni;
+        at -= pad4(ni);
         mlp_layer_back(mlp_offset(s, l), ni, no, &z, &g);
     }
     for (var j = 0u; j < n_in; j += 1u) {

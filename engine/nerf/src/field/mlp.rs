@@ -14,8 +14,9 @@ pub struct MlpConfig {
     pub dims: Vec<u32>,
 }
 
-/// Points per chunk of the weight-gradient reduction (one atomic per parameter per chunk).
-pub const WGRAD_CHUNK: u32 = 256;
+/// Point groups per weight block in the weight-gradient pass (at least the subgroup size, so
+/// the lanes of a subgroup share a block and sum before their atomics).
+pub const WGRAD_GROUPS: u32 = 16;
 
 /// Floats of the uniform weight block (64 KiB, the smallest `maxUniformBufferRange` Vulkan
 /// allows); see `common/mlp_block.wgsl`.
@@ -57,9 +58,22 @@ impl MlpConfig {
         self.offset(self.layers())
     }
 
-    /// Floats per point the backward pass saves (each layer's input and output gradient).
+    /// Floats per point the backward pass saves: per layer its input and the gradient of its
+    /// pre-activation, each padded to a multiple of 4 floats (read as vec4s).
     pub fn saved_stride(&self) -> usize {
-        self.dims.windows(2).map(|w| (w[0] + w[1]) as usize).sum()
+        self.dims
+            .windows(2)
+            .map(|w| (w[0].next_multiple_of(4) + w[1].next_multiple_of(4)) as usize)
+            .sum()
+    }
+
+    /// Weight blocks of the weight-gradient pass: per layer 4-row blocks times (4-column
+    /// blocks + one bias column).
+    fn wgrad_blocks(&self) -> u64 {
+        self.dims
+            .windows(2)
+            .map(|w| (w[1].div_ceil(4) * (w[0].div_ceil(4) + 1)) as u64)
+            .sum()
     }
 
     fn shape(&self) -> MlpShape {
@@ -83,6 +97,8 @@ pub struct Mlp {
     fwd: Kernel,
     bwd: Kernel,
     wgrad: Kernel,
+    /// Point groups per weight block of the weight-gradient pass.
+    groups: u32,
     /// The uniform-block kernels and their weight block, when the shape suits them.
     block: Option<Block>,
 }
@@ -109,6 +125,7 @@ impl Mlp {
         };
         Ok(Mlp {
             block,
+            groups: WGRAD_GROUPS.max(ctx.info().subgroup_size),
             shape: Buffer::from_slice(ctx, "mlp shape", &[config.shape()])?,
             config,
             fwd: Kernel::new(ctx, &k::mlp_fwd::DESC)?,
@@ -136,9 +153,9 @@ impl Mlp {
         let n32 = count_u32(n, "MLP points")?;
         Ok(k::Params {
             n: n32,
-            chunk: WGRAD_CHUNK,
+            chunk: n32.div_ceil(self.groups).max(1),
             saved_stride: self.config.saved_stride() as u32,
-            _pad: 0,
+            groups: self.groups,
         })
     }
 
@@ -236,17 +253,16 @@ impl Mlp {
             };
             rec.dispatch(&self.bwd, b.into_array(), &p, n)?;
         }
-        let chunks = n.div_ceil(WGRAD_CHUNK as u64);
         let b = k::mlp_wgrad::Bindings {
             shape_buf,
-            saved,
             d_weights,
+            saved4: saved,
         };
         rec.dispatch(
             &self.wgrad,
             b.into_array(),
             &p,
-            (c.param_count() as u64).div_ceil(4) * chunks,
+            c.wgrad_blocks() * self.groups as u64,
         )
     }
 }
