@@ -187,12 +187,16 @@ fn hash_grid_sizes_and_errors() {
     assert_no_validation_messages(&e.ctx);
 }
 
-fn check_mlp(dims: Vec<u32>, n: usize, seed: u64) {
+fn check_mlp(dims: Vec<u32>, n: usize, seed: u64, storage_only: bool) {
     use extranerf_nerf::field::mlp::{Mlp, MlpConfig};
     use extranerf_nerf::reference::{mlp_backward, mlp_forward};
     let e = engine();
     let cfg = MlpConfig { dims };
-    let mlp = Mlp::new(&e.ctx, cfg.clone()).unwrap();
+    let mlp = if storage_only {
+        Mlp::with_storage_kernels(&e.ctx, cfg.clone()).unwrap()
+    } else {
+        Mlp::new(&e.ctx, cfg.clone()).unwrap()
+    };
     let mut rng = Rng::new(seed);
     let (n_in, n_out) = (cfg.dims[0] as usize, *cfg.dims.last().unwrap() as usize);
     let w: Vec<f32> = (0..cfg.param_count())
@@ -259,7 +263,11 @@ fn mlp_forward_and_gradients_match_reference() {
         let cfg = extranerf_nerf::field::mlp::MlpConfig { dims: dims.clone() };
         let mlp = extranerf_nerf::field::mlp::Mlp::new(&engine().ctx, cfg).unwrap();
         assert_eq!(mlp.uses_block(), block, "{dims:?}");
-        check_mlp(dims, n, seed);
+        check_mlp(dims.clone(), n, seed, false);
+        if block {
+            // The storage-buffer kernels on the same shape (the benchmark's reference path).
+            check_mlp(dims, n, seed, true);
+        }
     }
     let bad = extranerf_nerf::field::mlp::MlpConfig {
         dims: vec![3, 65, 1],

@@ -113,8 +113,18 @@ struct Block {
 impl Mlp {
     /// Builds the kernels.
     pub fn new(ctx: &Context, config: MlpConfig) -> Result<Mlp> {
+        Self::build(ctx, config, true)
+    }
+
+    /// The storage-buffer kernels only, even where the uniform-block ones apply: the
+    /// reference path for benchmarks and tests.
+    pub fn with_storage_kernels(ctx: &Context, config: MlpConfig) -> Result<Mlp> {
+        Self::build(ctx, config, false)
+    }
+
+    fn build(ctx: &Context, config: MlpConfig, allow_block: bool) -> Result<Mlp> {
         config.validate()?;
-        let block = if config.vec4_rows() && config.param_count() <= BLOCK_FLOATS {
+        let block = if allow_block && config.vec4_rows() && config.param_count() <= BLOCK_FLOATS {
             Some(Block {
                 fwd: Kernel::new(ctx, &k::mlp_fwd_block::DESC)?,
                 bwd: Kernel::new(ctx, &k::mlp_bwd_data_block::DESC)?,
