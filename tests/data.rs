@@ -463,3 +463,101 @@ fn depth_maps_from_exr() {
     assert!(e.contains("missing.exr"), "{e}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// Virtual cameras beyond fern's 6-view extrapolation rig: each trajectory puts its cameras
+/// where its definition says, the file round-trips through the transforms.json loader, and bad
+/// requests are clear errors.
+#[test]
+fn virtual_cameras_extend_the_rig_and_round_trip() {
+    use extranerf_nerf::cameras::{virtual_cameras, write_transforms, Trajectory};
+    use extranerf_nerf::data::llff::average_pose;
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let s = Split::Extrapolation.apply(&scene.cameras).unwrap();
+    let rig: Vec<_> = s.train.iter().map(|&i| scene.cameras[i].clone()).collect();
+    let avg = average_pose(&rig.iter().map(|c| c.c2w).collect::<Vec<_>>());
+    let (x, y, z) = (
+        avg.x_axis.truncate(),
+        avg.y_axis.truncate(),
+        avg.z_axis.truncate(),
+    );
+    let centre = avg.w_axis.truncate();
+    let ext = |a: DVec3| {
+        rig.iter()
+            .map(|c| (c.centre() - centre).dot(a).abs())
+            .fold(0.0, f64::max)
+    };
+    let (rx, ry) = (ext(x), ext(y));
+    assert!(rx > 0.0 && ry > 0.0);
+    // Outward at twice the rig: on the ellipse of radii 2 rx, 2 ry in the rig's plane, with the
+    // average orientation, so outside every training centre's offset box.
+    let out = virtual_cameras(&rig, Trajectory::Outward, 8, 2.0).unwrap();
+    assert_eq!(out.len(), 8);
+    for c in &out {
+        let d = c.centre() - centre;
+        assert!(d.dot(z).abs() < 1e-9);
+        let e = (d.dot(x) / (2.0 * rx)).powi(2) + (d.dot(y) / (2.0 * ry)).powi(2);
+        assert!((e - 1.0).abs() < 1e-9, "ellipse {e}");
+        assert!(d.dot(x).abs() > rx + 1e-9 || d.dot(y).abs() > ry + 1e-9);
+        assert!((c.c2w.z_axis.truncate() - z).length() < 1e-12);
+        assert_eq!((c.width, c.fx), (rig[0].width, rig[0].fx));
+    }
+    // Spiral: every camera looks at the one focus point on the average axis.
+    let sp = virtual_cameras(&rig, Trajectory::Spiral, 12, 1.5).unwrap();
+    let look = |c: &extranerf_nerf::data::Camera| -c.c2w.z_axis.truncate();
+    for c in &sp {
+        // Distance from the camera's viewing ray to the average axis line.
+        let w = c.centre() - centre;
+        let n = look(c).cross(z);
+        let dist = w.dot(n).abs() / n.length().max(1e-12);
+        assert!(dist < 1e-9, "viewing ray misses the axis by {dist}");
+        assert!(
+            (c.c2w.y_axis.truncate().dot(x)).abs() < 0.2,
+            "up stays near the rig's up"
+        );
+    }
+    // Rotate: the mean centre, turned up to twice the largest captured yaw each way.
+    let yaw = |d: DVec3| d.dot(x).atan2(-d.dot(z));
+    let captured = rig.iter().map(|c| yaw(look(c)).abs()).fold(0.0, f64::max);
+    let rot = virtual_cameras(&rig, Trajectory::Rotate, 5, 2.0).unwrap();
+    let yaws: Vec<f64> = rot.iter().map(|c| yaw(look(c))).collect();
+    for (k, c) in rot.iter().enumerate() {
+        assert!((c.centre() - centre).length() < 1e-12);
+        let want = (k as f64 / 2.0 - 1.0) * 2.0 * captured;
+        assert!(
+            (yaws[k].abs() - want.abs()).abs() < 1e-9,
+            "{yaws:?} vs {want}"
+        );
+    }
+    assert!(yaws[0].abs() > captured && yaws[4].abs() > captured);
+    // transforms.json round trip.
+    let dir = scratch_dir("virtual-cameras");
+    let path = dir.join("transforms.json");
+    write_transforms(&path, &sp).unwrap();
+    let back = load_transforms(&path).unwrap();
+    assert_eq!(back.cameras.len(), sp.len());
+    for (a, b) in sp.iter().zip(&back.cameras) {
+        assert!((a.c2w - b.c2w)
+            .to_cols_array()
+            .iter()
+            .all(|v| v.abs() < 1e-12));
+        assert_eq!((a.width, a.height), (b.width, b.height));
+        assert_eq!((a.fx, a.fy, a.cx, a.cy), (b.fx, b.fy, b.cx, b.cy));
+    }
+    // Bad requests.
+    let err = |r: Result<
+        Vec<extranerf_nerf::data::Camera>,
+        extranerf_nerf::cameras::CameraError,
+    >| { r.unwrap_err().to_string() };
+    assert!(err(virtual_cameras(&rig, Trajectory::Outward, 0, 1.0)).contains("count 0"));
+    assert!(err(virtual_cameras(&rig, Trajectory::Outward, 4, f64::NAN)).contains("range"));
+    assert!(err(virtual_cameras(&[], Trajectory::Rotate, 4, 1.0)).contains("no training"));
+    let one = vec![rig[0].clone(), rig[0].clone()];
+    assert!(err(virtual_cameras(&one, Trajectory::Outward, 4, 1.0)).contains("one centre"));
+    assert!(err(virtual_cameras(&one, Trajectory::Rotate, 4, 1.0)).contains("same way"));
+    let mut nobounds = rig.clone();
+    for c in &mut nobounds {
+        c.bounds = None;
+    }
+    assert!(err(virtual_cameras(&nobounds, Trajectory::Spiral, 4, 1.0)).contains("bounds"));
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -51,6 +51,9 @@ enum Command {
     /// forward-facing 6-camera rig, ground truth for 8 views outside it), trained, rendered and
     /// scored in a few minutes on any device.
     Demo(nerf::DemoArgs),
+    /// Virtual cameras beyond the input rig (outward translation, a widened spiral, or rotation
+    /// past the captured yaw), written as transforms.json for rendering and visibility.
+    Cameras(nerf::CamerasArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -119,6 +122,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Render(a) => nerf::render(&context(cli)?, a),
         Command::Eval(a) => nerf::eval(&context(cli)?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
+        Command::Cameras(a) => nerf::cameras(a),
         Command::Bench {
             what: BenchCommand::Train(args),
         } => nerf::bench_train(&context(cli)?, args),

@@ -1073,3 +1073,65 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// Arguments of `extranerf cameras`.
+#[derive(clap::Args, Debug)]
+pub struct CamerasArgs {
+    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
+    #[arg(long, value_name = "DIR")]
+    scene: PathBuf,
+    /// Which views form the rig: the training views of this split (extrapolation, fewshot,
+    /// all).
+    #[arg(long, default_value = "extrapolation")]
+    split: String,
+    /// Training views of the few-shot split.
+    #[arg(long, default_value_t = 3)]
+    fewshot_views: usize,
+    /// LLFF downsampling factor (reads images_N; sets the intrinsics written).
+    #[arg(long, default_value_t = 8)]
+    factor: u32,
+    /// outward (translated in the rig's plane), spiral (LLFF's path, widened, looking at the
+    /// focus point) or rotate (turned about the up axis past the captured yaw).
+    #[arg(long, default_value = "outward")]
+    trajectory: extranerf_nerf::cameras::Trajectory,
+    /// Cameras to generate.
+    #[arg(long, default_value_t = 8)]
+    count: usize,
+    /// How far beyond the rig, as a factor of its extent (1: at its edge).
+    #[arg(long, default_value_t = 1.5)]
+    range: f64,
+    /// Output file.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+}
+
+/// `extranerf cameras`: extrapolated virtual cameras as transforms.json.
+pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
+    let spec = SceneSpec {
+        dir: a.scene.clone(),
+        split: a.split.clone(),
+        fewshot_views: a.fewshot_views,
+        factor: a.factor,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec.load()?;
+    let rig: Vec<_> = loaded
+        .split
+        .train
+        .iter()
+        .map(|&i| loaded.scene.cameras[i].clone())
+        .collect();
+    let cams = extranerf_nerf::cameras::virtual_cameras(&rig, a.trajectory, a.count, a.range)?;
+    extranerf_nerf::cameras::write_transforms(&a.out, &cams)?;
+    eprintln!(
+        "{} {:?} cameras at {}x the extent of the {}-view rig ({} split) written to {}",
+        cams.len(),
+        a.trajectory,
+        a.range,
+        rig.len(),
+        a.split,
+        a.out.display()
+    );
+    Ok(())
+}

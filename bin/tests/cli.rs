@@ -304,3 +304,52 @@ fn demo_runs_and_replaces_its_own_output() {
     assert!(foreign.join("precious.txt").exists());
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// `extranerf cameras` writes a transforms.json the loader reads back; bad flags are errors.
+#[test]
+fn cameras_writes_transforms_json() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-cameras-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("virtual.json");
+    let fern = fern();
+    let (ok, _, err) = extranerf(&[
+        "cameras",
+        "--scene",
+        fern.to_str().unwrap(),
+        "--trajectory",
+        "spiral",
+        "--count",
+        "5",
+        "--range",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok && err.contains("5 Spiral cameras"), "{err}");
+    let scene = extranerf_nerf::data::transforms::load_transforms(&out).unwrap();
+    assert_eq!(scene.cameras.len(), 5);
+    assert_eq!(scene.cameras[0].width, 504);
+    let (ok, _, err) = extranerf(&[
+        "cameras",
+        "--scene",
+        fern.to_str().unwrap(),
+        "--trajectory",
+        "zoom",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("use outward, spiral or rotate"),
+        "{err}"
+    );
+    let (ok, _, err) = extranerf(&[
+        "cameras",
+        "--scene",
+        fern.to_str().unwrap(),
+        "--range=-1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("range -1"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}
