@@ -49,7 +49,7 @@ enum Command {
     Eval(nerf::EvalArgs),
     /// The demo: a procedural scene generated in code (textured spheres at several depths, a
     /// forward-facing 6-camera rig, ground truth for 8 views outside it), trained, rendered and
-    /// scored in a few minutes on any device.
+    /// scored in about half a minute on two CPU cores with lavapipe.
     Demo(nerf::DemoArgs),
     /// Virtual cameras beyond the input rig (outward translation, a widened spiral, or rotation
     /// past the captured yaw), written as transforms.json for rendering and visibility.
