@@ -833,3 +833,175 @@ fn activations_match_reference_at_the_extremes() {
     }
     assert_no_validation_messages(&e.ctx);
 }
+
+/// Runs depth completion on the device; returns the completed map.
+fn complete_on_device(
+    w: usize,
+    h: usize,
+    depth: &[f32],
+    known: &[u32],
+    guide: &[[f32; 4]],
+    sigma: f32,
+    iterations: u32,
+) -> Vec<f32> {
+    use extranerf_nerf::depth_completion::DepthCompletion;
+    let e = engine();
+    let dc = DepthCompletion::new(&e.ctx).unwrap();
+    let d = Buffer::from_slice(&e.ctx, "depth", depth).unwrap();
+    let s = Buffer::<f32>::new(&e.ctx, "scratch", w * h).unwrap();
+    let k = Buffer::from_slice(&e.ctx, "known", known).unwrap();
+    let g = Buffer::from_slice(&e.ctx, "guide", guide).unwrap();
+    let mut rec = e.ctx.recorder("depth completion").unwrap();
+    dc.record(
+        &mut rec,
+        w as u32,
+        h as u32,
+        d.binding(),
+        s.binding(),
+        k.binding(),
+        g.binding(),
+        sigma,
+        iterations,
+    )
+    .unwrap();
+    e.ctx.run(rec).unwrap();
+    d.read().unwrap()
+}
+
+/// Depth completion against the f64 reference on random maps, masks and colours (odd and even
+/// iteration counts), and the extremes (nothing known, everything known, huge colour
+/// differences, no edges).
+#[test]
+fn depth_completion_matches_reference() {
+    use extranerf_nerf::reference::depth_complete;
+    let mut rng = Rng::new(77);
+    let (w, h) = (37, 23);
+    let n = w * h;
+    let depth: Vec<f32> = (0..n).map(|_| rng.uniform(0.5, 10.0)).collect();
+    let known: Vec<u32> = (0..n)
+        .map(|_| u32::from(rng.uniform(0.0, 1.0) < 0.3))
+        .collect();
+    let guide: Vec<[f32; 4]> = (0..n)
+        .map(|_| {
+            [
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+                0.0,
+            ]
+        })
+        .collect();
+    for (sigma, iters) in [(0.3f32, 7u32), (0.3, 8), (f32::INFINITY, 15), (1e-3, 5)] {
+        let got = complete_on_device(w, h, &depth, &known, &guide, sigma, iters);
+        let want = depth_complete(w, h, &depth, &known, &guide, sigma, iters);
+        for i in 0..n {
+            assert!(
+                (got[i] as f64 - want[i]).abs() <= 1e-5 * want[i].abs().max(1.0),
+                "sigma {sigma} iterations {iters} pixel {i}: {} vs {}",
+                got[i],
+                want[i]
+            );
+            if known[i] != 0 {
+                assert_eq!(got[i], depth[i]);
+            }
+        }
+    }
+    // Nothing known: values only average (finite, within the initial range); all known:
+    // unchanged.
+    let none = complete_on_device(w, h, &depth, &vec![0; n], &guide, 0.3, 9);
+    assert!(none
+        .iter()
+        .all(|v| v.is_finite() && (0.5..=10.0).contains(v)));
+    let all = complete_on_device(w, h, &depth, &vec![1; n], &guide, 0.3, 9);
+    assert_eq!(all, depth);
+    assert_no_validation_messages(&engine().ctx);
+}
+
+/// With uniform colours the fill reproduces a plane in a hole enclosed by known pixels; a
+/// colour edge through the hole keeps two planes' depths apart.
+#[test]
+fn depth_completion_reproduces_a_plane_and_respects_colour_edges() {
+    let (w, h) = (40, 30);
+    let n = w * h;
+    let plane = |x: usize, y: usize| 2.0 + 0.05 * x as f32 - 0.03 * y as f32;
+    let in_hole = |x: usize, y: usize| (12..28).contains(&x) && (8..22).contains(&y);
+    let mut depth = vec![0f32; n];
+    let mut known = vec![0u32; n];
+    for y in 0..h {
+        for x in 0..w {
+            if !in_hole(x, y) {
+                depth[y * w + x] = plane(x, y);
+                known[y * w + x] = 1;
+            }
+        }
+    }
+    let flat = vec![[0.5f32, 0.5, 0.5, 0.0]; n];
+    let got = complete_on_device(w, h, &depth, &known, &flat, 0.1, 3000);
+    for y in 0..h {
+        for x in 0..w {
+            let e = (got[y * w + x] - plane(x, y)).abs();
+            assert!(
+                e < 1e-3,
+                "pixel ({x}, {y}): {} vs plane {}",
+                got[y * w + x],
+                plane(x, y)
+            );
+        }
+    }
+    // Two colour regions split at x = 20: the left known at depth 1, the right at depth 5.
+    let guide: Vec<[f32; 4]> = (0..n)
+        .map(|i| {
+            if i % w < 20 {
+                [1.0, 0.0, 0.0, 0.0]
+            } else {
+                [0.0, 0.0, 1.0, 0.0]
+            }
+        })
+        .collect();
+    let two: Vec<f32> = (0..n).map(|i| if i % w < 20 { 1.0 } else { 5.0 }).collect();
+    let edged = complete_on_device(w, h, &two, &known, &guide, 0.1, 3000);
+    let blurred = complete_on_device(w, h, &two, &known, &flat, 0.1, 3000);
+    let (l, r) = (15 * w + 19, 15 * w + 20);
+    assert!(
+        (edged[l] - 1.0).abs() < 1e-2 && (edged[r] - 5.0).abs() < 1e-2,
+        "{} {}",
+        edged[l],
+        edged[r]
+    );
+    // Without the edge, depth mixes across the boundary.
+    assert!(
+        blurred[l] > 2.0 && blurred[r] < 4.0,
+        "{} {}",
+        blurred[l],
+        blurred[r]
+    );
+    assert_no_validation_messages(&engine().ctx);
+}
+
+/// Bad sizes and scales are clear errors.
+#[test]
+fn depth_completion_refuses_bad_input() {
+    use extranerf_nerf::depth_completion::DepthCompletion;
+    let e = engine();
+    let dc = DepthCompletion::new(&e.ctx).unwrap();
+    let b = Buffer::<f32>::new(&e.ctx, "small", 4).unwrap();
+    let k = Buffer::<u32>::new(&e.ctx, "known", 4).unwrap();
+    let g = Buffer::<[f32; 4]>::new(&e.ctx, "guide", 4).unwrap();
+    let mut rec = e.ctx.recorder("bad completion").unwrap();
+    for (w, h, sigma) in [(0, 4, 1.0), (4, 4, 1.0), (2, 2, 0.0), (2, 2, f32::NAN)] {
+        let r = dc.record(
+            &mut rec,
+            w,
+            h,
+            b.binding(),
+            b.binding(),
+            k.binding(),
+            g.binding(),
+            sigma,
+            3,
+        );
+        assert!(r.is_err(), "{w}x{h} sigma {sigma}");
+    }
+    drop(rec);
+    assert_no_validation_messages(&e.ctx);
+}

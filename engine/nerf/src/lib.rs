@@ -10,6 +10,7 @@
 pub mod cameras;
 pub mod data;
 pub mod demo;
+pub mod depth_completion;
 pub mod field;
 pub mod metrics;
 pub mod model;

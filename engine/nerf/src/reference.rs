@@ -696,6 +696,58 @@ pub fn march_pixel(
     composite_forward(&sigma, &rgb, &t_dt, background)
 }
 
+/// Edge-aware depth completion (`depth_completion`) in f64: `iterations` Jacobi steps; known
+/// pixels keep their depth, others take the colour-weighted mean of their 4 neighbours,
+/// w = exp(-|c_i - c_j|^2 / sigma^2).
+pub fn depth_complete(
+    width: usize,
+    height: usize,
+    depth: &[f32],
+    known: &[u32],
+    guide: &[[f32; 4]],
+    sigma: f32,
+    iterations: u32,
+) -> Vec<f64> {
+    let inv = 1.0 / (sigma as f64 * sigma as f64);
+    let mut d: Vec<f64> = depth.iter().map(|&v| v as f64).collect();
+    for _ in 0..iterations {
+        let mut next = d.clone();
+        for y in 0..height {
+            for x in 0..width {
+                let i = y * width + x;
+                if known[i] != 0 {
+                    continue;
+                }
+                let mut sum = 0.0;
+                let mut wsum = 0.0;
+                let nb = [
+                    (x as i64 - 1, y as i64),
+                    (x as i64 + 1, y as i64),
+                    (x as i64, y as i64 - 1),
+                    (x as i64, y as i64 + 1),
+                ];
+                for (nx, ny) in nb {
+                    if nx < 0 || ny < 0 || nx >= width as i64 || ny >= height as i64 {
+                        continue;
+                    }
+                    let j = ny as usize * width + nx as usize;
+                    let c2: f64 = (0..3)
+                        .map(|c| (guide[j][c] as f64 - guide[i][c] as f64).powi(2))
+                        .sum();
+                    let w = (-c2 * inv).exp();
+                    sum += w * d[j];
+                    wsum += w;
+                }
+                if wsum > 1e-30 {
+                    next[i] = sum / wsum;
+                }
+            }
+        }
+        d = next;
+    }
+    d
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
