@@ -12,6 +12,12 @@ struct GpuCamera {
     size: vec4<u32>,
 }
 
+// Centre of pixel index `pixel` (= y * width + x) in pixel coordinates.
+fn pixel_centre(cam: GpuCamera, pixel: u32) -> vec2<f32> {
+    let w = cam.size.x;
+    return vec2<f32>(f32(pixel % w) + 0.5, f32(pixel / w) + 0.5);
+}
+
 // Ray through pixel coordinates `px` (pixel centres at +0.5): origin, and direction scaled so
 // that one unit of t is one unit of depth along the viewing axis.
 fn camera_ray(cam: GpuCamera, px: vec2<f32>) -> array<vec3<f32>, 2> {

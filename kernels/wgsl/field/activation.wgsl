@@ -3,6 +3,7 @@
 //   gradient is clamped with the value, so huge logits neither overflow nor explode;
 //   sigmoid (colour): y = 1 / (1 + exp(-x)), dy/dx = y (1 - y) = e / (1 + e)^2, e = exp(-|x|).
 //!include common/dispatch.wgsl
+//!include common/heads.wgsl
 
 struct Params {
     n: u32,
@@ -20,17 +21,11 @@ var<immediate> params: Params;
 @group(0) @binding(2) var<storage, read> dy: array<f32>;
 @group(0) @binding(3) var<storage, read_write> dx: array<f32>;
 
-const TRUNC: f32 = 15.0;
-
 fn act(v: f32) -> f32 {
     if params.kind == 0u {
-        return exp(min(v, TRUNC));
+        return trunc_exp(v);
     }
-    if v >= 0.0 {
-        return 1.0 / (1.0 + exp(-v));
-    }
-    let e = exp(v);
-    return e / (1.0 + e);
+    return sigmoid(v);
 }
 
 @compute @workgroup_size(64)

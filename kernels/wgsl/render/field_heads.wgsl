@@ -8,6 +8,7 @@
 // trunc_exp(x) = exp(min(x, 15)) with the gradient clamped alike; sigmoid is evaluated without
 // overflow on both sides.
 //!include common/dispatch.wgsl
+//!include common/heads.wgsl
 //!include common/sh.wgsl
 
 struct Params {
@@ -39,16 +40,6 @@ var<immediate> params: Params;
 @group(0) @binding(9) var<storage, read_write> rgb: array<vec4<f32>>;
 @group(0) @binding(10) var<storage, read> d_rgb: array<vec4<f32>>;
 
-const TRUNC: f32 = 15.0;
-
-fn sigmoid(v: f32) -> f32 {
-    if v >= 0.0 {
-        return 1.0 / (1.0 + exp(-v));
-    }
-    let e = exp(v);
-    return e / (1.0 + e);
-}
-
 fn sample_index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return linear_group(wid, nwg) * 64u + lid;
 }
@@ -62,7 +53,7 @@ fn density_head_fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgrou
     }
     let g = params.geo_dims;
     let cin = g + 16u;
-    sigma[i] = exp(min(dens[i * g], TRUNC));
+    sigma[i] = trunc_exp(dens[i * g]);
     for (var j = 0u; j < g; j += 1u) {
         color_in[i * cin + j] = dens[i * g + j];
     }
@@ -109,5 +100,5 @@ fn density_head_bwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgrou
     for (var j = 0u; j < g; j += 1u) {
         d_dens[i * g + j] = d_color_in[i * cin + j];
     }
-    d_dens[i * g] += d_sigma[i] * exp(min(dens[i * g], TRUNC));
+    d_dens[i * g] += d_sigma[i] * trunc_exp(dens[i * g]);
 }

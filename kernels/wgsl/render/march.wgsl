@@ -22,6 +22,7 @@
 // standalone pipeline (render/sample.wgsl, field/*, render/field_heads.wgsl,
 // render/composite.wgsl) computes the same quantities sample by sample.
 //!include common/dispatch.wgsl
+//!include common/heads.wgsl
 //!include common/camera.wgsl
 //!include common/contract.wgsl
 //!include common/hash_grid.wgsl
@@ -90,16 +91,6 @@ var<immediate> params: Params;
 // uniform block lets lavapipe load it without the per-lane branches of a storage buffer.
 @group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
 
-const TRUNC: f32 = 15.0;
-
-fn sigmoid(v: f32) -> f32 {
-    if v >= 0.0 {
-        return 1.0 / (1.0 + exp(-v));
-    }
-    let e = exp(v);
-    return e / (1.0 + e);
-}
-
 // Hash-grid features of the contracted point x into a[0 .. levels * features]. A NaN point
 // has all-zero features, as in the standalone kernel.
 fn encode(x: vec3<f32>, a: ptr<function, Act>) {
@@ -139,7 +130,7 @@ fn encode(x: vec3<f32>, a: ptr<function, Act>) {
 fn density_at(u: vec3<f32>, a: ptr<function, Act>) -> f32 {
     encode(contract_unit(u, params.contraction), a);
     mlp_forward(density_shape[0], 0u, a);
-    return exp(min((*a)[0].x, TRUNC));
+    return trunc_exp((*a)[0].x);
 }
 
 // Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of).
@@ -175,14 +166,12 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
         return;
     }
     let cam = cameras[pc.x];
-    let width = cam.size.x;
-    if pc.y >= width * cam.size.y {
+    if pc.y >= cam.size.x * cam.size.y {
         out_rgba[i] = vec4<f32>(0.0);
         out_depth[i] = 0.0;
         return;
     }
-    let px = vec2<f32>(f32(pc.y % width) + 0.5, f32(pc.y / width) + 0.5);
-    let world = camera_ray(cam, px);
+    let world = camera_ray(cam, pixel_centre(cam, pc.y));
     var ray = world;
     if params.ndc != 0u {
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);

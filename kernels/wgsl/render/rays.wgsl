@@ -32,14 +32,12 @@ fn generate_rays(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
         return;
     }
     let cam = cameras[pc.x];
-    let w = cam.size.x;
-    if pc.y >= w * cam.size.y {
+    if pc.y >= cam.size.x * cam.size.y {
         origins[i] = vec4<f32>(0.0);
         directions[i] = vec4<f32>(0.0);
         return;
     }
-    let px = vec2<f32>(f32(pc.y % w) + 0.5, f32(pc.y / w) + 0.5);
-    var r = camera_ray(cam, px);
+    var r = camera_ray(cam, pixel_centre(cam, pc.y));
     if params.ndc != 0u {
         r = ndc_ray(cam, r[0], r[1], params.near);
     }
