@@ -332,6 +332,20 @@ pub enum March {
     Fused(MarchCuts),
 }
 
+/// The per-chunk buffers of one render path.
+#[allow(clippy::large_enum_variant)] // one short-lived value per render call
+enum RenderIo {
+    /// Every stage's per-sample buffers.
+    Standalone(Workspace),
+    /// Pixels in, colour and depth out, per ray.
+    Fused {
+        cuts: MarchCuts,
+        pixels: Buffer<[u32; 2]>,
+        rgba: Buffer<[f32; 4]>,
+        depth: Buffer<f32>,
+    },
+}
+
 /// What [`Nerf::build_occupancy`] found.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OccupancyStats {
@@ -538,25 +552,21 @@ impl Nerf {
             return Err(GpuError::Usage("the render chunk must be positive".into()));
         }
         // The standalone chain needs per-sample buffers; the fused march only per-ray ones.
-        let ws = Workspace::new(
-            ctx,
-            &self.field,
-            self.field.config(),
-            if march == March::Standalone {
-                chunk_rays
-            } else {
-                1
+        let io = match march {
+            March::Standalone => RenderIo::Standalone(Workspace::new(
+                ctx,
+                &self.field,
+                self.field.config(),
+                chunk_rays,
+                samples,
+                false,
+            )?),
+            March::Fused(cuts) => RenderIo::Fused {
+                cuts,
+                pixels: Buffer::new(ctx, "march pixels", chunk_rays as usize)?,
+                rgba: Buffer::new(ctx, "march colour", chunk_rays as usize)?,
+                depth: Buffer::new(ctx, "march depth", chunk_rays as usize)?,
             },
-            samples,
-            false,
-        )?;
-        let fused_io = match march {
-            March::Standalone => None,
-            March::Fused(_) => Some((
-                Buffer::<[u32; 2]>::new(ctx, "march pixels", chunk_rays as usize)?,
-                Buffer::<[f32; 4]>::new(ctx, "march colour", chunk_rays as usize)?,
-                Buffer::<f32>::new(ctx, "march depth", chunk_rays as usize)?,
-            )),
         };
         let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
         let total = camera.width as u64 * camera.height as u64;
@@ -573,10 +583,15 @@ impl Nerf {
                 first: first as u32,
                 _pad: 0,
             };
-            let (rgba, depth) = match (&fused_io, march) {
-                (Some((px, rgba, depth)), March::Fused(cuts)) => {
+            let (rgba, depth) = match &io {
+                RenderIo::Fused {
+                    cuts,
+                    pixels,
+                    rgba,
+                    depth,
+                } => {
                     let b = kp::pixel_range::Bindings {
-                        pixels: px.binding(),
+                        pixels: pixels.binding(),
                     };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
                     self.marcher.render(
@@ -585,10 +600,10 @@ impl Nerf {
                         self.sections(&self.params)?,
                         cams.binding(),
                         1,
-                        px.binding(),
+                        pixels.binding(),
                         n,
                         samples,
-                        cuts,
+                        *cuts,
                         self.occupancy.as_ref(),
                         self.background,
                         rgba.binding(),
@@ -596,12 +611,12 @@ impl Nerf {
                     )?;
                     (rgba.binding(), depth.binding())
                 }
-                _ => {
+                RenderIo::Standalone(ws) => {
                     let b = kp::pixel_range::Bindings {
                         pixels: ws.pixels.binding(),
                     };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-                    self.record_forward(&mut rec, &ws, cams.binding(), 1, n, None, &mut None)?;
+                    self.record_forward(&mut rec, ws, cams.binding(), 1, n, None, &mut None)?;
                     (ws.out_rgba.binding(), ws.out_depth.binding())
                 }
             };

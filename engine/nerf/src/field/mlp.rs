@@ -110,6 +110,20 @@ struct Block {
     weights: Buffer<f32>,
 }
 
+impl Block {
+    /// Records the copy of `weights` into the uniform block; returns the block's binding.
+    fn load<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        weights: Binding<'a>,
+        config: &MlpConfig,
+    ) -> Result<Binding<'a>> {
+        let block = self.weights.binding();
+        rec.copy(weights, 0, block, 0, config.param_count() as u64 * 4)?;
+        Ok(block)
+    }
+}
+
 impl Mlp {
     /// Builds the kernels.
     pub fn new(ctx: &Context, config: MlpConfig) -> Result<Mlp> {
@@ -183,18 +197,12 @@ impl Mlp {
         inputs.check_fits(n * c.dims[0] as u64, 4, "MLP inputs")?;
         outputs.check_fits(n * c.dims[c.layers()] as u64, 4, "MLP outputs")?;
         if let Some(block) = &self.block {
-            rec.copy(
-                weights,
-                0,
-                block.weights.binding(),
-                0,
-                c.param_count() as u64 * 4,
-            )?;
+            let block_weights = block.load(rec, weights, c)?;
             let b = k::mlp_fwd_block::Bindings {
                 shape_buf: self.shape.binding(),
                 inputs,
                 outputs,
-                mlp: block.weights.binding(),
+                mlp: block_weights,
             };
             return rec.dispatch(&block.fwd, b.into_array(), &self.params(n)?, n);
         }
@@ -236,20 +244,14 @@ impl Mlp {
         let p = self.params(n)?;
         let shape_buf = self.shape.binding();
         if let Some(block) = &self.block {
-            rec.copy(
-                weights,
-                0,
-                block.weights.binding(),
-                0,
-                c.param_count() as u64 * 4,
-            )?;
+            let block_weights = block.load(rec, weights, c)?;
             let b = k::mlp_bwd_data_block::Bindings {
                 shape_buf,
                 inputs,
                 d_outputs,
                 d_inputs,
                 saved,
-                mlp: block.weights.binding(),
+                mlp: block_weights,
             };
             rec.dispatch(&block.bwd, b.into_array(), &p, n)?;
         } else {
