@@ -8,11 +8,13 @@ use extranerf_gpu::{Context, ContextDesc, Validation};
 
 mod bench;
 mod nerf;
+mod visibility;
 
 /// extranerf: a Vulkan-native ExtraNeRF engine (neural radiance fields viewed from outside the
 /// cameras that took them). This build trains the BaseNeRF field (hash grid + tiny MLPs) on
 /// posed photos, renders and evaluates it, runs a self-contained demo, and benchmarks the
-/// kernels and the training step. Visibility and the diffusion stages follow.
+/// kernels and the training step, generates virtual cameras and computes multi-view visibility.
+/// The diffusion stages follow.
 #[derive(Parser, Debug)]
 #[command(name = "extranerf", version, propagate_version = true)]
 struct Cli {
@@ -54,6 +56,11 @@ enum Command {
     /// Virtual cameras beyond the input rig (outward translation, a widened spiral, or rotation
     /// past the captured yaw), written as transforms.json for rendering and visibility.
     Cameras(nerf::CamerasArgs),
+    /// Multi-view transmittance visibility (ExtraNeRF): for each pixel of a view, what the
+    /// training cameras saw of the surface it shows (a point counts as seen when --rank of
+    /// them saw it). Writes visibility PNG + EXR, an inpainting mask and visibility.json per
+    /// view, and with --training-masks the pseudo-disocclusion masks of the training views.
+    Visibility(visibility::VisibilityArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -74,6 +81,9 @@ enum BenchCommand {
     /// (exact, early termination, colour cut, occupancy grids), with time per view, rays/s,
     /// samples/s, PSNR and the difference from the exact render for each.
     Render(nerf::BenchRenderArgs),
+    /// Visibility cost per pixel against the number of training cameras (0 = the camera ray
+    /// alone, the reference), with density evaluations per pixel and per second.
+    Visibility(visibility::BenchVisibilityArgs),
 }
 
 fn context(cli: &Cli) -> anyhow::Result<Context> {
@@ -123,6 +133,10 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Eval(a) => nerf::eval(&context(cli)?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),
+        Command::Visibility(a) => visibility::visibility(&context(cli)?, a),
+        Command::Bench {
+            what: BenchCommand::Visibility(args),
+        } => visibility::bench_visibility(&context(cli)?, args),
         Command::Bench {
             what: BenchCommand::Train(args),
         } => nerf::bench_train(&context(cli)?, args),

@@ -258,6 +258,88 @@ fn train_resume_render_eval_on_fern() {
         m["views"][0]["render_seconds"].as_f64().unwrap() > 0.0,
         "{m}"
     );
+    // Visibility of a held-out view and of virtual cameras, and the training views' masks.
+    let cams = dir.join("outward.json");
+    let (ok, _, err) = extranerf(&[
+        "cameras",
+        "--scene",
+        fern().to_str().unwrap(),
+        "--count",
+        "2",
+        "--out",
+        cams.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let small = [
+        "--downscale",
+        "16",
+        "--samples",
+        "4",
+        "--vis-samples",
+        "4",
+        "--volume-res",
+        "16",
+        "--volume-depth",
+        "8",
+    ];
+    let mut args = vec![
+        "visibility",
+        run_s,
+        "--views",
+        "0",
+        "--cameras",
+        cams.to_str().unwrap(),
+        "--training-masks",
+    ];
+    args.extend(small);
+    let (ok, _, err) = extranerf(&args);
+    assert!(ok && err.contains("transmittance volumes"), "{err}");
+    let vis = run.join("visibility");
+    for f in [
+        "test_000_vis.png",
+        "test_000_vis.exr",
+        "test_000_mask.png",
+        "virtual_001_vis.png",
+        "trainmask_002_mask.png",
+        "visibility.json",
+    ] {
+        assert!(vis.join(f).exists(), "{f} missing");
+    }
+    let png = image::open(vis.join("test_000_vis.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (31, 23));
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(vis.join("visibility.json")).unwrap()).unwrap();
+    let views = v["views"].as_array().unwrap();
+    assert_eq!(views.len(), 1 + 2 + 6, "{v}");
+    for row in views {
+        let mean = row["mean_visibility"].as_f64().unwrap();
+        let opacity = row["mean_opacity"].as_f64().unwrap();
+        assert!((0.0..=opacity + 1e-6).contains(&mean), "{row}");
+    }
+    // The exact march on one view; then the benchmark at a tiny size.
+    let mut args = vec!["visibility", run_s, "--views", "0", "--method", "march"];
+    args.extend(small);
+    let (ok, _, err) = extranerf(&args);
+    assert!(ok && err.contains("samples per segment"), "{err}");
+    let mut args = vec!["bench", "visibility", run_s];
+    args.extend(small);
+    let (ok, out, err) = extranerf(&args);
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("march         6") && out.contains("volume        6"),
+        "{out}"
+    );
+    let (ok, _, err) = extranerf(&["visibility", run_s, "--views", "0", "--rank", "9"]);
+    assert!(!ok && err.contains("rank 9"), "{err}");
+    let (ok, _, err) = extranerf(&["visibility", run_s]);
+    assert!(!ok && err.contains("--cameras"), "{err}");
+    let (ok, _, err) = extranerf(&[
+        "visibility",
+        run_s,
+        "--cameras",
+        dir.join("missing.json").to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("missing.json"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }
 

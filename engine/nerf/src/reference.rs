@@ -748,6 +748,304 @@ pub fn depth_complete(
     d
 }
 
+/// Settings of [`visibility_pixel`] (the kernel's `VisibilityConfig` plus the field's space).
+#[derive(Clone, Copy, Debug)]
+pub struct VisibilitySetup {
+    /// The field lives in NDC (near plane 1); otherwise world space, t linear in disparity.
+    pub ndc: bool,
+    /// Sampling range of camera rays.
+    pub near: f64,
+    /// See `near`.
+    pub far: f64,
+    /// Samples per camera ray.
+    pub samples: u32,
+    /// Samples per segment toward a training camera.
+    pub vis_samples: u32,
+    /// Which largest transmittance counts.
+    pub rank: u32,
+    /// Training cameras used (bit k: camera k).
+    pub mask: u32,
+}
+
+/// Multi-view transmittance visibility (`render/visibility.wgsl`, no cuts, no occupancy) of
+/// one pixel in f64, for a density given in the field's space. Returns (visibility, opacity,
+/// depth).
+pub fn visibility_pixel(
+    density: &dyn Fn([f64; 3]) -> f64,
+    cam: &crate::data::Camera,
+    pixel: u32,
+    train: &[crate::data::Camera],
+    s: &VisibilitySetup,
+) -> [f64; 3] {
+    use glam::DVec3;
+    let px = [
+        (pixel % cam.width) as f64 + 0.5,
+        (pixel / cam.width) as f64 + 0.5,
+    ];
+    let (wo, wd) = camera_ray(cam, px);
+    let (o, d) = if s.ndc {
+        ndc_ray(cam, wo, wd, 1.0)
+    } else {
+        (wo, wd)
+    };
+    let (o, d) = (DVec3::from(o), DVec3::from(d));
+    let ax = -2.0 * (cam.fx as f32) as f64 / cam.width as f64;
+    let ay = -2.0 * (cam.fy as f32) as f64 / cam.height as f64;
+    let to_world = |x: DVec3| {
+        if s.ndc {
+            let z = 2.0 / (x.z - 1.0);
+            DVec3::new(x.x * z / ax, x.y * z / ay, z)
+        } else {
+            x
+        }
+    };
+    let to_field = |p: DVec3| {
+        if s.ndc {
+            DVec3::new(ax * p.x / p.z, ay * p.y / p.z, 1.0 + 2.0 / p.z)
+        } else {
+            p
+        }
+    };
+    let t_of = |u: f64| {
+        if s.ndc {
+            s.near + (s.far - s.near) * u
+        } else {
+            1.0 / (1.0 / s.near + (1.0 / s.far - 1.0 / s.near) * u)
+        }
+    };
+    let k = s.samples as f64;
+    let alpha = |x: f64| 1.0 - (-x).exp();
+    let (mut tau, mut vis, mut opacity, mut depth) = (0.0f64, 0.0, 0.0, 0.0);
+    for j in 0..s.samples {
+        let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
+        let t = t_of(0.5 * (s0 + s1));
+        let dt = t_of(s1) - t_of(s0);
+        let x = o + t * d;
+        let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
+        let w = (-tau).exp() * alpha(xo);
+        tau += xo;
+        opacity += w;
+        depth += w * t;
+        let p = to_world(x);
+        if w.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) || !p.is_finite() {
+            continue;
+        }
+        let mut ts: Vec<f64> = Vec::new();
+        for (c_i, c) in train.iter().enumerate() {
+            if c_i >= 32 || (s.mask >> c_i) & 1 == 0 {
+                continue;
+            }
+            let centre = c.centre();
+            let r = glam::DMat3::from_mat4(c.c2w).transpose() * (p - centre);
+            if r.z >= 0.0 {
+                ts.push(0.0);
+                continue;
+            }
+            let u = c.fx * r.x / -r.z + c.cx;
+            let v = -c.fy * r.y / -r.z + c.cy;
+            if !(0.0..=c.width as f64).contains(&u) || !(0.0..=c.height as f64).contains(&v) {
+                ts.push(0.0);
+                continue;
+            }
+            let end = if s.ndc {
+                let mut e = centre;
+                if centre.z > -1.0 {
+                    e = p + (-1.0 - p.z) / (centre.z - p.z) * (centre - p);
+                    e.z = -1.0;
+                }
+                to_field(e)
+            } else {
+                let len = (centre - p).length();
+                if len <= s.near {
+                    ts.push(1.0);
+                    continue;
+                }
+                p + (centre - p) * ((len - s.near) / len)
+            };
+            let scale = if s.ndc { 0.5 } else { 1.0 };
+            let t_prev = if j == 0 {
+                t_of(0.0)
+            } else {
+                t_of(s0 - 0.5 / k)
+            };
+            let skip = (t - t_prev) * d.length();
+            let seg = end - x;
+            let len = seg.length();
+            if len <= skip {
+                ts.push(1.0);
+                continue;
+            }
+            let dir = seg / len;
+            let step = (len - skip) / s.vis_samples as f64;
+            let mut od = 0.0;
+            for m in 0..s.vis_samples {
+                let y = x + dir * (skip + (m as f64 + 0.5) * step);
+                od += density(y.to_array()).max(0.0) * step * scale;
+            }
+            ts.push((-od).exp());
+        }
+        ts.sort_by(|a, b| b.total_cmp(a));
+        let v = ts.get(s.rank as usize - 1).copied().unwrap_or(0.0);
+        vis += w * v;
+    }
+    [vis, opacity, depth]
+}
+
+/// The camera ray of `pixel` (continuous pixel coordinates) in the field's space (NDC with
+/// near plane 1 when `ndc`).
+fn field_ray(cam: &crate::data::Camera, px: [f64; 2], ndc: bool) -> (glam::DVec3, glam::DVec3) {
+    let (wo, wd) = camera_ray(cam, px);
+    let (o, d) = if ndc {
+        ndc_ray(cam, wo, wd, 1.0)
+    } else {
+        (wo, wd)
+    };
+    (glam::DVec3::from(o), glam::DVec3::from(d))
+}
+
+fn sample_t(s: &VisibilitySetup, u: f64) -> f64 {
+    if s.ndc {
+        s.near + (s.far - s.near) * u
+    } else {
+        1.0 / (1.0 / s.near + (1.0 / s.far - 1.0 / s.near) * u)
+    }
+}
+
+/// Transmittance volumes (`render/visibility.wgsl`'s `transmittance_volume`) in f64: per
+/// camera, row and column of a `w` x `h` grid of ray cells, T at the `d + 1` boundaries of `d`
+/// strata (densities at the strata midpoints).
+pub fn transmittance_volume(
+    density: &dyn Fn([f64; 3]) -> f64,
+    train: &[crate::data::Camera],
+    size: [u32; 3],
+    s: &VisibilitySetup,
+) -> Vec<f64> {
+    let [w, h, d] = size;
+    let mut out = Vec::new();
+    for c in train {
+        for y in 0..h {
+            for x in 0..w {
+                let px = [
+                    (x as f64 + 0.5) / w as f64 * c.width as f64,
+                    (y as f64 + 0.5) / h as f64 * c.height as f64,
+                ];
+                let (o, dir) = field_ray(c, px, s.ndc);
+                let mut tau = 0.0;
+                out.push(1.0);
+                for m in 0..d {
+                    let (s0, s1) = (m as f64 / d as f64, (m + 1) as f64 / d as f64);
+                    let t = sample_t(s, 0.5 * (s0 + s1));
+                    let dt = sample_t(s, s1) - sample_t(s, s0);
+                    tau += density((o + t * dir).to_array()).max(0.0) * dt;
+                    out.push((-tau).exp());
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Visibility of one pixel with transmittances looked up in `volume` (laid out as
+/// [`transmittance_volume`] returns it): 0 for a sample outside camera k's image or behind
+/// it; else k's T at the previous sample's world position, bilinear across rays (clamped to
+/// the grid), at the near boundary of the stratum that holds it.
+pub fn visibility_pixel_volume(
+    density: &dyn Fn([f64; 3]) -> f64,
+    cam: &crate::data::Camera,
+    pixel: u32,
+    train: &[crate::data::Camera],
+    s: &VisibilitySetup,
+    volume: &[f64],
+    size: [u32; 3],
+) -> [f64; 3] {
+    use glam::DVec3;
+    let [w, h, d] = size;
+    let px = [
+        (pixel % cam.width) as f64 + 0.5,
+        (pixel / cam.width) as f64 + 0.5,
+    ];
+    let (o, dir) = field_ray(cam, px, s.ndc);
+    let ax = -2.0 * (cam.fx as f32) as f64 / cam.width as f64;
+    let ay = -2.0 * (cam.fy as f32) as f64 / cam.height as f64;
+    let to_world = |x: DVec3| {
+        if s.ndc {
+            let z = 2.0 / (x.z - 1.0);
+            DVec3::new(x.x * z / ax, x.y * z / ay, z)
+        } else {
+            x
+        }
+    };
+    let lookup = |k: usize, p: DVec3, at: DVec3| -> f64 {
+        let c = &train[k];
+        let rot = glam::DMat3::from_mat4(c.c2w).transpose();
+        let ra = rot * (at - c.centre());
+        let inside = |r: DVec3| {
+            let u = c.fx * r.x / -r.z + c.cx;
+            let v = -c.fy * r.y / -r.z + c.cy;
+            r.z < 0.0 && (0.0..=c.width as f64).contains(&u) && (0.0..=c.height as f64).contains(&v)
+        };
+        if !inside(ra) {
+            return 0.0;
+        }
+        let r = rot * (p - c.centre());
+        if r.z >= 0.0 {
+            return 1.0;
+        }
+        let u = c.fx * r.x / -r.z + c.cx;
+        let v = -c.fy * r.y / -r.z + c.cy;
+        let t = if s.ndc { 1.0 + 1.0 / p.z } else { -r.z };
+        let sp = if s.ndc {
+            (t - s.near) / (s.far - s.near)
+        } else {
+            (1.0 / t - 1.0 / s.near) / (1.0 / s.far - 1.0 / s.near)
+        }
+        .clamp(0.0, 1.0);
+        let fx = (u / c.width as f64 * w as f64 - 0.5).clamp(0.0, (w - 1) as f64);
+        let fy = (v / c.height as f64 * h as f64 - 0.5).clamp(0.0, (h - 1) as f64);
+        let z0 = ((sp * d as f64) as u32).min(d - 1);
+        let (x0, y0) = ((fx as u32).min(w - 1), (fy as u32).min(h - 1));
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (tx, ty) = (fx - x0 as f64, fy - y0 as f64);
+        let at = |x: u32, y: u32| volume[(((k as u32 * h + y) * w + x) * (d + 1) + z0) as usize];
+        let top = at(x0, y0) * (1.0 - tx) + at(x1, y0) * tx;
+        let bottom = at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx;
+        top * (1.0 - ty) + bottom * ty
+    };
+    let k = s.samples as f64;
+    let (mut tau, mut vis, mut opacity, mut depth) = (0.0f64, 0.0, 0.0, 0.0);
+    for j in 0..s.samples {
+        let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
+        let t = sample_t(s, 0.5 * (s0 + s1));
+        let dt = sample_t(s, s1) - sample_t(s, s0);
+        let x = o + t * dir;
+        let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
+        let wgt = (-tau).exp() * (1.0 - (-xo).exp());
+        tau += xo;
+        opacity += wgt;
+        depth += wgt * t;
+        let t_prev = if j == 0 {
+            sample_t(s, 0.0)
+        } else {
+            sample_t(s, s0 - 0.5 / k)
+        };
+        let p = to_world(x);
+        let p_prev = to_world(o + t_prev * dir);
+        if wgt.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || !p.is_finite()
+            || !p_prev.is_finite()
+        {
+            continue;
+        }
+        let mut ts: Vec<f64> = (0..train.len().min(32))
+            .filter(|&c| (s.mask >> c) & 1 == 1)
+            .map(|c| lookup(c, p_prev, p))
+            .collect();
+        ts.sort_by(|a, b| b.total_cmp(a));
+        vis += wgt * ts.get(s.rank as usize - 1).copied().unwrap_or(0.0);
+    }
+    [vis, opacity, depth]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -388,19 +388,31 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()
 
 /// Writes a depth map as a single-channel f32 OpenEXR file (channel `Z`).
 pub fn write_depth_exr(path: &Path, width: u32, height: u32, depth: &[f32]) -> Result<()> {
+    write_exr_channels(path, width, height, &[("Z", depth)])
+}
+
+/// Writes named f32 channels of one image as an OpenEXR file, atomically.
+pub fn write_exr_channels(
+    path: &Path,
+    width: u32,
+    height: u32,
+    channels: &[(&str, &[f32])],
+) -> Result<()> {
     use exr::prelude::*;
-    if depth.len() != width as usize * height as usize {
-        return Err(RunError::Config(format!(
-            "{}: {} depth values for {width}x{height}",
-            path.display(),
-            depth.len()
-        )));
-    }
     let mut list = SmallVec::new();
-    list.push(AnyChannel::new("Z", FlatSamples::F32(depth.to_vec())));
+    for (name, data) in channels {
+        if data.len() != width as usize * height as usize {
+            return Err(RunError::Config(format!(
+                "{}: {} values in channel {name} for {width}x{height}",
+                path.display(),
+                data.len()
+            )));
+        }
+        list.push(AnyChannel::new(*name, FlatSamples::F32(data.to_vec())));
+    }
     let layer = Layer::new(
         (width as usize, height as usize),
-        LayerAttributes::named("depth"),
+        LayerAttributes::named("image"),
         Encoding::FAST_LOSSLESS,
         AnyChannels::sort(list),
     );

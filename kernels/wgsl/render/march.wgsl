@@ -32,6 +32,7 @@
 //!include common/rng.wgsl
 //!include common/sh.wgsl
 //!include common/volume.wgsl
+//!include common/field_eval.wgsl
 
 struct Params {
     // Rays (march_render) or cells in the window (march_occupancy).
@@ -90,66 +91,6 @@ var<immediate> params: Params;
 // copied here from the parameter buffer before each pass. Every lane reads the same entry; a
 // uniform block lets lavapipe load it without the per-lane branches of a storage buffer.
 @group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
-
-// Hash-grid features of the contracted point x into a[0 .. levels * features]. A NaN point
-// has all-zero features, as in the standalone kernel.
-fn encode(x: vec3<f32>, a: ptr<function, Act>) {
-    let F = params.features;
-    for (var j = 0u; j < 16u; j += 1u) {
-        (*a)[j] = vec4<f32>(0.0);
-    }
-    if !hg_valid(x) {
-        return;
-    }
-    for (var l = 0u; l < params.levels; l += 1u) {
-        let lv = level_info[l];
-        let cell = hg_cell(x, lv);
-        if F == 2u {
-            // The paper's setting: one hash per corner for both features.
-            var acc = vec2<f32>(0.0);
-            for (var k = 0u; k < 8u; k += 1u) {
-                let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * 2u;
-                acc += hg_weight(cell.frac, k) * vec2<f32>(table[e], table[e + 1u]);
-            }
-            act_set(a, 2u * l, acc.x);
-            act_set(a, 2u * l + 1u, acc.y);
-            continue;
-        }
-        for (var f = 0u; f < F; f += 1u) {
-            var acc = 0.0;
-            for (var k = 0u; k < 8u; k += 1u) {
-                let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
-                acc += hg_weight(cell.frac, k) * table[e + f];
-            }
-            act_set(a, l * F + f, acc);
-        }
-    }
-}
-
-// Density at the scene-normalised point u, leaving the density MLP's output row in a.
-fn density_at(u: vec3<f32>, a: ptr<function, Act>) -> f32 {
-    encode(contract_unit(u, params.contraction), a);
-    mlp_forward(density_shape[0], 0u, a);
-    return trunc_exp((*a)[0].x);
-}
-
-// Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of).
-fn t_of(s: f32) -> f32 {
-    if params.spacing == 1u {
-        return 1.0 / mix(1.0 / params.near, 1.0 / params.far, s);
-    }
-    return mix(params.near, params.far, s);
-}
-
-// False only inside a cell the grid marks empty: points outside the grid (or NaN) are
-// evaluated, so a grid smaller than the scene costs speed, never content.
-fn occupied(u: vec3<f32>) -> bool {
-    if params.occ_cascades == 0u {
-        return true;
-    }
-    let cell = occ_cell(u, OccGrid(params.occ_res, params.occ_cascades));
-    return cell == OCC_NONE || ((occ_bits[cell / 32u] >> (cell % 32u)) & 1u) != 0u;
-}
 
 @compute @workgroup_size(64)
 fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,

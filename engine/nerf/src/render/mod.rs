@@ -8,3 +8,4 @@ pub mod march;
 pub mod occupancy;
 pub mod rays;
 pub mod sample;
+pub mod visibility;

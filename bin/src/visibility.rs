@@ -1,0 +1,619 @@
+//! `extranerf visibility` (visibility maps of virtual or held-out views, pseudo-disocclusion
+//! masks of the training views) and `extranerf bench visibility`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use extranerf_gpu::Context;
+use extranerf_nerf::data::Camera;
+use extranerf_nerf::run::{load_checkpoint, write_png, Checkpoint, LoadedScene};
+use extranerf_nerf::trainer::Nerf;
+use extranerf_prims::Prims;
+
+use extranerf_nerf::render::visibility::{
+    mask_all_but, Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap,
+    MAX_RANK, MAX_TRAIN_CAMERAS,
+};
+
+use crate::nerf::MarchArgs;
+
+/// How visibility is computed (shared by `visibility` and `bench visibility`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct VisArgs {
+    /// Samples per camera ray (default: the run's training setting).
+    #[arg(long)]
+    samples: Option<u32>,
+    /// Samples per segment from a ray sample toward a training camera.
+    #[arg(long, default_value_t = 32)]
+    vis_samples: u32,
+    /// Which largest transmittance across the training cameras counts: 2 (the paper) means a
+    /// point is visible only when two training views saw it.
+    #[arg(long, default_value_t = 2)]
+    rank: u32,
+    /// Samples whose weight is at most this are not marched toward the cameras (each drops at
+    /// most this much visibility; 0: exact).
+    #[arg(long, default_value_t = 1e-3)]
+    min_weight: f32,
+    /// Segments toward a camera stop once their transmittance falls below this, and count as
+    /// 0 (0: exact).
+    #[arg(long, default_value_t = 1e-3)]
+    min_transmittance: f32,
+    /// Divide the views' resolution by this (visibility is smooth; 1 = full resolution).
+    #[arg(long, default_value_t = 4)]
+    downscale: u32,
+    /// Occupancy grid cells per axis, built from the field first, so segments skip empty
+    /// space (0: no grid).
+    #[arg(long, default_value_t = 0)]
+    occupancy_res: u32,
+    /// volume: look each training camera's transmittance up in a volume built once from its
+    /// rays (a deep shadow map; cost independent of the distance to the camera). march: march
+    /// every segment toward every camera (the exact definition; about 100x slower on fern,
+    /// results/bench_visibility_lavapipe).
+    #[arg(long, default_value = "volume", value_parser = ["volume", "march"])]
+    method: String,
+    /// Rays across each training camera's transmittance volume (rows follow its aspect).
+    #[arg(long, default_value_t = 128)]
+    volume_res: u32,
+    /// Depth strata of the transmittance volumes.
+    #[arg(long, default_value_t = 128)]
+    volume_depth: u32,
+    /// Pixels per submission.
+    #[arg(long, default_value_t = 4096)]
+    chunk: u32,
+}
+
+/// Arguments of `extranerf visibility`.
+#[derive(clap::Args, Debug)]
+#[command(group(clap::ArgGroup::new("which").required(true).multiple(true).args(["cameras", "views", "training_masks"])))]
+pub struct VisibilityArgs {
+    /// Run folder written by `extranerf train`.
+    run: PathBuf,
+    /// Views to test, as a transforms.json in the run's world frame (`extranerf cameras`
+    /// writes one).
+    #[arg(long, value_name = "FILE")]
+    cameras: Option<PathBuf>,
+    /// The run's own views instead (or as well): test, train, all, or indices such as 0,4.
+    #[arg(long)]
+    views: Option<String>,
+    /// Also write pseudo-disocclusion masks for every training view: the view tested against
+    /// the other training views (for fine-tuning the inpainting model).
+    #[arg(long)]
+    training_masks: bool,
+    /// Rank for the training masks (0: the number of other views, so a pixel is disoccluded
+    /// when any other view missed it).
+    #[arg(long, default_value_t = 0)]
+    mask_rank: u32,
+    /// Pixels with visibility below this are masked (to be inpainted).
+    #[arg(long, default_value_t = 0.5)]
+    threshold: f32,
+    /// Output folder (default RUN/visibility).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    vis: VisArgs,
+}
+
+/// A trained run ready for visibility queries.
+struct Loaded {
+    ck: Checkpoint,
+    scene: LoadedScene,
+    nerf: Nerf,
+    vis: Visibility,
+    /// The training cameras' transmittance volumes, once built.
+    volume: Option<TransmittanceVolume>,
+}
+
+impl Loaded {
+    fn new(ctx: &Context, run: &Path, a: &VisArgs) -> anyhow::Result<Loaded> {
+        let ck = load_checkpoint(run)?;
+        let scene = ck.config.scene.load()?;
+        let mut nerf = Nerf::new(
+            ctx,
+            ck.config.model.clone(),
+            &ck.params,
+            ck.config.train.background,
+        )?;
+        let march = MarchArgs {
+            occupancy_res: a.occupancy_res,
+            ..MarchArgs::default()
+        };
+        if let Some(occ) = march.occupancy(&ck.config.model)? {
+            let prims = Prims::new(ctx)?;
+            let t = Instant::now();
+            if let Some(st) =
+                nerf.build_occupancy(ctx, &prims, Some(occ), march.occupancy_passes)?
+            {
+                eprintln!(
+                    "occupancy grid {}^3: {} of {} cells occupied ({:.1}%), built in {:.1} s",
+                    occ.res,
+                    st.occupied,
+                    st.cells,
+                    100.0 * st.occupied as f64 / st.cells as f64,
+                    t.elapsed().as_secs_f64()
+                );
+            }
+        }
+        let vis = Visibility::new(ctx)?;
+        Ok(Loaded {
+            ck,
+            scene,
+            nerf,
+            vis,
+            volume: None,
+        })
+    }
+
+    fn train_cameras(&self) -> anyhow::Result<Vec<Camera>> {
+        let train: Vec<Camera> = self
+            .scene
+            .split
+            .train
+            .iter()
+            .map(|&i| self.scene.scene.cameras[i].clone())
+            .collect();
+        if train.len() > MAX_TRAIN_CAMERAS {
+            bail!(
+                "the run has {} training views; visibility supports at most {MAX_TRAIN_CAMERAS}",
+                train.len()
+            );
+        }
+        Ok(train)
+    }
+
+    fn config(&self, a: &VisArgs, rank: u32) -> anyhow::Result<VisibilityConfig> {
+        if !(1..=MAX_RANK).contains(&rank) {
+            bail!("rank {rank}: use 1 to {MAX_RANK}");
+        }
+        for (flag, v) in [
+            ("--min-weight", a.min_weight),
+            ("--min-transmittance", a.min_transmittance),
+        ] {
+            if !(0.0..1.0).contains(&v) {
+                bail!("{flag} {v}: use a value in [0, 1)");
+            }
+        }
+        if a.vis_samples == 0 || a.samples == Some(0) {
+            bail!("--samples and --vis-samples must be positive");
+        }
+        Ok(VisibilityConfig {
+            samples: a.samples.unwrap_or(self.ck.config.train.samples),
+            vis_samples: a.vis_samples,
+            rank,
+            min_weight: a.min_weight,
+            min_transmittance: a.min_transmittance,
+        })
+    }
+
+    fn density(&self) -> anyhow::Result<Density<'_>> {
+        Ok(Density::Field {
+            field: self.nerf.field(),
+            params: self.nerf.field().layout().sections(self.nerf.params())?,
+            occupancy: self.nerf.occupancy(),
+        })
+    }
+
+    /// Builds the transmittance volumes of `train` (returns the seconds it took).
+    fn build_volume(
+        &mut self,
+        ctx: &Context,
+        train: &[Camera],
+        a: &VisArgs,
+    ) -> anyhow::Result<f64> {
+        if a.volume_res == 0 || a.volume_depth == 0 {
+            bail!("--volume-res and --volume-depth must be positive");
+        }
+        let t = Instant::now();
+        let vol =
+            self.vis
+                .build_volume(ctx, &self.density()?, train, a.volume_res, a.volume_depth)?;
+        let s = t.elapsed().as_secs_f64();
+        let [w, h, d] = vol.size();
+        eprintln!(
+            "transmittance volumes: {} cameras x {w}x{h} rays x {d} strata ({:.1} MiB), built in {s:.1} s",
+            train.len(),
+            vol.bytes() as f64 / (1 << 20) as f64
+        );
+        self.volume = Some(vol);
+        Ok(s)
+    }
+
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    fn map(
+        &self,
+        ctx: &Context,
+        cam: &Camera,
+        train: &[Camera],
+        mask: u32,
+        cfg: &VisibilityConfig,
+        volume: bool,
+        chunk: u32,
+    ) -> anyhow::Result<VisibilityMap> {
+        let vol = if volume {
+            let Some(v) = self.volume.as_ref() else {
+                bail!("the transmittance volumes have not been built");
+            };
+            Some(v)
+        } else {
+            None
+        };
+        Ok(self
+            .vis
+            .map(ctx, &self.density()?, cam, train, mask, cfg, vol, chunk)?)
+    }
+}
+
+/// `cam` at 1/`factor` of its resolution (same field of view).
+fn downscaled(cam: &Camera, factor: u32) -> anyhow::Result<Camera> {
+    if factor == 0 {
+        bail!("--downscale must be at least 1");
+    }
+    let mut c = cam.clone();
+    c.width = (cam.width / factor).max(1);
+    c.height = (cam.height / factor).max(1);
+    let (sx, sy) = (
+        c.width as f64 / cam.width as f64,
+        c.height as f64 / cam.height as f64,
+    );
+    c.fx = cam.fx * sx;
+    c.fy = cam.fy * sy;
+    c.cx = cam.cx * sx;
+    c.cy = cam.cy * sy;
+    Ok(c)
+}
+
+/// Writes `NAME_vis.png` (grey visibility), `NAME_vis.exr` (channels V: visibility,
+/// A: opacity) and `NAME_mask.png` (white where visibility < threshold).
+fn write_map(out: &Path, name: &str, m: &VisibilityMap, threshold: f32) -> anyhow::Result<()> {
+    let grey: Vec<f32> = m.visibility.iter().flat_map(|&v| [v, v, v]).collect();
+    write_png(
+        &out.join(format!("{name}_vis.png")),
+        m.width,
+        m.height,
+        &grey,
+    )?;
+    let mask: Vec<f32> = m
+        .visibility
+        .iter()
+        .flat_map(|&v| {
+            let x = if v < threshold { 1.0 } else { 0.0 };
+            [x, x, x]
+        })
+        .collect();
+    write_png(
+        &out.join(format!("{name}_mask.png")),
+        m.width,
+        m.height,
+        &mask,
+    )?;
+    extranerf_nerf::run::write_exr_channels(
+        &out.join(format!("{name}_vis.exr")),
+        m.width,
+        m.height,
+        &[("V", &m.visibility), ("A", &m.opacity)],
+    )?;
+    Ok(())
+}
+
+fn summary(
+    name: &str,
+    kind: &str,
+    m: &VisibilityMap,
+    seconds: f64,
+    threshold: f32,
+) -> serde_json::Value {
+    let px = (m.width as f64 * m.height as f64).max(1.0);
+    let evals: f64 = m.evals.iter().map(|&e| e as f64).sum();
+    serde_json::json!({
+        "view": name,
+        "kind": kind,
+        "width": m.width,
+        "height": m.height,
+        "mean_visibility": m.mean(),
+        "mean_opacity": m.mean_opacity(),
+        "visible_fraction": m.visible_fraction(),
+        "masked_fraction": m.masked_fraction(threshold),
+        "seconds": seconds,
+        "us_per_pixel": seconds * 1e6 / px,
+        "segment_evals_per_pixel": evals / px,
+    })
+}
+
+/// `extranerf visibility`.
+pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
+    let out = a.out.clone().unwrap_or_else(|| a.run.join("visibility"));
+    if !(0.0..=1.0).contains(&a.threshold) {
+        bail!("--threshold {}: use a value in [0, 1]", a.threshold);
+    }
+    let mut l = Loaded::new(ctx, &a.run, &a.vis)?;
+    let train = l.train_cameras()?;
+    let cfg = l.config(&a.vis, a.vis.rank)?;
+    let volume = a.vis.method == "volume";
+    let build_seconds = if volume {
+        Some(l.build_volume(ctx, &train, &a.vis)?)
+    } else {
+        None
+    };
+    let mut views: Vec<(String, &'static str, Camera)> = Vec::new();
+    if let Some(file) = &a.cameras {
+        let scene = extranerf_nerf::data::transforms::load_transforms(file)
+            .with_context(|| format!("--cameras {}", file.display()))?;
+        for (i, c) in scene.cameras.into_iter().enumerate() {
+            views.push((format!("virtual_{i:03}"), "virtual", c));
+        }
+    }
+    if let Some(list) = &a.views {
+        let split = &l.scene.split;
+        let n = l.scene.scene.cameras.len();
+        let idx: Vec<usize> = match list.as_str() {
+            "test" => split.test.clone(),
+            "train" => split.train.clone(),
+            "all" => (0..n).collect(),
+            s => s
+                .split(',')
+                .map(|v| {
+                    v.trim()
+                        .parse::<usize>()
+                        .ok()
+                        .filter(|&i| i < n)
+                        .ok_or_else(|| {
+                            anyhow::anyhow!(
+                                "--views {s}: use test, train, all or view indices below {n}"
+                            )
+                        })
+                })
+                .collect::<anyhow::Result<_>>()?,
+        };
+        for i in idx {
+            let kind = if split.train.contains(&i) {
+                "train"
+            } else if split.test.contains(&i) {
+                "test"
+            } else {
+                "other"
+            };
+            views.push((
+                format!("{kind}_{i:03}"),
+                kind,
+                l.scene.scene.cameras[i].clone(),
+            ));
+        }
+    }
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    eprintln!(
+        "visibility against {} training views (rank {}, {} samples per ray, {}, downscale {})",
+        train.len(),
+        cfg.rank,
+        cfg.samples,
+        if volume {
+            format!(
+                "transmittance volumes {}x{}",
+                a.vis.volume_res, a.vis.volume_depth
+            )
+        } else {
+            format!("{} samples per segment", cfg.vis_samples)
+        },
+        a.vis.downscale
+    );
+    let mut rows = Vec::new();
+    let all = mask_all_but(train.len(), None);
+    for (name, kind, cam) in &views {
+        let cam = downscaled(cam, a.vis.downscale)?;
+        let t = Instant::now();
+        let m = l.map(ctx, &cam, &train, all, &cfg, volume, a.vis.chunk)?;
+        let s = t.elapsed().as_secs_f64();
+        write_map(&out, name, &m, a.threshold)?;
+        eprintln!(
+            "{name}: {}x{}, mean visibility {:.3} (opacity {:.3}; {:.1}% of the rendered content seen), {:.1}% masked, {s:.1} s",
+            m.width,
+            m.height,
+            m.mean(),
+            m.mean_opacity(),
+            100.0 * m.visible_fraction(),
+            100.0 * m.masked_fraction(a.threshold)
+        );
+        rows.push(summary(name, kind, &m, s, a.threshold));
+    }
+    if a.training_masks {
+        if train.len() < 2 {
+            bail!("training masks need at least two training views");
+        }
+        let rank = if a.mask_rank == 0 {
+            (train.len() as u32 - 1).min(MAX_RANK)
+        } else {
+            a.mask_rank
+        };
+        let mcfg = l.config(&a.vis, rank)?;
+        for (k, &i) in l.scene.split.train.iter().enumerate() {
+            let cam = downscaled(&train[k], a.vis.downscale)?;
+            let t = Instant::now();
+            let m = l.map(
+                ctx,
+                &cam,
+                &train,
+                mask_all_but(train.len(), Some(k)),
+                &mcfg,
+                volume,
+                a.vis.chunk,
+            )?;
+            let s = t.elapsed().as_secs_f64();
+            let name = format!("trainmask_{i:03}");
+            write_map(&out, &name, &m, a.threshold)?;
+            eprintln!(
+                "training view {i} against the other {}: {:.1}% disoccluded (rank {rank}), {s:.1} s",
+                train.len() - 1,
+                100.0 * m.masked_fraction(a.threshold)
+            );
+            rows.push(summary(&name, "training-mask", &m, s, a.threshold));
+        }
+    }
+    let doc = serde_json::json!({
+        "run": a.run,
+        "training_views": l.scene.split.train,
+        "settings": {
+            "rank": cfg.rank,
+            "mask_rank": a.mask_rank,
+            "samples": cfg.samples,
+            "vis_samples": cfg.vis_samples,
+            "min_weight": cfg.min_weight,
+            "min_transmittance": cfg.min_transmittance,
+            "downscale": a.vis.downscale,
+            "method": a.vis.method,
+            "volume_res": a.vis.volume_res,
+            "volume_depth": a.vis.volume_depth,
+            "volume_build_seconds": build_seconds,
+            "occupancy_res": a.vis.occupancy_res,
+            "threshold": a.threshold,
+        },
+        "device": ctx.info().name,
+        "views": rows,
+    });
+    crate::bench::write_json(&out.join("visibility.json"), &doc)?;
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+/// Arguments of `extranerf bench visibility`.
+#[derive(clap::Args, Debug)]
+pub struct BenchVisibilityArgs {
+    /// Run folder written by `extranerf train`.
+    run: PathBuf,
+    /// The view to test (default: the run's first held-out view).
+    #[arg(long)]
+    view: Option<usize>,
+    /// Timed repeats per setting (the median counts).
+    #[arg(long, default_value_t = 1)]
+    repeats: u32,
+    /// Also write the table as JSON.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    #[command(flatten)]
+    vis: VisArgs,
+}
+
+/// `extranerf bench visibility`: cost per pixel against the number of training views, for the
+/// exact segment march and for transmittance volumes (with the volumes' build cost and their
+/// difference from the march).
+pub fn bench_visibility(ctx: &Context, a: &BenchVisibilityArgs) -> anyhow::Result<()> {
+    let mut l = Loaded::new(ctx, &a.run, &a.vis)?;
+    let train = l.train_cameras()?;
+    let view = a
+        .view
+        .or_else(|| l.scene.split.test.first().copied())
+        .unwrap_or(0);
+    let Some(cam) = l.scene.scene.cameras.get(view) else {
+        bail!(
+            "--view {view}: the scene has {} views",
+            l.scene.scene.cameras.len()
+        );
+    };
+    let cam = downscaled(cam, a.vis.downscale)?;
+    let px = cam.width as f64 * cam.height as f64;
+    let repeats = a.repeats.max(1);
+    // The volumes' build, timed (the first build also creates the pipeline).
+    l.build_volume(ctx, &train, &a.vis)?;
+    let mut builds = Vec::new();
+    for _ in 0..repeats {
+        builds.push(l.build_volume(ctx, &train, &a.vis)? * 1e3);
+    }
+    builds.sort_by(f64::total_cmp);
+    let build_ms = builds[builds.len() / 2];
+    let [vw, vh, vd] = l.volume.as_ref().map(|v| v.size()).unwrap_or([0; 3]);
+    println!("device: {}", ctx.info().name);
+    println!(
+        "view {view} at {}x{}, {} samples per ray; march: {} samples per segment, cuts {} / {}; volumes: {vw}x{vh}x{vd} per camera, built for all {} cameras in {build_ms:.1} ms",
+        cam.width,
+        cam.height,
+        a.vis.samples.unwrap_or(l.ck.config.train.samples),
+        a.vis.vis_samples,
+        a.vis.min_weight,
+        a.vis.min_transmittance,
+        train.len()
+    );
+    println!(
+        "{:<7} {:>7} {:>5} {:>10} {:>10} {:>12} {:>9} {:>8} {:>10}",
+        "method",
+        "cameras",
+        "rank",
+        "ms/view",
+        "us/pixel",
+        "evals/pixel",
+        "x ray",
+        "mean vis",
+        "|d| march"
+    );
+    let mut rows = Vec::new();
+    let mut base_ms = None;
+    // n = 0: the camera ray alone (no camera selected), the reference cost.
+    for n in 0..=train.len() {
+        let rank = if n >= 2 { a.vis.rank.min(n as u32) } else { 1 };
+        let cfg = l.config(&a.vis, rank)?;
+        let mask = mask_all_but(n, None);
+        let mut exact: Option<VisibilityMap> = None;
+        for method in ["march", "volume"] {
+            if n == 0 && method == "volume" {
+                continue;
+            }
+            let volume = method == "volume";
+            // The first run warms the pipeline; then the timed repeats.
+            let mut m = l.map(ctx, &cam, &train, mask, &cfg, volume, a.vis.chunk)?;
+            let mut times = Vec::new();
+            for _ in 0..repeats {
+                let t = Instant::now();
+                m = l.map(ctx, &cam, &train, mask, &cfg, volume, a.vis.chunk)?;
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            times.sort_by(f64::total_cmp);
+            let ms = times[times.len() / 2];
+            let base = *base_ms.get_or_insert(ms);
+            let evals = m.evals.iter().map(|&e| e as f64).sum::<f64>() / px;
+            let diff = exact.as_ref().map(|e| {
+                e.visibility
+                    .iter()
+                    .zip(&m.visibility)
+                    .map(|(x, y)| (x - y).abs() as f64)
+                    .sum::<f64>()
+                    / px
+            });
+            println!(
+                "{method:<7} {n:>7} {rank:>5} {ms:>10.1} {:>10.2} {evals:>12.1} {:>9.2} {:>8.3} {:>10}",
+                ms * 1e3 / px,
+                ms / base,
+                m.mean(),
+                diff.map(|d| format!("{d:.4}")).unwrap_or_else(|| "-".into())
+            );
+            rows.push(serde_json::json!({
+                "method": method,
+                "cameras": n,
+                "rank": rank,
+                "ms_per_view": ms,
+                "us_per_pixel": ms * 1e3 / px,
+                "evals_per_pixel": evals,
+                "ratio_to_camera_ray_only": ms / base,
+                "mean_visibility": m.mean(),
+                "mean_abs_diff_from_march": diff,
+            }));
+            if !volume {
+                exact = Some(m);
+            }
+        }
+    }
+    if let Some(path) = &a.json {
+        let doc = serde_json::json!({
+            "device": ctx.info().name,
+            "run": a.run,
+            "view": view,
+            "width": cam.width,
+            "height": cam.height,
+            "vis_samples": a.vis.vis_samples,
+            "min_weight": a.vis.min_weight,
+            "min_transmittance": a.vis.min_transmittance,
+            "volume": {"size": [vw, vh, vd], "cameras": train.len(), "build_ms": build_ms},
+            "repeats": repeats,
+            "rows": rows,
+        });
+        crate::bench::write_json(path, &doc)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}

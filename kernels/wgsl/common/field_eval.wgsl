@@ -1,0 +1,65 @@
+// The BaseNeRF field evaluated in registers by one thread (the fused kernels: render/march.wgsl,
+// render/visibility.wgsl). Textual include: the including file declares `params` with the
+// fields read here (features, levels, contraction, spacing, near, far, occ_res, occ_cascades)
+// and the bindings `level_info`, `table`, `density_shape`, `occ_bits` and the uniform `mlp`
+// block, and includes common/{hash_grid,mlp_block,contract,heads,occupancy}.wgsl before this.
+
+// Hash-grid features of the contracted point x into a[0 .. levels * features]. A NaN point
+// has all-zero features, as in the standalone kernel.
+fn encode(x: vec3<f32>, a: ptr<function, Act>) {
+    let F = params.features;
+    for (var j = 0u; j < 16u; j += 1u) {
+        (*a)[j] = vec4<f32>(0.0);
+    }
+    if !hg_valid(x) {
+        return;
+    }
+    for (var l = 0u; l < params.levels; l += 1u) {
+        let lv = level_info[l];
+        let cell = hg_cell(x, lv);
+        if F == 2u {
+            // The paper's setting: one hash per corner for both features.
+            var acc = vec2<f32>(0.0);
+            for (var k = 0u; k < 8u; k += 1u) {
+                let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * 2u;
+                acc += hg_weight(cell.frac, k) * vec2<f32>(table[e], table[e + 1u]);
+            }
+            act_set(a, 2u * l, acc.x);
+            act_set(a, 2u * l + 1u, acc.y);
+            continue;
+        }
+        for (var f = 0u; f < F; f += 1u) {
+            var acc = 0.0;
+            for (var k = 0u; k < 8u; k += 1u) {
+                let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
+                acc += hg_weight(cell.frac, k) * table[e + f];
+            }
+            act_set(a, l * F + f, acc);
+        }
+    }
+}
+
+// Density at the scene-normalised point u, leaving the density MLP's output row in a.
+fn density_at(u: vec3<f32>, a: ptr<function, Act>) -> f32 {
+    encode(contract_unit(u, params.contraction), a);
+    mlp_forward(density_shape[0], 0u, a);
+    return trunc_exp((*a)[0].x);
+}
+
+// Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of).
+fn t_of(s: f32) -> f32 {
+    if params.spacing == 1u {
+        return 1.0 / mix(1.0 / params.near, 1.0 / params.far, s);
+    }
+    return mix(params.near, params.far, s);
+}
+
+// False only inside a cell the grid marks empty: points outside the grid (or NaN) are
+// evaluated, so a grid smaller than the scene costs speed, never content.
+fn occupied(u: vec3<f32>) -> bool {
+    if params.occ_cascades == 0u {
+        return true;
+    }
+    let cell = occ_cell(u, OccGrid(params.occ_res, params.occ_cascades));
+    return cell == OCC_NONE || ((occ_bits[cell / 32u] >> (cell % 32u)) & 1u) != 0u;
+}
