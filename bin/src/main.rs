@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 use extranerf_gpu::{Context, ContextDesc, Validation};
 
 mod bench;
+mod mvs;
 mod nerf;
 mod visibility;
 
@@ -61,6 +62,10 @@ enum Command {
     /// them saw it). Writes visibility PNG + EXR, an inpainting mask and visibility.json per
     /// view, and with --training-masks the pseudo-disocclusion masks of the training views.
     Visibility(visibility::VisibilityArgs),
+    /// Plane-sweep multi-view stereo for the training views (NCC, winner-take-all, multi-view
+    /// consistency, a confidence per pixel): depth maps for `train --depth-dir`, and their
+    /// agreement with the COLMAP sparse points.
+    Mvs(mvs::MvsArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -134,6 +139,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),
         Command::Visibility(a) => visibility::visibility(&context(cli)?, a),
+        Command::Mvs(a) => mvs::mvs(&context(cli)?, a),
         Command::Bench {
             what: BenchCommand::Visibility(args),
         } => visibility::bench_visibility(&context(cli)?, args),

@@ -248,18 +248,7 @@ fn downscaled(cam: &Camera, factor: u32) -> anyhow::Result<Camera> {
     if factor == 0 {
         bail!("--downscale must be at least 1");
     }
-    let mut c = cam.clone();
-    c.width = (cam.width / factor).max(1);
-    c.height = (cam.height / factor).max(1);
-    let (sx, sy) = (
-        c.width as f64 / cam.width as f64,
-        c.height as f64 / cam.height as f64,
-    );
-    c.fx = cam.fx * sx;
-    c.fy = cam.fy * sy;
-    c.cx = cam.cx * sx;
-    c.cy = cam.cy * sy;
-    Ok(c)
+    Ok(cam.downscaled(factor))
 }
 
 /// Writes `NAME_vis.png` (grey visibility), `NAME_vis.exr` (channels V: visibility,

@@ -435,3 +435,80 @@ fn cameras_writes_transforms_json() {
     assert!(!ok && err.contains("range -1"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// `extranerf mvs` on fern at a small size: depth maps `train --depth-dir` accepts, and the
+/// agreement with the sparse points in mvs.json.
+#[test]
+fn mvs_writes_depth_maps_training_reads() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-mvs-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = dir.join("mvs");
+    let scene = fern();
+    let (ok, _, err) = extranerf(&[
+        "mvs",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--downscale",
+        "8",
+        "--planes",
+        "16",
+        "--radius",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok && err.contains("sparse points"), "{err}");
+    for f in [
+        "image002.exr",
+        "image002_depth.png",
+        "image017_conf.png",
+        "mvs.json",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let m: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("mvs.json")).unwrap()).unwrap();
+    assert_eq!(m["views"].as_array().unwrap().len(), 6, "{m}");
+    let ag = &m["sparse_agreement"];
+    assert!(
+        ag["sparse_points"].as_u64().unwrap() > 40000 && ag["with_depth"].as_u64().unwrap() > 100,
+        "{ag}"
+    );
+    let med = ag["median_rel_error"].as_f64().unwrap();
+    assert!(med.is_finite() && med > 0.0 && med < 0.5, "{ag}");
+    // The maps are dense depth supervision for training.
+    let run = dir.join("run");
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--depth-dir",
+        out.to_str().unwrap(),
+        "--steps",
+        "2",
+        "--levels",
+        "2",
+        "--log2-table",
+        "10",
+        "--width",
+        "16",
+        "--rays",
+        "32",
+        "--samples",
+        "4",
+    ]);
+    assert!(ok && err.contains("step     2/2"), "{err}");
+    let (ok, _, err) = extranerf(&[
+        "mvs",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--radius",
+        "4",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("radius"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -14,6 +14,7 @@ pub mod depth_completion;
 pub mod field;
 pub mod metrics;
 pub mod model;
+pub mod mvs;
 pub mod optim;
 pub mod reference;
 pub mod render;

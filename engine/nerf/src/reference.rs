@@ -1046,6 +1046,165 @@ pub fn visibility_pixel_volume(
     [vis, opacity, depth]
 }
 
+/// Plane-sweep stereo (`depth/mvs.wgsl`'s `mvs_sweep`) of reference pixel (x, y) of view `r`
+/// against every other view, in f64. Returns (depth, confidence, cost per plane); depth 0 when
+/// no plane had enough voting sources or the window is textureless (no costs then).
+pub fn mvs_pixel(
+    cams: &[crate::data::Camera],
+    grey: &[Vec<f32>],
+    r: usize,
+    cfg: &crate::mvs::MvsConfig,
+    x: u32,
+    y: u32,
+) -> (f64, f64, Vec<f64>) {
+    use glam::DVec3;
+    let (w, h) = (cams[r].width as i64, cams[r].height as i64);
+    let rad = cfg.radius as i64;
+    let side = 2 * rad + 1;
+    let count = (side * side) as f64;
+    let sample = |v: usize, q: [f64; 2]| {
+        let fx = (q[0] - 0.5).clamp(0.0, (w - 1) as f64);
+        let fy = (q[1] - 0.5).clamp(0.0, (h - 1) as f64);
+        let (x0, y0) = ((fx as i64).min(w - 1), (fy as i64).min(h - 1));
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (ax, ay) = (fx - x0 as f64, fy - y0 as f64);
+        let g = |xx: i64, yy: i64| grey[v][(yy * w + xx) as usize] as f64;
+        let top = g(x0, y0) * (1.0 - ax) + g(x1, y0) * ax;
+        let bottom = g(x0, y1) * (1.0 - ax) + g(x1, y1) * ax;
+        top * (1.0 - ay) + bottom * ay
+    };
+    let mut win = Vec::new();
+    let mut dirs = Vec::new();
+    for k in 0..side * side {
+        let qx = (x as i64 + k % side - rad).clamp(0, w - 1);
+        let qy = (y as i64 + k / side - rad).clamp(0, h - 1);
+        win.push(grey[r][(qy * w + qx) as usize] as f64);
+        dirs.push(DVec3::from(
+            camera_ray(&cams[r], [qx as f64 + 0.5, qy as f64 + 0.5]).1,
+        ));
+    }
+    let sa: f64 = win.iter().sum();
+    let saa: f64 = win.iter().map(|v| v * v).sum();
+    let var_a = saa - sa * sa / count;
+    if var_a <= 1e-6 * count {
+        return (0.0, 0.0, Vec::new());
+    }
+    let o = cams[r].centre();
+    let depth_of = |m: f64| {
+        let s = m / (cfg.planes as f64 - 1.0).max(1.0);
+        1.0 / (1.0 / cfg.near as f64 + (1.0 / cfg.far as f64 - 1.0 / cfg.near as f64) * s)
+    };
+    let kb = cfg.best_k.clamp(1, 8) as usize;
+    let mut costs = Vec::new();
+    for m in 0..cfg.planes {
+        let d = depth_of(m as f64);
+        let mut src = Vec::new();
+        for (s, c) in cams.iter().enumerate() {
+            if s == r || s >= 32 {
+                continue;
+            }
+            let mut b = Vec::new();
+            for dir in &dirs {
+                let (u, v, z) = c.project(o + d * *dir);
+                if !(z > 0.0 && u >= 0.0 && v >= 0.0 && u <= w as f64 && v <= h as f64) {
+                    break;
+                }
+                b.push(sample(s, [u, v]));
+            }
+            if b.len() < win.len() {
+                continue;
+            }
+            let sb: f64 = b.iter().sum();
+            let sbb: f64 = b.iter().map(|v| v * v).sum();
+            let sab: f64 = b.iter().zip(&win).map(|(p, q)| p * q).sum();
+            let var_b = sbb - sb * sb / count;
+            let ncc = if var_b > 1e-6 * count {
+                ((sab - sa * sb / count) / (var_a * var_b).sqrt()).clamp(-1.0, 1.0)
+            } else {
+                -1.0
+            };
+            src.push(1.0 - ncc);
+        }
+        src.sort_by(f64::total_cmp);
+        costs.push(if src.len() >= kb {
+            src[..kb].iter().sum::<f64>() / kb as f64
+        } else {
+            2.0
+        });
+    }
+    let (best_m, best) =
+        costs.iter().enumerate().fold(
+            (0, 3.0),
+            |acc, (m, &c)| if c < acc.1 { (m, c) } else { acc },
+        );
+    if best >= 2.0 {
+        return (0.0, 0.0, costs);
+    }
+    let mut delta = 0.0;
+    if best_m > 0 && best_m + 1 < costs.len() {
+        let (cb, ca) = (costs[best_m - 1], costs[best_m + 1]);
+        let den = cb - 2.0 * best + ca;
+        if den > 1e-12 {
+            delta = (0.5 * (cb - ca) / den).clamp(-0.5, 0.5);
+        }
+    }
+    (
+        depth_of(best_m as f64 + delta),
+        (1.0 - best).clamp(0.0, 1.0),
+        costs,
+    )
+}
+
+/// The consistency check (`mvs_consistency`) of reference pixel (x, y) of view `r` in f64,
+/// given every view's winner-take-all depth and confidence: (kept depth, kept confidence).
+pub fn mvs_consistency_pixel(
+    cams: &[crate::data::Camera],
+    depths: &[Vec<f32>],
+    confs: &[Vec<f32>],
+    r: usize,
+    cfg: &crate::mvs::MvsConfig,
+    x: u32,
+    y: u32,
+) -> (f64, f64) {
+    use glam::DVec3;
+    let (w, h) = (cams[r].width, cams[r].height);
+    let i = (y * w + x) as usize;
+    let d = depths[r][i] as f64;
+    if d <= 0.0 {
+        return (0.0, 0.0);
+    }
+    let px = [x as f64 + 0.5, y as f64 + 0.5];
+    let p = cams[r].centre() + d * DVec3::from(camera_ray(&cams[r], px).1);
+    let mut agree = 0;
+    for (s, c) in cams.iter().enumerate() {
+        if s == r || s >= 32 {
+            continue;
+        }
+        let (u, v, z) = c.project(p);
+        if !(z > 0.0 && u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64) {
+            continue;
+        }
+        let (sx, sy) = ((u as u32).min(w - 1), (v as u32).min(h - 1));
+        let ds = depths[s][(sy * w + sx) as usize] as f64;
+        if ds <= 0.0 {
+            continue;
+        }
+        let dir = DVec3::from(camera_ray(c, [sx as f64 + 0.5, sy as f64 + 0.5]).1);
+        let (bu, bv, bz) = cams[r].project(c.centre() + ds * dir);
+        if bz > 0.0
+            && ((bu - px[0]).powi(2) + (bv - px[1]).powi(2)).sqrt() <= cfg.px_tol as f64
+            && (bz - d).abs() <= cfg.rel_tol as f64 * d
+        {
+            agree += 1;
+        }
+    }
+    if agree >= cfg.min_agree {
+        (d, confs[r][i] as f64)
+    } else {
+        (0.0, 0.0)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

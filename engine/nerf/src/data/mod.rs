@@ -88,6 +88,22 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The same camera at 1/`factor` of its resolution (integer division, at least 1 pixel;
+    /// intrinsics scaled by the actual size ratio, so the field of view is kept).
+    pub fn downscaled(&self, factor: u32) -> Camera {
+        let f = factor.max(1);
+        let mut c = self.clone();
+        c.width = (self.width / f).max(1);
+        c.height = (self.height / f).max(1);
+        let sx = c.width as f64 / self.width.max(1) as f64;
+        let sy = c.height as f64 / self.height.max(1) as f64;
+        c.fx = self.fx * sx;
+        c.fy = self.fy * sy;
+        c.cx = self.cx * sx;
+        c.cy = self.cy * sy;
+        c
+    }
+
     /// Camera centre in world coordinates.
     pub fn centre(&self) -> DVec3 {
         self.c2w.w_axis.truncate()

@@ -1,0 +1,303 @@
+//! `extranerf mvs`: plane-sweep stereo depth for a scene's training views, written as depth
+//! maps `train --depth-dir` reads, and compared with the COLMAP sparse points.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use extranerf_gpu::Context;
+use extranerf_nerf::data::colmap::read_points3d_bin;
+use extranerf_nerf::data::depth::sparse_depth;
+use extranerf_nerf::data::load_image;
+use extranerf_nerf::mvs::{downscale_rgb, grey, Mvs, MvsConfig, MvsDepth};
+use extranerf_nerf::run::{write_depth_exr, write_png, SceneSpec};
+
+/// Arguments of `extranerf mvs`.
+#[derive(clap::Args, Debug)]
+pub struct MvsArgs {
+    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
+    #[arg(long, value_name = "DIR")]
+    scene: PathBuf,
+    /// Which views: the training views of this split (extrapolation, fewshot, all).
+    #[arg(long, default_value = "extrapolation")]
+    split: String,
+    /// Training views of the few-shot split.
+    #[arg(long, default_value_t = 3)]
+    fewshot_views: usize,
+    /// LLFF downsampling factor (reads images_N).
+    #[arg(long, default_value_t = 8)]
+    factor: u32,
+    /// Match at 1/N of the images' resolution (box-filtered); maps are written at full size.
+    #[arg(long, default_value_t = 2)]
+    downscale: u32,
+    /// Depth planes, uniform in inverse depth.
+    #[arg(long, default_value_t = 64)]
+    planes: u32,
+    /// Nearest plane in scene units (default: 0.8 x the smallest near bound of the views).
+    #[arg(long)]
+    near: Option<f32>,
+    /// Farthest plane (default: 1.2 x the largest far bound).
+    #[arg(long)]
+    far: Option<f32>,
+    /// NCC window radius ((2r+1)^2 pixels, r <= 3).
+    #[arg(long, default_value_t = 2)]
+    radius: u32,
+    /// Sources averaged per plane (the lowest costs; robust to occlusion).
+    #[arg(long, default_value_t = 2)]
+    best_k: u32,
+    /// Other views whose depth must agree for a pixel to be kept.
+    #[arg(long, default_value_t = 1)]
+    min_agree: u32,
+    /// Agreement: reprojection error in pixels (at the matching resolution).
+    #[arg(long, default_value_t = 1.0)]
+    px_tol: f32,
+    /// Agreement: relative depth difference.
+    #[arg(long, default_value_t = 0.01)]
+    rel_tol: f32,
+    /// Output folder: <image stem>.exr (depth along the viewing axis in the scene's source
+    /// units, 0 where none; `extranerf train --depth-dir` reads these), _depth.png,
+    /// _conf.png, mvs.json.
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+/// Agreement of depths with sparse points: relative errors |d - d_sparse| / d_sparse.
+fn agreement(errors: &mut [f64], points: usize) -> serde_json::Value {
+    errors.sort_by(f64::total_cmp);
+    let n = errors.len();
+    let within = |t: f64| errors.iter().filter(|&&e| e < t).count() as f64 / n.max(1) as f64;
+    serde_json::json!({
+        "sparse_points": points,
+        "with_depth": n,
+        "coverage": n as f64 / points.max(1) as f64,
+        "median_rel_error": if n > 0 { errors[n / 2] } else { f64::NAN },
+        "mean_rel_error": errors.iter().sum::<f64>() / n.max(1) as f64,
+        "within_1pct": within(0.01),
+        "within_2pct": within(0.02),
+        "within_5pct": within(0.05),
+        "within_10pct": within(0.10),
+    })
+}
+
+/// `extranerf mvs`.
+pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
+    if a.downscale == 0 {
+        bail!("--downscale must be at least 1");
+    }
+    let spec = SceneSpec {
+        dir: a.scene.clone(),
+        split: a.split.clone(),
+        fewshot_views: a.fewshot_views,
+        factor: a.factor,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec.load()?;
+    let views: Vec<usize> = loaded.split.train.clone();
+    let full: Vec<_> = views
+        .iter()
+        .map(|&i| loaded.scene.cameras[i].clone())
+        .collect();
+    let bounds: Vec<(f64, f64)> = full.iter().filter_map(|c| c.bounds).collect();
+    let near = match a.near {
+        Some(v) => v,
+        None if !bounds.is_empty() => {
+            0.8 * bounds.iter().map(|b| b.0).fold(f64::INFINITY, f64::min) as f32
+        }
+        None => bail!("the scene gives no depth bounds: pass --near and --far"),
+    };
+    let far = match a.far {
+        Some(v) => v,
+        None if !bounds.is_empty() => 1.2 * bounds.iter().map(|b| b.1).fold(0.0, f64::max) as f32,
+        None => bail!("the scene gives no depth bounds: pass --near and --far"),
+    };
+    let cfg = MvsConfig {
+        planes: a.planes,
+        near,
+        far,
+        radius: a.radius,
+        best_k: a.best_k,
+        min_agree: a.min_agree,
+        px_tol: a.px_tol,
+        rel_tol: a.rel_tol,
+    };
+    let mut cams = Vec::new();
+    let mut greys = Vec::new();
+    for c in &full {
+        let img = load_image(&c.image)?;
+        if (img.width, img.height) != (c.width, c.height) {
+            bail!(
+                "{}: {}x{} image for a {}x{} camera",
+                c.image.display(),
+                img.width,
+                img.height,
+                c.width,
+                c.height
+            );
+        }
+        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, a.downscale);
+        let cam = c.downscaled(a.downscale);
+        if (cam.width, cam.height) != (w, h) {
+            bail!("internal: downscaled camera and image disagree");
+        }
+        greys.push(grey(&rgb));
+        cams.push(cam);
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    eprintln!(
+        "plane sweep over {} views at {}x{}: {} planes from {near:.3} to {far:.3}, {}x{} windows, best {} sources",
+        cams.len(),
+        cams[0].width,
+        cams[0].height,
+        a.planes,
+        2 * a.radius + 1,
+        2 * a.radius + 1,
+        a.best_k
+    );
+    let t = Instant::now();
+    let maps: Vec<MvsDepth> = Mvs::new(ctx)?.run(ctx, &cams, &greys, &cfg)?;
+    let seconds = t.elapsed().as_secs_f64();
+    eprintln!(
+        "done in {seconds:.1} s ({:.2} s per view)",
+        seconds / cams.len() as f64
+    );
+    // Sparse points, when the scene has them.
+    let points_path = a.scene.join("sparse/0/points3D.bin");
+    let points = if points_path.exists() {
+        Some(read_points3d_bin(&points_path)?)
+    } else {
+        None
+    };
+    let world = points.as_ref().map(|p| loaded.scene.transform_points(p));
+    // Scene units -> the source's units (what --depth-dir expects).
+    let scale = loaded.scene.world_from_source.x_axis.truncate().length();
+    let (mut all_kept, mut all_raw, mut all_points) = (Vec::new(), Vec::new(), 0);
+    let mut rows = Vec::new();
+    for (k, (&vi, m)) in views.iter().zip(&maps).enumerate() {
+        let c = &full[k];
+        let stem = c
+            .image
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_else(|| format!("view_{vi:03}"));
+        // Nearest-neighbour upsampling to the view's size.
+        let at = |map: &[f32], x: u32, y: u32| {
+            let sx = (x / a.downscale).min(m.width - 1);
+            let sy = (y / a.downscale).min(m.height - 1);
+            map[(sy * m.width + sx) as usize]
+        };
+        let mut full_depth = Vec::with_capacity((c.width * c.height) as usize);
+        for y in 0..c.height {
+            for x in 0..c.width {
+                full_depth.push(at(&m.depth, x, y) / scale as f32);
+            }
+        }
+        write_depth_exr(
+            &a.out.join(format!("{stem}.exr")),
+            c.width,
+            c.height,
+            &full_depth,
+        )?;
+        let inv = |d: f32| {
+            if d > 0.0 {
+                ((1.0 / d - 1.0 / far) / (1.0 / near - 1.0 / far)).clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        };
+        let vis: Vec<f32> = m.depth.iter().flat_map(|&d| [inv(d); 3]).collect();
+        write_png(
+            &a.out.join(format!("{stem}_depth.png")),
+            m.width,
+            m.height,
+            &vis,
+        )?;
+        let conf: Vec<f32> = m.confidence.iter().flat_map(|&v| [v; 3]).collect();
+        write_png(
+            &a.out.join(format!("{stem}_conf.png")),
+            m.width,
+            m.height,
+            &conf,
+        )?;
+        let mut row = serde_json::json!({
+            "view": vi,
+            "image": stem,
+            "coverage": m.coverage(),
+            "raw_coverage": m.raw_depth.iter().filter(|&&d| d > 0.0).count() as f64 / m.raw_depth.len().max(1) as f64,
+        });
+        if let (Some(w), Some(p)) = (&world, &points) {
+            let samples = sparse_depth(c, w, p);
+            let (mut kept, mut raw) = (Vec::new(), Vec::new());
+            for s in &samples {
+                let d = at(&m.depth, s.x, s.y) as f64;
+                if d > 0.0 {
+                    kept.push((d - s.depth).abs() / s.depth);
+                }
+                let d = at(&m.raw_depth, s.x, s.y) as f64;
+                if d > 0.0 {
+                    raw.push((d - s.depth).abs() / s.depth);
+                }
+            }
+            all_points += samples.len();
+            row["sparse_agreement"] = agreement(&mut kept.clone(), samples.len());
+            row["sparse_agreement_before_consistency"] = agreement(&mut raw.clone(), samples.len());
+            let ag = &row["sparse_agreement"];
+            eprintln!(
+                "view {vi} ({stem}): {:.1}% of pixels kept; {} sparse points, {:.1}% with depth, median error {:.2}%, {:.1}% within 5%",
+                100.0 * m.coverage(),
+                samples.len(),
+                100.0 * ag["coverage"].as_f64().unwrap_or(0.0),
+                100.0 * ag["median_rel_error"].as_f64().unwrap_or(f64::NAN),
+                100.0 * ag["within_5pct"].as_f64().unwrap_or(0.0)
+            );
+            all_kept.extend(kept);
+            all_raw.extend(raw);
+        } else {
+            eprintln!(
+                "view {vi} ({stem}): {:.1}% of pixels kept",
+                100.0 * m.coverage()
+            );
+        }
+        rows.push(row);
+    }
+    let mut doc = serde_json::json!({
+        "scene": a.scene,
+        "split": a.split,
+        "factor": a.factor,
+        "downscale": a.downscale,
+        "width": cams[0].width,
+        "height": cams[0].height,
+        "planes": a.planes,
+        "near": near,
+        "far": far,
+        "radius": a.radius,
+        "best_k": a.best_k,
+        "min_agree": a.min_agree,
+        "px_tol": a.px_tol,
+        "rel_tol": a.rel_tol,
+        "seconds": seconds,
+        "device": ctx.info().name,
+        "views": rows,
+    });
+    if points.is_some() {
+        doc["sparse_agreement"] = agreement(&mut all_kept, all_points);
+        doc["sparse_agreement_before_consistency"] = agreement(&mut all_raw, all_points);
+        let ag = &doc["sparse_agreement"];
+        eprintln!(
+            "all views: {all_points} sparse points, {:.1}% with a kept depth; median error {:.2}%, within 2% / 5% / 10%: {:.1}% / {:.1}% / {:.1}%",
+            100.0 * ag["coverage"].as_f64().unwrap_or(0.0),
+            100.0 * ag["median_rel_error"].as_f64().unwrap_or(f64::NAN),
+            100.0 * ag["within_2pct"].as_f64().unwrap_or(0.0),
+            100.0 * ag["within_5pct"].as_f64().unwrap_or(0.0),
+            100.0 * ag["within_10pct"].as_f64().unwrap_or(0.0)
+        );
+    } else {
+        eprintln!(
+            "no sparse points ({}): agreement not measured",
+            points_path.display()
+        );
+    }
+    crate::bench::write_json(&a.out.join("mvs.json"), &doc)?;
+    eprintln!("wrote {}", a.out.display());
+    Ok(())
+}

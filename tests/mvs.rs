@@ -1,0 +1,232 @@
+//! Plane-sweep multi-view stereo: the sweep and the consistency check against the f64
+//! reference, depth recovered on a textured slanted plane seen by four cameras, textureless
+//! input giving no depth, and bad settings.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+#![allow(clippy::needless_range_loop)] // pixels index parallel arrays
+
+use glam::{DMat4, DVec3};
+
+use extranerf_nerf::data::Camera;
+use extranerf_nerf::mvs::{downscale_rgb, grey as luminance, Mvs, MvsConfig};
+use extranerf_nerf::reference::{camera_ray, mvs_consistency_pixel, mvs_pixel};
+use extranerf_prims::reference::Rng;
+use extranerf_tests::{assert_no_validation_messages, engine};
+
+const W: u32 = 48;
+const H: u32 = 36;
+
+fn camera(x: f64) -> Camera {
+    Camera {
+        c2w: DMat4::from_translation(DVec3::new(x, 0.05 * x, 0.0))
+            * DMat4::from_rotation_y(0.1 * x),
+        width: W,
+        height: H,
+        fx: 40.0,
+        fy: 40.0,
+        cx: W as f64 / 2.0,
+        cy: H as f64 / 2.0,
+        bounds: None,
+        image: "none.png".into(),
+    }
+}
+
+/// The plane n . X = n . (0, 0, -3), tilted.
+fn plane() -> (DVec3, f64) {
+    let n = DVec3::new(0.25, 0.1, 1.0).normalize();
+    (n, n.dot(DVec3::new(0.0, 0.0, -3.0)))
+}
+
+fn texture(p: DVec3) -> f64 {
+    0.5 + 0.18 * (9.0 * p.x + 1.0).sin() * (7.3 * p.y).sin()
+        + 0.12 * (23.0 * p.x - 17.0 * p.y).sin()
+        + 0.08 * (31.0 * p.y + 5.0 * p.x).cos()
+}
+
+/// Depth along the viewing axis of the plane at pixel centre (x, y), and the grey image.
+fn render(cam: &Camera) -> (Vec<f32>, Vec<f64>) {
+    let (n, c) = plane();
+    let mut img = Vec::new();
+    let mut depth = Vec::new();
+    for y in 0..H {
+        for x in 0..W {
+            let (o, d) = camera_ray(cam, [x as f64 + 0.5, y as f64 + 0.5]);
+            let (o, d) = (DVec3::from(o), DVec3::from(d));
+            let t = (c - n.dot(o)) / n.dot(d);
+            img.push(texture(o + t * d) as f32);
+            depth.push(t);
+        }
+    }
+    (img, depth)
+}
+
+fn rig() -> Vec<Camera> {
+    [-0.3, -0.1, 0.1, 0.3].iter().map(|&x| camera(x)).collect()
+}
+
+#[test]
+fn sweep_recovers_a_textured_plane() {
+    let ctx = &engine().ctx;
+    let cams = rig();
+    let imgs: Vec<(Vec<f32>, Vec<f64>)> = cams.iter().map(render).collect();
+    let grey: Vec<Vec<f32>> = imgs.iter().map(|i| i.0.clone()).collect();
+    let cfg = MvsConfig {
+        planes: 96,
+        ..MvsConfig::new(1.5, 8.0)
+    };
+    let out = Mvs::new(ctx).unwrap().run(ctx, &cams, &grey, &cfg).unwrap();
+    for (v, m) in out.iter().enumerate() {
+        let truth = &imgs[v].1;
+        let mut good = 0;
+        let mut kept = 0;
+        for i in 0..m.depth.len() {
+            if m.depth[i] > 0.0 {
+                kept += 1;
+                let e = (m.depth[i] as f64 - truth[i]).abs() / truth[i];
+                good += usize::from(e < 0.02);
+                assert!(m.confidence[i] > 0.0 && m.confidence[i] <= 1.0);
+            } else {
+                assert_eq!(m.confidence[i], 0.0);
+            }
+        }
+        // The windows near the borders fall outside other views; the rest must match.
+        assert!(
+            kept as f64 > 0.5 * m.depth.len() as f64,
+            "view {v}: {kept} of {} pixels kept",
+            m.depth.len()
+        );
+        assert!(
+            good as f64 > 0.95 * kept as f64,
+            "view {v}: {good} of {kept} kept depths within 2%"
+        );
+        assert!(m.coverage() > 0.5);
+    }
+    assert_no_validation_messages(ctx);
+}
+
+#[test]
+fn sweep_and_consistency_match_the_reference() {
+    let ctx = &engine().ctx;
+    let cams = rig();
+    let mut rng = Rng::new(4);
+    let grey: Vec<Vec<f32>> = cams
+        .iter()
+        .map(|c| {
+            render(c)
+                .0
+                .iter()
+                .map(|&g| g + rng.uniform(-0.02, 0.02))
+                .collect()
+        })
+        .collect();
+    let cfg = MvsConfig {
+        planes: 24,
+        radius: 1,
+        best_k: 2,
+        min_agree: 2,
+        px_tol: 1.5,
+        rel_tol: 0.03,
+        ..MvsConfig::new(1.5, 8.0)
+    };
+    let out = Mvs::new(ctx).unwrap().run(ctx, &cams, &grey, &cfg).unwrap();
+    let r = 1;
+    let mut compared = 0;
+    for y in 0..H {
+        for x in 0..W {
+            let i = (y * W + x) as usize;
+            let (d, conf, costs) = mvs_pixel(&cams, &grey, r, &cfg, x, y);
+            let mut sorted = costs.clone();
+            sorted.sort_by(f64::total_cmp);
+            // f32 and f64 may pick different planes when two costs nearly tie.
+            if sorted.len() > 1 && sorted[1] - sorted[0] < 1e-3 {
+                continue;
+            }
+            compared += 1;
+            let g = out[r].raw_depth[i] as f64;
+            assert!(
+                (g - d).abs() <= 1e-3 * d.max(1.0),
+                "pixel ({x}, {y}): kernel depth {g} vs reference {d}"
+            );
+            let gc = out[r].raw_confidence[i] as f64;
+            assert!(
+                (gc - conf).abs() <= 1e-3,
+                "pixel ({x}, {y}): kernel confidence {gc} vs reference {conf}"
+            );
+        }
+    }
+    assert!(
+        compared > (W * H) as usize / 2,
+        "only {compared} pixels compared"
+    );
+    let raw: Vec<Vec<f32>> = out.iter().map(|m| m.raw_depth.clone()).collect();
+    let confs: Vec<Vec<f32>> = out.iter().map(|m| m.raw_confidence.clone()).collect();
+    let mut mismatched = 0;
+    for y in 0..H {
+        for x in 0..W {
+            let i = (y * W + x) as usize;
+            let (d, c) = mvs_consistency_pixel(&cams, &raw, &confs, r, &cfg, x, y);
+            if (d > 0.0) != (out[r].depth[i] > 0.0) {
+                mismatched += 1;
+            } else if d > 0.0 {
+                assert_eq!(out[r].depth[i], raw[r][i]);
+                assert_eq!(out[r].confidence[i] as f64, c);
+            }
+        }
+    }
+    assert!(
+        mismatched <= (W * H) as usize / 100,
+        "{mismatched} pixels kept differently"
+    );
+    let kept = out[r].depth.iter().filter(|&&d| d > 0.0).count();
+    let raw_n = raw[r].iter().filter(|&&d| d > 0.0).count();
+    assert!(kept > 0 && kept <= raw_n, "{kept} kept of {raw_n}");
+    assert_no_validation_messages(ctx);
+}
+
+#[test]
+fn textureless_views_give_no_depth() {
+    let ctx = &engine().ctx;
+    let cams = rig();
+    let grey = vec![vec![0.5f32; (W * H) as usize]; cams.len()];
+    let out = Mvs::new(ctx)
+        .unwrap()
+        .run(ctx, &cams, &grey, &MvsConfig::new(1.0, 10.0))
+        .unwrap();
+    for m in &out {
+        assert!(m.raw_depth.iter().all(|&d| d == 0.0));
+        assert!(m.depth.iter().all(|&d| d == 0.0) && m.confidence.iter().all(|&c| c == 0.0));
+    }
+    assert_no_validation_messages(ctx);
+}
+
+#[test]
+fn bad_settings_are_errors() {
+    let ctx = &engine().ctx;
+    let mvs = Mvs::new(ctx).unwrap();
+    let cams = rig();
+    let grey = vec![vec![0.5f32; (W * H) as usize]; cams.len()];
+    let base = MvsConfig::new(1.0, 10.0);
+    for (cfg, what) in [
+        (MvsConfig { planes: 1, ..base }, "planes"),
+        (MvsConfig { radius: 4, ..base }, "radius"),
+        (MvsConfig { best_k: 0, ..base }, "best_k"),
+        (MvsConfig::new(5.0, 2.0), "depth range"),
+        (MvsConfig::new(0.0, 2.0), "depth range"),
+    ] {
+        let e = mvs.run(ctx, &cams, &grey, &cfg).unwrap_err();
+        assert!(e.to_string().contains(what), "{cfg:?}: {e}");
+    }
+    let e = mvs.run(ctx, &cams[..1], &grey[..1], &base).unwrap_err();
+    assert!(e.to_string().contains("views"), "{e}");
+    let e = mvs.run(ctx, &cams, &grey[..3], &base).unwrap_err();
+    assert!(e.to_string().contains("images"), "{e}");
+    let mut short = grey.clone();
+    short[2].pop();
+    let e = mvs.run(ctx, &cams, &short, &base).unwrap_err();
+    assert!(e.to_string().contains("view 2"), "{e}");
+    // Host helpers.
+    let (small, w, h) = downscale_rgb(&[1.0, 0.0, 0.0, 0.0, 0.0, 1.0], 2, 1, 2);
+    assert_eq!((w, h), (1, 1));
+    assert_eq!(small, vec![0.5, 0.0, 0.5]);
+    assert!((luminance(&[1.0, 1.0, 1.0])[0] - 1.0).abs() < 1e-6);
+}
