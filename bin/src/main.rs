@@ -9,6 +9,7 @@ use extranerf_gpu::{Context, ContextDesc, Validation};
 mod bench;
 mod mvs;
 mod nerf;
+mod tradeoff;
 mod visibility;
 
 /// extranerf: a Vulkan-native ExtraNeRF engine (neural radiance fields viewed from outside the
@@ -89,6 +90,11 @@ enum BenchCommand {
     /// Visibility cost per pixel against the number of training cameras (0 = the camera ray
     /// alone, the reference), with density evaluations per pixel and per second.
     Visibility(visibility::BenchVisibilityArgs),
+    /// Quality against time: trains a model per sweep point (table size, levels, features,
+    /// finest resolution, samples per ray, batch, steps, and the auto-config's choice), scores
+    /// the held-out views (PSNR, SSIM, LPIPS), and writes CSV, JSON and an SVG plot with the
+    /// Pareto frontier.
+    Tradeoff(tradeoff::TradeoffArgs),
 }
 
 fn context(cli: &Cli) -> anyhow::Result<Context> {
@@ -143,6 +149,9 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Bench {
             what: BenchCommand::Visibility(args),
         } => visibility::bench_visibility(&context(cli)?, args),
+        Command::Bench {
+            what: BenchCommand::Tradeoff(args),
+        } => tradeoff::tradeoff(&context(cli)?, args),
         Command::Bench {
             what: BenchCommand::Train(args),
         } => nerf::bench_train(&context(cli)?, args),

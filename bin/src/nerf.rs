@@ -41,6 +41,16 @@ pub struct TrainArgs {
     /// Optimiser steps (the paper: 5000).
     #[arg(long)]
     steps: Option<u32>,
+    /// Choose the model from the scene and print why: the ray space, the finest grid
+    /// resolution from the pixel footprint, the levels and the table size from that. Explicit
+    /// model flags still win.
+    #[arg(long)]
+    auto: bool,
+    /// Training time budget in seconds (implies --auto): a 20-step probe measures samples/s and
+    /// the number of steps is set to what fits (at most 5000; with fewer than 1000 the table and
+    /// levels are reduced first). Explicit --steps wins.
+    #[arg(long, value_name = "SECONDS")]
+    budget: Option<f64>,
     /// Rays per step.
     #[arg(long)]
     rays: Option<u32>,
@@ -115,6 +125,8 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--hash-decay", a.hash_decay.is_some()),
             ("--grad-scaling", a.grad_scaling),
             ("--seed", a.seed.is_some()),
+            ("--auto", a.auto),
+            ("--budget", a.budget.is_some()),
         ]
         .iter()
         .filter(|g| g.1)
@@ -148,7 +160,17 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             depth_dir: a.depth_dir.clone(),
         };
         let loaded = scene.load()?;
-        let mut model = model_for_scene(&loaded.scene);
+        let auto = a.auto || a.budget.is_some();
+        let mut model = if auto {
+            let choice = extranerf_nerf::autoconfig::auto_model(&loaded.scene, &loaded.split.train);
+            eprintln!("auto-config:");
+            for r in &choice.reasons {
+                eprintln!("  {r}");
+            }
+            choice.model
+        } else {
+            model_for_scene(&loaded.scene)
+        };
         apply(&mut model.log2_table, a.log2_table);
         apply(&mut model.levels, a.levels);
         apply(&mut model.max_res, a.max_res);
@@ -168,16 +190,20 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             train.steps = s;
             train.decay_steps = s;
         }
-        (
-            RunConfig {
-                scene,
-                model,
-                train,
-            },
-            0,
-            None,
-            None,
-        )
+        let mut cfg = RunConfig {
+            scene,
+            model,
+            train,
+        };
+        if let (Some(budget), None) = (a.budget, a.steps) {
+            fit_budget(
+                ctx,
+                &mut cfg,
+                budget,
+                a.log2_table.is_none() && a.levels.is_none(),
+            )?;
+        }
+        (cfg, 0, None, None)
     };
     if a.resume {
         if let Some(s) = a.steps {
@@ -191,6 +217,64 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         checkpoint_every: a.checkpoint_every,
     };
     train_loop(ctx, &cfg, &run, params, moments)
+}
+
+/// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed.
+pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig) -> anyhow::Result<f64> {
+    cfg.model.validate()?;
+    cfg.train.validate()?;
+    let loaded = cfg.scene.load()?;
+    let views = training_views(&cfg.scene, &loaded, &cfg.model)?;
+    let params = extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed);
+    let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
+    let data = TrainData::new(ctx, &views)?;
+    let prims = Prims::new(ctx)?;
+    let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), 0, None)?;
+    trainer.run_steps(ctx, &prims, &data, 5)?;
+    let t = Instant::now();
+    trainer.run_steps(ctx, &prims, &data, 20)?;
+    Ok(20.0 * trainer.samples_per_step() as f64 / t.elapsed().as_secs_f64())
+}
+
+/// `--budget`: sets the steps to what a measured probe says fits in `budget` seconds (at most
+/// 5000). Below 1000 steps, and when `shrink` (no explicit table or level flags), the table and
+/// levels are reduced first, down to 2^15 and 8 levels.
+fn fit_budget(ctx: &Context, cfg: &mut RunConfig, budget: f64, shrink: bool) -> anyhow::Result<()> {
+    if !(budget > 0.0 && budget.is_finite()) {
+        bail!("--budget {budget}: give a positive number of seconds");
+    }
+    loop {
+        let sps = probe_samples_per_s(ctx, cfg)?;
+        let per_step = cfg.train.rays as f64 * cfg.train.samples as f64;
+        let fit = (budget * sps / per_step).floor();
+        let steps = fit.clamp(1.0, 5000.0) as u32;
+        let m = &cfg.model;
+        if steps < 1000 && shrink && (m.log2_table > 15 || m.levels > 8) {
+            eprintln!(
+                "budget {budget:.0} s: {sps:.3e} samples/s fits {fit:.0} steps with table 2^{} and {} levels; reducing to 2^{} and {} levels",
+                m.log2_table,
+                m.levels,
+                (m.log2_table - 1).max(15),
+                (m.levels - 2).max(8)
+            );
+            cfg.model.log2_table = (m.log2_table - 1).max(15);
+            cfg.model.levels = (cfg.model.levels - 2).max(8);
+            continue;
+        }
+        eprintln!(
+            "budget {budget:.0} s: measured {sps:.3e} samples/s with {} rays x {} samples per step: {steps} steps{}",
+            cfg.train.rays,
+            cfg.train.samples,
+            if fit > 5000.0 {
+                " (the paper's 5000; the budget allows more)"
+            } else {
+                ""
+            }
+        );
+        cfg.train.steps = steps;
+        cfg.train.decay_steps = steps;
+        return Ok(());
+    }
 }
 
 /// Where and how a training loop runs.
@@ -579,7 +663,7 @@ pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
 
 /// Where LPIPS weights are looked for by default: `$EXTRANERF_MODELS/lpips`, else
 /// `../shared/models/lpips` (the project's shared folder beside the checkout).
-fn default_lpips_dir() -> PathBuf {
+pub fn default_lpips_dir() -> PathBuf {
     std::env::var_os("EXTRANERF_MODELS")
         .map(|m| PathBuf::from(m).join("lpips"))
         .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"))

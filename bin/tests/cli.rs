@@ -512,3 +512,108 @@ fn mvs_writes_depth_maps_training_reads() {
     assert!(!ok && err.contains("radius"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// `train --auto` prints its choices; `--budget` fits the steps to a measured probe; `bench
+/// tradeoff` writes its CSV, JSON and plot.
+#[test]
+fn auto_config_budget_and_tradeoff_on_fern() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-auto-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene = fern();
+    let scene_s = scene.to_str().unwrap();
+    let run = dir.join("auto");
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        scene_s,
+        "--auto",
+        "--steps",
+        "2",
+        "--rays",
+        "32",
+        "--samples",
+        "4",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("auto-config:")
+            && err.contains("finest resolution 512")
+            && err.contains("space: NDC"),
+        "{err}"
+    );
+    let cfg: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["model"]["max_res"], 512, "{cfg}");
+    let run = dir.join("budget");
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        scene_s,
+        "--budget",
+        "2",
+        "--rays",
+        "32",
+        "--samples",
+        "4",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(ok && err.contains("budget 2 s: measured"), "{err}");
+    let cfg: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("config.json")).unwrap()).unwrap();
+    let steps = cfg["train"]["steps"].as_u64().unwrap();
+    assert!((1..=5000).contains(&steps), "{cfg}");
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        scene_s,
+        "--budget=-1",
+        "--out",
+        dir.join("bad").to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("--budget"), "{err}");
+    let out = dir.join("tradeoff");
+    let (ok, stdout, err) = extranerf(&[
+        "bench",
+        "tradeoff",
+        "--scene",
+        scene_s,
+        "--steps",
+        "4",
+        "--rays",
+        "32",
+        "--samples",
+        "4",
+        "--eval-downscale",
+        "16",
+        "--points",
+        "base,auto",
+        "--lpips",
+        fern().join("../../../models/lpips").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        stdout.contains("frontier") && stdout.contains("auto-config"),
+        "{stdout}"
+    );
+    let csv = std::fs::read_to_string(out.join("tradeoff.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 3, "{csv}");
+    let svg = std::fs::read_to_string(out.join("tradeoff.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("auto"), "{svg}");
+    let (ok, _, err) = extranerf(&[
+        "bench",
+        "tradeoff",
+        "--scene",
+        scene_s,
+        "--points",
+        "nope",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("nope"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -596,6 +596,20 @@ impl Context {
             .unwrap_or(0))
     }
 
+    /// Bytes in live allocations and bytes of device memory blocks the allocator holds (frees
+    /// anything the GPU is done with first).
+    pub fn allocated_bytes(&self) -> Result<(u64, u64)> {
+        self.collect_garbage()?;
+        Ok(self
+            .allocator()?
+            .as_ref()
+            .map(|a| {
+                let r = a.generate_report();
+                (r.total_allocated_bytes, r.total_capacity_bytes)
+            })
+            .unwrap_or((0, 0)))
+    }
+
     /// Blocks until all submitted work has finished and frees what waited on it.
     pub fn wait_idle(&self) -> Result<()> {
         self.wait(crate::Ticket(

@@ -7,6 +7,7 @@
 //! LPIPS; [`reference`]: plain-Rust f64 definitions the kernels are tested against.
 #![forbid(unsafe_code)]
 
+pub mod autoconfig;
 pub mod cameras;
 pub mod data;
 pub mod demo;

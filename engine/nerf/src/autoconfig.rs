@@ -1,0 +1,193 @@
+//! Scene-driven model configuration: model only what the scene requires. From the cameras and
+//! their bounds it chooses the ray space (NDC for forward-facing captures, contracted world
+//! space otherwise), the finest hash-grid resolution from the pixel footprint, the levels and
+//! table size from that, and the occupancy cascades from the depth range; each choice comes with
+//! the reason, which `extranerf train --auto` prints.
+
+use glam::DVec3;
+
+use crate::data::{Camera, Scene};
+use crate::model::ModelConfig;
+use crate::run::model_for_scene;
+
+/// What [`auto_model`] chose and why.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AutoModel {
+    /// The configuration.
+    pub model: ModelConfig,
+    /// Occupancy-grid cascades the scene's depth range needs (renders, visibility).
+    pub cascades: u32,
+    /// One line per choice.
+    pub reasons: Vec<String>,
+}
+
+/// The coarsest resolution; the growth factor between levels aims at this.
+const MIN_RES: u32 = 16;
+const GROWTH: f64 = 1.5;
+
+/// Chooses the model for `scene` trained on the cameras `train` (indices).
+pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
+    let mut model = model_for_scene(scene);
+    let mut reasons = Vec::new();
+    let cams: Vec<&Camera> = train.iter().filter_map(|&i| scene.cameras.get(i)).collect();
+    let cams: Vec<&Camera> = if cams.is_empty() {
+        scene.cameras.iter().collect()
+    } else {
+        cams
+    };
+    let widest = cams
+        .iter()
+        .map(|c| c.width.max(c.height))
+        .max()
+        .unwrap_or(512);
+    let (max_res, cascades) = if scene.forward_facing {
+        reasons.push(
+            "space: NDC (a forward-facing capture: the frustum, out to infinity, maps to a cube), no contraction".into(),
+        );
+        // NDC x and y span the image: one finest cell per pixel.
+        let res = widest.next_power_of_two();
+        reasons.push(format!(
+            "finest resolution {res}: one cell per pixel across the {widest}-pixel image side (NDC spans the image)"
+        ));
+        reasons.push("occupancy: 1 cascade (NDC is bounded)".into());
+        (res, 1)
+    } else {
+        reasons.push(format!(
+            "space: world with the L2 contraction around the cameras (centre {:?}, radius {:.3}): not forward-facing",
+            model.center, model.radius
+        ));
+        let centre = DVec3::from(model.center.map(f64::from));
+        let radius = model.radius as f64;
+        // Pixel footprint at the typical distance to the scene's inner ball.
+        let dist: Vec<f64> = cams
+            .iter()
+            .map(|c| (c.centre().distance(centre) - radius).max(model.near as f64))
+            .collect();
+        let d = dist.iter().sum::<f64>() / dist.len().max(1) as f64;
+        let f = cams.iter().map(|c| c.fx.max(c.fy)).sum::<f64>() / cams.len().max(1) as f64;
+        let footprint = (d / f.max(1.0)).max(1e-9);
+        // The inner ball (diameter 2 r) spans half the contracted grid.
+        let cells = 2.0 * (2.0 * radius / footprint);
+        let res = (cells.min(8192.0) as u32)
+            .max(64)
+            .next_power_of_two()
+            .min(8192);
+        reasons.push(format!(
+            "finest resolution {res}: pixel footprint {footprint:.2e} at distance {d:.3} (focal {f:.0} px); the inner ball of diameter {:.3} fills half the grid",
+            2.0 * radius
+        ));
+        let ratio = (model.far as f64 / radius).max(1.0);
+        let c = (ratio.log2().ceil() as u32 + 1).clamp(1, 8);
+        reasons.push(format!(
+            "occupancy: {c} cascades (far bound {:.3} is {ratio:.1} scene radii)",
+            model.far
+        ));
+        (res, c)
+    };
+    model.max_res = max_res.max(MIN_RES * 2);
+    model.min_res = MIN_RES;
+    let span = (model.max_res as f64 / MIN_RES as f64).ln();
+    let levels = ((1.0 + span / GROWTH.ln()).ceil() as u32).clamp(4, 16);
+    model.levels = levels;
+    let b = (span / (levels - 1) as f64).exp();
+    reasons.push(format!(
+        "levels {levels}: N {MIN_RES}..{} with growth {b:.2} per level (aim {GROWTH})",
+        model.max_res
+    ));
+    // Surfaces are 2-D: about N^2 / 2 occupied cells at the finest level.
+    let want = (model.max_res as u64 * model.max_res as u64 / 2).max(1);
+    let log2 = (64 - (want - 1).leading_zeros()).clamp(14, 19);
+    model.log2_table = log2;
+    reasons.push(format!(
+        "table 2^{log2}: about N^2/2 = {want} surface cells at the finest level (clamped to 2^14..2^19)"
+    ));
+    AutoModel {
+        model,
+        cascades,
+        reasons,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DMat4;
+
+    fn cam(x: f64, w: u32, f: f64) -> Camera {
+        Camera {
+            c2w: DMat4::from_translation(DVec3::new(x, 0.0, 0.0)),
+            width: w,
+            height: w * 3 / 4,
+            fx: f,
+            fy: f,
+            cx: w as f64 / 2.0,
+            cy: w as f64 * 3.0 / 8.0,
+            bounds: Some((1.0, 10.0)),
+            image: "a.png".into(),
+        }
+    }
+
+    #[test]
+    fn forward_facing_scenes_get_ndc_and_a_pixel_sized_finest_cell() {
+        let scene = Scene {
+            source: "x".into(),
+            cameras: (0..4).map(|i| cam(i as f64 * 0.1, 504, 400.0)).collect(),
+            world_from_source: DMat4::IDENTITY,
+            forward_facing: true,
+        };
+        let a = auto_model(&scene, &[0, 1, 2]);
+        assert_eq!(a.model.space, "ndc");
+        assert_eq!(a.model.contraction, "none");
+        assert_eq!(a.model.max_res, 512);
+        assert_eq!(a.model.levels, 10);
+        assert_eq!(a.model.log2_table, 17);
+        assert_eq!(a.cascades, 1);
+        assert!(a.model.validate().is_ok());
+        assert_eq!(a.reasons.len(), 5, "{:?}", a.reasons);
+        // A 4x larger image needs a 4x finer grid.
+        let big = Scene {
+            cameras: (0..4).map(|i| cam(i as f64 * 0.1, 2016, 1600.0)).collect(),
+            ..scene
+        };
+        let b = auto_model(&big, &[0, 1, 2]);
+        assert_eq!(b.model.max_res, 2048);
+        assert!(b.model.levels > a.model.levels);
+        assert_eq!(b.model.log2_table, 19);
+    }
+
+    #[test]
+    fn unbounded_scenes_get_contraction_and_cascades() {
+        // Cameras on a circle of radius 4 looking at the origin.
+        let cameras: Vec<Camera> = (0..8)
+            .map(|i| {
+                let a = i as f64 * std::f64::consts::TAU / 8.0;
+                let eye = DVec3::new(4.0 * a.cos(), 0.0, 4.0 * a.sin());
+                let mut c = cam(0.0, 400, 350.0);
+                let z = eye.normalize();
+                let x = DVec3::Y.cross(z).normalize();
+                c.c2w = DMat4::from_cols(
+                    x.extend(0.0),
+                    z.cross(x).extend(0.0),
+                    z.extend(0.0),
+                    eye.extend(1.0),
+                );
+                c.bounds = Some((0.5, 60.0));
+                c
+            })
+            .collect();
+        let scene = Scene {
+            source: "x".into(),
+            cameras,
+            world_from_source: DMat4::IDENTITY,
+            forward_facing: false,
+        };
+        let a = auto_model(&scene, &[0, 1, 2, 3, 4, 5, 6, 7]);
+        assert_eq!(a.model.space, "world");
+        assert_eq!(a.model.contraction, "l2");
+        assert!((64..=8192).contains(&a.model.max_res));
+        assert!(a.model.max_res.is_power_of_two());
+        // far 60 over radius 4: 15 radii -> 4 + 1 cascades.
+        assert_eq!(a.cascades, 5);
+        assert!(a.model.validate().is_ok());
+    }
+}

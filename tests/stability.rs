@@ -1,0 +1,212 @@
+//! Numerical stability at the ends the other suites do not reach: learning rates at both ends,
+//! coincident training cameras (training, visibility, stereo), and settings that cannot work
+//! giving a clear error.
+//!
+//! The rest of the stability suite lives beside the kernels it checks: densities 0 to 1e8 and
+//! step sizes to 1e-7 in render.rs (compositing, distortion); coordinates to 1e30 under
+//! contraction in field.rs; axis-parallel rays in render.rs, march.rs, train.rs and
+//! visibility.rs; all-black and all-white images in train.rs; gradients of 1e30 and 1e-30 in
+//! optim.rs; opaque and empty fields in march.rs and visibility.rs. There is no f16 path yet, so
+//! f16 overflow and underflow are not tested.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use extranerf_nerf::demo::write_demo_scene;
+use extranerf_nerf::model::{init_params, ModelConfig};
+use extranerf_nerf::mvs::{Mvs, MvsConfig};
+use extranerf_nerf::render::visibility::{
+    AnalyticField, Density, Shape, Visibility, VisibilityConfig,
+};
+use extranerf_nerf::run::{training_views, SceneSpec};
+use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, View};
+use extranerf_tests::{assert_no_validation_messages, engine, scratch_dir};
+
+fn tiny() -> ModelConfig {
+    ModelConfig {
+        levels: 4,
+        features: 2,
+        log2_table: 10,
+        min_res: 4,
+        max_res: 64,
+        density_width: 16,
+        density_layers: 1,
+        geo_dims: 8,
+        color_width: 16,
+        color_layers: 2,
+        ..ModelConfig::default()
+    }
+}
+
+fn demo_views(name: &str) -> Vec<View> {
+    let dir = scratch_dir(name);
+    write_demo_scene(&dir, 32, 24).unwrap();
+    let spec = SceneSpec {
+        dir,
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec.load().unwrap();
+    training_views(&spec, &loaded, &tiny()).unwrap()
+}
+
+/// Trains `steps` steps and returns (first window MSE, last window MSE, parameters).
+fn train(views: &[View], cfg: TrainConfig) -> (f64, f64, Vec<f32>, Vec<f32>) {
+    let e = engine();
+    let ctx = &e.ctx;
+    let model = tiny();
+    let p0 = init_params(&model, 2);
+    let nerf = Nerf::new(ctx, model, &p0, cfg.background).unwrap();
+    let data = TrainData::new(ctx, views).unwrap();
+    let half = cfg.steps / 2;
+    let mut t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
+    let first = t.run_steps(ctx, &e.prims, &data, half).unwrap();
+    let last = t.run_steps(ctx, &e.prims, &data, half).unwrap();
+    assert!(
+        first.loss.is_finite() && last.loss.is_finite(),
+        "{first:?} {last:?}"
+    );
+    let (m, v) = t.moments().unwrap();
+    assert!(m.iter().chain(&v).all(|x| x.is_finite()));
+    (first.mse, last.mse, p0, t.nerf().params().read().unwrap())
+}
+
+#[test]
+fn learning_rates_at_both_ends_stay_finite() {
+    let views = demo_views("stability-lr");
+    let base = TrainConfig {
+        steps: 30,
+        decay_steps: 30,
+        rays: 64,
+        samples: 8,
+        ..TrainConfig::default()
+    };
+    // Tiny: the parameters barely move (Adam's step is about the learning rate).
+    let (_, _, p0, p) = train(
+        &views,
+        TrainConfig {
+            lr_start: 1e-12,
+            lr_end: 1e-12,
+            ..base.clone()
+        },
+    );
+    let moved = p0
+        .iter()
+        .zip(&p)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(moved <= 1e-9, "parameters moved by {moved}");
+    // Huge: Adam bounds each step by about the learning rate, so parameters stay finite even
+    // when the fit is poor.
+    for lr in [1.0f32, 100.0] {
+        let (_, _, _, p) = train(
+            &views,
+            TrainConfig {
+                lr_start: lr,
+                lr_end: lr,
+                ..base.clone()
+            },
+        );
+        let worst = p.iter().map(|v| v.abs()).fold(0f32, f32::max);
+        assert!(
+            p.iter().all(|v| v.is_finite()) && worst <= 40.0 * lr,
+            "lr {lr}: largest parameter {worst}"
+        );
+    }
+    // Settings that cannot work are refused with the reason.
+    for (a, b) in [(0.0f32, 1e-3), (1e-2, f32::NAN), (-1.0, 1e-3)] {
+        let c = TrainConfig {
+            lr_start: a,
+            lr_end: b,
+            ..base.clone()
+        };
+        let e = c.validate().unwrap_err();
+        assert!(e.to_string().contains("learning rates"), "{e}");
+    }
+    assert_no_validation_messages(&engine().ctx);
+}
+
+#[test]
+fn coincident_cameras_train_and_give_finite_visibility_and_stereo() {
+    let ctx = &engine().ctx;
+    // Training on two copies of every view (coincident cameras) still fits.
+    let views = demo_views("stability-coincident");
+    let twice: Vec<View> = views.iter().chain(&views).cloned().collect();
+    let cfg = TrainConfig {
+        steps: 40,
+        decay_steps: 40,
+        rays: 64,
+        samples: 8,
+        ..TrainConfig::default()
+    };
+    let (first, last, _, p) = train(&twice, cfg);
+    assert!(last < first, "{first} -> {last}");
+    assert!(p.iter().all(|v| v.is_finite()));
+
+    // Visibility with two coincident cameras: rank 2 sees what rank 1 with one camera sees.
+    let field = AnalyticField::new(
+        ctx,
+        &[Shape::Box {
+            min: [-5.0, -5.0, -4.0],
+            max: [5.0, 5.0, -3.5],
+            sigma: 30.0,
+            soft: 0.05,
+        }],
+        false,
+        0.5,
+        8.0,
+    )
+    .unwrap();
+    let cam = views[0].0.clone();
+    let v = Visibility::new(ctx).unwrap();
+    let d = Density::Analytic(&field);
+    let cfg = |rank| VisibilityConfig {
+        samples: 32,
+        vis_samples: 16,
+        rank,
+        ..VisibilityConfig::default()
+    };
+    let pair = [cam.clone(), cam.clone()];
+    let two = v
+        .map(ctx, &d, &cam, &pair, 0b11, &cfg(2), None, 256)
+        .unwrap();
+    let one = v
+        .map(ctx, &d, &cam, &pair[..1], 0b1, &cfg(1), None, 256)
+        .unwrap();
+    for (a, b) in two.visibility.iter().zip(&one.visibility) {
+        assert!(a.is_finite() && (a - b).abs() < 1e-6, "{a} vs {b}");
+    }
+    assert!(two.mean() > 0.5, "{}", two.mean());
+
+    // Stereo with a zero baseline between two views: every plane warps alike; no NaN.
+    let grey: Vec<Vec<f32>> = views
+        .iter()
+        .take(2)
+        .map(|v| extranerf_nerf::mvs::grey(&v.1.rgb))
+        .collect();
+    let cams = vec![views[0].0.clone(), views[0].0.clone()];
+    let grey = vec![grey[0].clone(), grey[0].clone()];
+    let out = Mvs::new(ctx)
+        .unwrap()
+        .run(
+            ctx,
+            &cams,
+            &grey,
+            &MvsConfig {
+                min_agree: 1,
+                ..MvsConfig::new(0.5, 8.0)
+            },
+        )
+        .unwrap();
+    for m in &out {
+        assert!(m
+            .raw_depth
+            .iter()
+            .chain(&m.raw_confidence)
+            .chain(&m.depth)
+            .all(|x| x.is_finite() && *x >= 0.0));
+    }
+    assert_no_validation_messages(ctx);
+}
