@@ -152,8 +152,10 @@ fn compile_file(
             e.emit_to_string_with_path(&source, &rel)
         )
     })?;
-    let caps =
-        Capabilities::IMMEDIATES | Capabilities::SUBGROUP | Capabilities::SHADER_FLOAT32_ATOMIC;
+    let caps = Capabilities::IMMEDIATES
+        | Capabilities::SUBGROUP
+        | Capabilities::SHADER_FLOAT32_ATOMIC
+        | Capabilities::SHADER_FLOAT16;
     let info = Validator::new(ValidationFlags::all(), caps)
         .validate(&module)
         .map_err(|e| {
@@ -224,6 +226,7 @@ fn compile_file(
         )
     });
     let uses_subgroup = source.contains("subgroup");
+    let uses_f16 = source.lines().any(|l| l.trim() == "enable f16;");
 
     let mut entries = Vec::new();
     for (index, ep) in module.entry_points.iter().enumerate() {
@@ -312,7 +315,7 @@ fn compile_file(
             let _ = writeln!(code, "            pub {name}: B,");
         }
         let _ = writeln!(code, "        }}\n        impl<B> Bindings<B> {{\n            /// The bindings in the order of [`DESC`]'s `bindings`.\n            pub fn into_array(self) -> [B; {}] {{\n                [{}]\n            }}\n        }}", bindings.len(), bindings.iter().map(|(_, n, _, _)| format!("self.{n}")).collect::<Vec<_>>().join(", "));
-        let _ = writeln!(code, "        /// Everything the engine needs to build this kernel.\n        pub const DESC: crate::KernelDesc = crate::KernelDesc {{\n            name: \"{mod_name}::{ep_mod}\",\n            entry: \"{}\",\n            spirv: SPIRV,\n            workgroup_size: WORKGROUP_SIZE,\n            params_size: {params_size},\n            bindings: &[{}],\n            needs_subgroups: {uses_subgroup},\n            needs_float32_atomic_add: {uses_f32_atomic},\n        }};\n    }}",
+        let _ = writeln!(code, "        /// Everything the engine needs to build this kernel.\n        pub const DESC: crate::KernelDesc = crate::KernelDesc {{\n            name: \"{mod_name}::{ep_mod}\",\n            entry: \"{}\",\n            spirv: SPIRV,\n            workgroup_size: WORKGROUP_SIZE,\n            params_size: {params_size},\n            bindings: &[{}],\n            needs_subgroups: {uses_subgroup},\n            needs_float32_atomic_add: {uses_f32_atomic},\n            needs_f16: {uses_f16},\n        }};\n    }}",
             ep.name,
             bindings.iter().map(|(b, n, ro, ub)| format!("crate::BindingDesc {{ binding: {b}, name: \"{n}\", read_only: {ro}, uniform_bytes: {ub} }}")).collect::<Vec<_>>().join(", "));
         entries.push(format!("{mod_name}::{ep_mod}"));

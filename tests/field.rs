@@ -93,6 +93,120 @@ fn check(cfg: HashGridConfig, n: usize, seed: u64) {
     }
 }
 
+/// f32 -> f16 -> f32 as `table_to_f16` does it: NaN to 0, clamped to +-65504, rounded to the
+/// nearest f16 (ties to even), subnormals below 2^-14.
+fn round_f16(v: f32) -> f32 {
+    if v.is_nan() {
+        return 0.0;
+    }
+    let a = v.abs().min(65504.0);
+    let quantum = if a < 2f32.powi(-14) {
+        2f32.powi(-24)
+    } else {
+        2f32.powi(a.log2().floor() as i32 - 10)
+    };
+    ((a / quantum).round_ties_even() * quantum).copysign(v)
+}
+
+/// The f16 forward path: exact against the f64 reference on the table rounded to f16, within
+/// the rounding error of the f32 path, and finite for table entries beyond the f16 range,
+/// subnormal or NaN. Prints the per-kernel error against f32.
+#[test]
+fn hash_grid_f16_forward_matches_the_reference_on_the_rounded_table() {
+    let e = engine();
+    let info = e.ctx.info();
+    assert!(
+        info.shader_float16 && info.storage_buffer_16bit,
+        "this device has no f16 path; lavapipe has one"
+    );
+    let cfg = HashGridConfig {
+        levels: 6,
+        features: 2,
+        log2_table: 12,
+        min_res: 4,
+        max_res: 128,
+    };
+    let n = 4000;
+    let mut rng = Rng::new(7);
+    let count = cfg.param_count() as usize;
+    let mut table: Vec<f32> = (0..count).map(|_| rng.uniform(-2.0, 2.0)).collect();
+    let pos = points(&mut rng, n);
+    let run = |table: &[f32]| {
+        let grid = HashGrid::new(&e.ctx, cfg)
+            .unwrap()
+            .with_f16(&e.ctx)
+            .unwrap();
+        assert!(grid.is_f16());
+        let tb = Buffer::from_slice(&e.ctx, "table", table).unwrap();
+        let pb = Buffer::from_slice(&e.ctx, "positions", &pos).unwrap();
+        let out_len = n * cfg.output_dim() as usize;
+        let enc =
+            Buffer::from_slice(&e.ctx, "encoded", &vec![f32::from_bits(POISON); out_len]).unwrap();
+        let mut rec = e.ctx.recorder("hash grid f16").unwrap();
+        grid.forward(
+            &mut rec,
+            pb.binding(),
+            tb.binding(),
+            enc.binding(),
+            n as u64,
+        )
+        .unwrap();
+        e.ctx.run(rec).unwrap();
+        enc.read().unwrap()
+    };
+    let got = run(&table);
+    let rounded: Vec<f32> = table.iter().map(|&v| round_f16(v)).collect();
+    let want = hash_grid_forward(&cfg, &rounded, &pos);
+    let exact = hash_grid_forward(&cfg, &table, &pos);
+    let (mut worst, mut sum) = (0f64, 0f64);
+    for (i, ((&g, &w), &x)) in got.iter().zip(&want).zip(&exact).enumerate() {
+        assert!(
+            g.is_finite() && (g as f64 - w).abs() <= 1e-5,
+            "output {i}: {g} vs {w} from the rounded table"
+        );
+        let d = (g as f64 - x).abs();
+        // Each entry rounds by at most 2^-11 of |t| <= 2; the weights sum to 1.
+        assert!(
+            d <= 2.0 * 2f64.powi(-11) + 1e-6,
+            "output {i}: {g} vs f32 {x}"
+        );
+        worst = worst.max(d);
+        sum += d;
+    }
+    eprintln!(
+        "f16 hash grid forward vs f32: max |d| {worst:.3e}, mean |d| {:.3e} (table in [-2, 2])",
+        sum / got.len() as f64
+    );
+    // The extremes of the table: beyond the f16 range, subnormal, underflow, NaN.
+    for (i, v) in [1e6f32, -1e6, 3e-6, 1e-9, f32::NAN, 65519.0, -0.0]
+        .iter()
+        .enumerate()
+    {
+        for k in 0..count / 7 {
+            table[k * 7 + i % 7] = *v;
+        }
+    }
+    let got = run(&table);
+    let rounded: Vec<f32> = table.iter().map(|&v| round_f16(v)).collect();
+    let want = hash_grid_forward(&cfg, &rounded, &pos);
+    let abs: Vec<f32> = rounded.iter().map(|v| v.abs()).collect();
+    let mag = hash_grid_forward(&cfg, &abs, &pos);
+    for (i, ((&g, &w), &m)) in got.iter().zip(&want).zip(&mag).enumerate() {
+        // Entries up to 65504 cancel: f32 rounding of the summed magnitudes.
+        assert!(
+            g.is_finite() && (g as f64 - w).abs() <= 2e-6 * m + 1e-5,
+            "extreme table, output {i}: {g} vs {w} (magnitude {m})"
+        );
+    }
+    // F = 4 has no f16 path: a clear error.
+    let e4 = HashGrid::new(&e.ctx, HashGridConfig { features: 4, ..cfg })
+        .unwrap()
+        .with_f16(&e.ctx)
+        .unwrap_err();
+    assert!(matches!(e4, GpuError::Usage(_)) && e4.to_string().contains("f16"));
+    assert_no_validation_messages(&e.ctx);
+}
+
 #[test]
 fn hash_grid_matches_reference_dense_and_hashed() {
     // Levels 4, 8, 16, 32: the first two dense, the rest hashed into 2^10 entries.

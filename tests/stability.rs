@@ -6,8 +6,8 @@
 //! step sizes to 1e-7 in render.rs (compositing, distortion); coordinates to 1e30 under
 //! contraction in field.rs; axis-parallel rays in render.rs, march.rs, train.rs and
 //! visibility.rs; all-black and all-white images in train.rs; gradients of 1e30 and 1e-30 in
-//! optim.rs; opaque and empty fields in march.rs and visibility.rs. There is no f16 path yet, so
-//! f16 overflow and underflow are not tested.
+//! optim.rs; opaque and empty fields in march.rs and visibility.rs; the f16 table's overflow,
+//! underflow and NaN in field.rs. Training with the f16 table is checked here.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
@@ -54,9 +54,16 @@ fn demo_views(name: &str) -> Vec<View> {
 
 /// Trains `steps` steps and returns (first window MSE, last window MSE, parameters).
 fn train(views: &[View], cfg: TrainConfig) -> (f64, f64, Vec<f32>, Vec<f32>) {
+    train_model(views, cfg, tiny())
+}
+
+fn train_model(
+    views: &[View],
+    cfg: TrainConfig,
+    model: ModelConfig,
+) -> (f64, f64, Vec<f32>, Vec<f32>) {
     let e = engine();
     let ctx = &e.ctx;
-    let model = tiny();
     let p0 = init_params(&model, 2);
     let nerf = Nerf::new(ctx, model, &p0, cfg.background).unwrap();
     let data = TrainData::new(ctx, views).unwrap();
@@ -209,4 +216,41 @@ fn coincident_cameras_train_and_give_finite_visibility_and_stereo() {
             .all(|x| x.is_finite() && *x >= 0.0));
     }
     assert_no_validation_messages(ctx);
+}
+
+#[test]
+fn training_with_the_f16_table_tracks_f32() {
+    let views = demo_views("stability-f16");
+    let cfg = TrainConfig {
+        steps: 60,
+        decay_steps: 60,
+        rays: 64,
+        samples: 8,
+        ..TrainConfig::default()
+    };
+    let (f0, f1, _, p32) = train_model(&views, cfg.clone(), tiny());
+    let half = ModelConfig {
+        precision: "f16".into(),
+        ..tiny()
+    };
+    let (h0, h1, _, p16) = train_model(&views, cfg, half);
+    assert!(h1 < h0, "f16: {h0} -> {h1}");
+    assert!(p16.iter().all(|v| v.is_finite()));
+    // The same batches and start: the f16 run ends near the f32 one.
+    assert!(
+        (h1 - f1).abs() <= 0.25 * f1 + 1e-4,
+        "final MSE f16 {h1} vs f32 {f1} (started {h0} vs {f0})"
+    );
+    let drift = p32
+        .iter()
+        .zip(&p16)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    eprintln!("f16 vs f32 after 60 steps: final MSE {h1:.5} vs {f1:.5}, largest parameter difference {drift:.3e}");
+    let bad = ModelConfig {
+        precision: "f16".into(),
+        features: 4,
+        ..tiny()
+    };
+    assert!(bad.validate().unwrap_err().to_string().contains("f16"));
 }

@@ -341,6 +341,45 @@ impl Bench<'_> {
                 t,
                 copy_gbps,
             );
+            if ctx.info().shader_float16 && ctx.info().storage_buffer_16bit {
+                // The f16 path: the same points through an f16 copy of the table (the copy is
+                // part of every forward and of the timing), and its difference from f32.
+                let half = HashGrid::new(ctx, cfg)?.with_f16(ctx)?;
+                let enc16 = Buffer::<f32>::new(ctx, "bench encoded f16", (pts * width) as usize)?;
+                for (label, p, f32_ms) in
+                    [("random", &pos, fwd_ms), ("ray-coherent", &pos_c, fwd_c)]
+                {
+                    let t = measure(ctx, &timer, reps, none, |r| {
+                        half.forward(r, p.binding(), table.binding(), enc16.binding(), pts)
+                    })?;
+                    let ms = median(t.clone());
+                    // Table copy: 4 B read + 2 B written per entry; corners: 2 B per feature.
+                    let bytes16 = cfg.param_count() * 6
+                        + pts * (12 + cfg.levels as u64 * (8 * f * 2 + f * 4));
+                    self.push(
+                        &format!("hash grid fwd f16 (with table copy), {label} points"),
+                        pts,
+                        bytes16,
+                        t,
+                        copy_gbps,
+                    );
+                    let mut rec = ctx.recorder("f16 check")?;
+                    grid.forward(&mut rec, p.binding(), table.binding(), enc.binding(), pts)?;
+                    half.forward(&mut rec, p.binding(), table.binding(), enc16.binding(), pts)?;
+                    ctx.run(rec)?;
+                    let (a, b) = (enc.read()?, enc16.read()?);
+                    let worst = a
+                        .iter()
+                        .zip(&b)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0f32, f32::max);
+                    let scale = a.iter().map(|x| x.abs()).fold(0f32, f32::max);
+                    self.notes.push(format!(
+                        "hash grid fwd f16 on {label} points: {:.2}x the f32 time; max |f16 - f32| {worst:.2e} for features up to {scale:.2e} (table entries in [-1e-4, 1e-4])",
+                        ms / f32_ms
+                    ));
+                }
+            }
             self.notes.push(format!(
                 "hash grid fwd+bwd at {pts} ray-coherent points: {:.3} us/point",
                 (fwd_c + bwd_c) * 1e3 / pts as f64

@@ -69,6 +69,10 @@ pub struct TrainArgs {
     /// Hidden width of both MLPs (paper: 64).
     #[arg(long)]
     width: Option<u32>,
+    /// f32, or f16: the forward pass reads an f16 copy of the hash table (f32 master weights;
+    /// needs 2 features per level and a device with shaderFloat16 and 16-bit storage).
+    #[arg(long, value_parser = ["f32", "f16"])]
+    precision: Option<String>,
     /// Dense depth maps for the training views (`<image stem>.npy` or `.exr`, view depth in the
     /// capture's units); without it the COLMAP sparse points are used when present.
     #[arg(long, value_name = "DIR")]
@@ -119,6 +123,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--levels", a.levels.is_some()),
             ("--max-res", a.max_res.is_some()),
             ("--width", a.width.is_some()),
+            ("--precision", a.precision.is_some()),
             ("--depth-dir", a.depth_dir.is_some()),
             ("--depth-lambda", a.depth_lambda.is_some()),
             ("--distortion-lambda", a.distortion_lambda.is_some()),
@@ -174,6 +179,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         apply(&mut model.log2_table, a.log2_table);
         apply(&mut model.levels, a.levels);
         apply(&mut model.max_res, a.max_res);
+        apply(&mut model.precision, a.precision.clone());
         if let Some(w) = a.width {
             model.density_width = w;
             model.color_width = w;
@@ -324,12 +330,13 @@ pub fn train_loop(
     let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
     let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), start, moments)?;
     eprintln!(
-        "model: hash grid {}x{}x2^{} (N {}..{}), MLPs {:?} and {:?}, {} parameters; {} rays x {} samples per step",
+        "model: hash grid {}x{}x2^{} (N {}..{}, {}), MLPs {:?} and {:?}, {} parameters; {} rays x {} samples per step",
         cfg.model.levels,
         cfg.model.features,
         cfg.model.log2_table,
         cfg.model.min_res,
         cfg.model.max_res,
+        cfg.model.precision,
         cfg.model.density_mlp().dims,
         cfg.model.color_mlp().dims,
         trainer.nerf().field().layout().total,

@@ -57,6 +57,10 @@ pub struct TradeoffArgs {
     /// Output folder: tradeoff.csv, tradeoff.json, tradeoff.svg.
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
+    /// Keep the points already in OUT/tradeoff.json and add these (a point of the same name is
+    /// replaced).
+    #[arg(long)]
+    append: bool,
 }
 
 /// One sweep point: a name, what it changes, and the change.
@@ -132,6 +136,11 @@ fn points() -> Vec<Point> {
             name: "steps2x",
             knob: "steps",
             apply: |c| steps(c, 2.0),
+        },
+        Point {
+            name: "f16",
+            knob: "precision",
+            apply: |c| c.model.precision = "f16".into(),
         },
         Point {
             name: "auto",
@@ -331,7 +340,14 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let prims = Prims::new(ctx)?;
-    let mut rows: Vec<Row> = Vec::new();
+    let mut rows: Vec<Row> = if a.append {
+        previous_rows(a, &spec)?
+            .into_iter()
+            .filter(|r| !chosen.iter().any(|p| p.name == r.name))
+            .collect()
+    } else {
+        Vec::new()
+    };
     for p in chosen {
         let mut model = extranerf_nerf::run::model_for_scene(&loaded.scene);
         model.log2_table = a.log2_table;
@@ -353,13 +369,14 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         }
         (p.apply)(&mut cfg);
         eprintln!(
-            "[{}] {}: L{} F{} T2^{} N..{} | {} rays x {} samples, {} steps",
+            "[{}] {}: L{} F{} T2^{} N..{} {} | {} rays x {} samples, {} steps",
             p.name,
             p.knob,
             cfg.model.levels,
             cfg.model.features,
             cfg.model.log2_table,
             cfg.model.max_res,
+            cfg.model.precision,
             cfg.train.rays,
             cfg.train.samples,
             cfg.train.steps
@@ -423,6 +440,41 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The points of an earlier run in OUT/tradeoff.json.
+fn previous_rows(a: &TradeoffArgs, spec: &SceneSpec) -> anyhow::Result<Vec<Row>> {
+    let path = a.out.join("tradeoff.json");
+    let text =
+        std::fs::read(&path).with_context(|| format!("--append: reading {}", path.display()))?;
+    let doc: serde_json::Value = serde_json::from_slice(&text)
+        .with_context(|| format!("--append: {} is not JSON", path.display()))?;
+    let Some(points) = doc["points"].as_array() else {
+        bail!("--append: {} has no `points` array", path.display());
+    };
+    let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    points
+        .iter()
+        .map(|p| {
+            let bad = || anyhow::anyhow!("--append: a point in {} is malformed", path.display());
+            Ok(Row {
+                name: p["point"].as_str().ok_or_else(bad)?.into(),
+                knob: p["knob"].as_str().ok_or_else(bad)?.into(),
+                cfg: RunConfig {
+                    scene: spec.clone(),
+                    model: serde_json::from_value(p["model"].clone()).map_err(|_| bad())?,
+                    train: serde_json::from_value(p["train"].clone()).map_err(|_| bad())?,
+                },
+                train_s: num(&p["train_s"]),
+                samples_per_s: num(&p["samples_per_s"]),
+                psnr: num(&p["psnr"]),
+                ssim: num(&p["ssim"]),
+                lpips: num(&p["lpips_alex"]),
+                device_mib: num(&p["device_mib"]),
+                failed: p["failed"].as_str().map(String::from),
+            })
+        })
+        .collect()
+}
+
 /// Trains one point and scores it: (train seconds, samples/s, PSNR, SSIM, LPIPS, device MiB).
 fn run_point(
     ctx: &Context,
@@ -483,7 +535,7 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
     for (i, r) in rows.iter().enumerate() {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{},{},{},f32,{:.2},{:.4e},{:.4},{:.5},{:.5},{:.1},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{:.2},{:.4e},{:.4},{:.5},{:.5},{:.1},{},{}",
             r.name,
             r.knob,
             r.cfg.model.levels,
@@ -493,6 +545,7 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
             r.cfg.train.rays,
             r.cfg.train.samples,
             r.cfg.train.steps,
+            r.cfg.model.precision,
             r.train_s,
             r.samples_per_s,
             r.psnr,
@@ -510,7 +563,7 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
         .map(|(i, r)| {
             serde_json::json!({
                 "point": r.name, "knob": r.knob, "model": r.cfg.model, "train": r.cfg.train,
-                "precision": "f32", "train_s": r.train_s, "samples_per_s": r.samples_per_s,
+                "precision": r.cfg.model.precision, "train_s": r.train_s, "samples_per_s": r.samples_per_s,
                 "psnr": r.psnr, "ssim": r.ssim, "lpips_alex": r.lpips, "device_mib": r.device_mib,
                 "pareto": front.contains(&i), "failed": r.failed,
             })

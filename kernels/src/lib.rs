@@ -40,6 +40,9 @@ pub struct KernelDesc {
     pub needs_subgroups: bool,
     /// Uses `atomicAdd` on `f32` in storage buffers (`shaderBufferFloat32AtomicAdd`).
     pub needs_float32_atomic_add: bool,
+    /// Uses f16 arithmetic and f16 storage buffers (needs shaderFloat16 and
+    /// storageBuffer16BitAccess).
+    pub needs_f16: bool,
 }
 
 /// The generated host twin of one file's `Params` block, for the layout tests.

@@ -108,7 +108,8 @@ pub struct DeviceInfo {
     pub float32_atomic_add: bool,
     /// `shaderFloat16`, enabled when present (for the f16 path).
     pub shader_float16: bool,
-    /// `storageBuffer16BitAccess`, enabled when present.
+    /// `storageBuffer16BitAccess` and `uniformAndStorageBuffer16BitAccess` (naga declares both
+    /// for f16 storage), enabled when present.
     pub storage_buffer_16bit: bool,
     /// The validation layer is loaded.
     pub validation: bool,
@@ -453,7 +454,8 @@ impl Context {
             .queue_family_index(family)
             .queue_priorities(&priorities)];
         let mut f11 = vk::PhysicalDeviceVulkan11Features::default()
-            .storage_buffer16_bit_access(info.storage_buffer_16bit);
+            .storage_buffer16_bit_access(info.storage_buffer_16bit)
+            .uniform_and_storage_buffer16_bit_access(info.storage_buffer_16bit);
         let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
             .timeline_semaphore(true)
             .shader_float16(info.shader_float16);
@@ -980,7 +982,9 @@ fn probe_device(
         timestamps,
         float32_atomic_add: atomic_float,
         shader_float16: f12.shader_float16 == vk::TRUE,
-        storage_buffer_16bit: f11.storage_buffer16_bit_access == vk::TRUE,
+        // naga's f16 storage declares UniformAndStorageBuffer16BitAccess: both are needed.
+        storage_buffer_16bit: f11.storage_buffer16_bit_access == vk::TRUE
+            && f11.uniform_and_storage_buffer16_bit_access == vk::TRUE,
         validation,
     };
     Ok((info, Features { atomic_float }))

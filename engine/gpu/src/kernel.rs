@@ -39,6 +39,11 @@ impl Kernel {
                 "shaderBufferFloat32AtomicAdd (VK_EXT_shader_atomic_float)",
             ));
         }
+        if desc.needs_f16 && !(info.shader_float16 && info.storage_buffer_16bit) {
+            return Err(missing(
+                "shaderFloat16 and storageBuffer16BitAccess (the f16 path)",
+            ));
+        }
         if desc.needs_subgroups && !info.subgroup_arithmetic {
             return Err(missing(
                 "subgroup basic/arithmetic/ballot operations in compute shaders",

@@ -54,6 +54,14 @@ pub struct ModelConfig {
     pub radius: f32,
     /// "none", "l2" (mip-NeRF 360) or "linf".
     pub contraction: String,
+    /// "f32", or "f16": hash-table reads in the forward pass from an f16 copy of the f32 master
+    /// table (training and the standalone kernels; the fused march reads the f32 table).
+    #[serde(default = "default_precision")]
+    pub precision: String,
+}
+
+fn default_precision() -> String {
+    "f32".into()
 }
 
 impl Default for ModelConfig {
@@ -76,6 +84,7 @@ impl Default for ModelConfig {
             center: [0.0; 3],
             radius: 1.0,
             contraction: "none".into(),
+            precision: default_precision(),
         }
     }
 }
@@ -168,6 +177,17 @@ impl ModelConfig {
                 "scene box centre {:?} radius {}: need finite values and radius > 0",
                 self.center, self.radius
             )));
+        }
+        match self.precision.as_str() {
+            "f32" => {}
+            "f16" if self.features == 2 => {}
+            "f16" => {
+                return Err(GpuError::Usage(format!(
+                    "precision f16 needs 2 features per level, not {}",
+                    self.features
+                )))
+            }
+            o => return Err(GpuError::Usage(format!("precision `{o}`: use f32 or f16"))),
         }
         Ok(())
     }
@@ -342,7 +362,14 @@ impl Field {
         Ok(Field {
             layout: ParamLayout::new(&config),
             scene: config.scene_box()?,
-            grid: HashGrid::new(ctx, config.grid())?,
+            grid: {
+                let g = HashGrid::new(ctx, config.grid())?;
+                if config.precision == "f16" {
+                    g.with_f16(ctx)?
+                } else {
+                    g
+                }
+            },
             density: Mlp::new(ctx, config.density_mlp())?,
             color: Mlp::new(ctx, config.color_mlp())?,
             enc: Encodings::new(ctx)?,

@@ -3,6 +3,7 @@
 
 use extranerf_gpu::kernels::field::hash_decay as kdecay;
 use extranerf_gpu::kernels::field::hash_grid as k;
+use extranerf_gpu::kernels::field::hash_grid_f16 as k16;
 use extranerf_gpu::kernels::field::hash_grid_f2 as k2;
 use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
@@ -126,6 +127,16 @@ pub struct HashGrid {
     kernels: Kernels,
     decay: Kernel,
     decay_grad: Kernel,
+    /// The f16 forward path, when enabled ([`HashGrid::with_f16`]).
+    half: Option<Half>,
+}
+
+/// The f16 forward path: the kernels and the f16 copy of the table.
+#[derive(Debug)]
+struct Half {
+    convert: Kernel,
+    fwd: Kernel,
+    table: Buffer<u16>,
 }
 
 #[derive(Debug)]
@@ -170,7 +181,32 @@ impl HashGrid {
             },
             decay: Kernel::new(ctx, &kdecay::hash_decay::DESC)?,
             decay_grad: Kernel::new(ctx, &kdecay::hash_decay_grad::DESC)?,
+            half: None,
         })
+    }
+
+    /// Switches the forward pass to f16 table reads (`field/hash_grid_f16.wgsl`): each
+    /// forward copies the f32 table (the master weights) to f16 first, then interpolates the
+    /// f16 entries in f32. Needs F = 2 and a device with shaderFloat16 and 16-bit storage.
+    pub fn with_f16(mut self, ctx: &Context) -> Result<HashGrid> {
+        if self.config.features != 2 {
+            return Err(GpuError::Usage(format!(
+                "the f16 hash grid supports 2 features per level, not {}",
+                self.config.features
+            )));
+        }
+        let n = self.config.param_count() as usize;
+        self.half = Some(Half {
+            convert: Kernel::new(ctx, &k16::table_to_f16::DESC)?,
+            fwd: Kernel::new(ctx, &k16::encode_fwd_f16::DESC)?,
+            table: Buffer::new(ctx, "hash grid f16 table", n)?,
+        });
+        Ok(self)
+    }
+
+    /// True when the forward pass reads an f16 copy of the table.
+    pub fn is_f16(&self) -> bool {
+        self.half.is_some()
     }
 
     /// Partial sums the hash-decay pass writes (sum them, e.g. with `Prims::reduce_sum`).
@@ -290,7 +326,7 @@ impl HashGrid {
     }
 
     /// Records `encoded[n, L*F]` = the encoding of `positions[n, 3]` (in [0, 1]^3, clamped;
-    /// NaN gives zeros) from `table`.
+    /// NaN gives zeros) from `table` (through its f16 copy when [`HashGrid::with_f16`]).
     pub fn forward<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
@@ -301,6 +337,28 @@ impl HashGrid {
     ) -> Result<()> {
         self.check(&positions, &table, &encoded, n)?;
         let (kernel, threads, p) = self.pick(n, true)?;
+        if let Some(h) = &self.half {
+            let pairs = self.config.param_count() / 2;
+            let pc = k16::Params {
+                n: pairs as u32,
+                levels: p.levels,
+                features: p.features,
+                _pad: 0,
+            };
+            let b = k16::table_to_f16::Bindings {
+                table,
+                half_out: h.table.binding(),
+            };
+            rec.dispatch(&h.convert, b.into_array(), &pc, pairs)?;
+            let pf = k16::Params { n: p.n, ..pc };
+            let b = k16::encode_fwd_f16::Bindings {
+                positions,
+                level_info: self.levels.binding(),
+                table_half: h.table.binding(),
+                encoded,
+            };
+            return rec.dispatch(&h.fwd, b.into_array(), &pf, threads);
+        }
         let b = k::encode_fwd::Bindings {
             positions,
             level_info: self.levels.binding(),
