@@ -100,10 +100,12 @@ fn round_f16(v: f32) -> f32 {
         return 0.0;
     }
     let a = v.abs().min(65504.0);
+    // The exponent from the bits (log2 can round up just below a power of two).
+    let exp = ((a.to_bits() >> 23) & 0xff) as i32 - 127;
     let quantum = if a < 2f32.powi(-14) {
         2f32.powi(-24)
     } else {
-        2f32.powi(a.log2().floor() as i32 - 10)
+        2f32.powi(exp - 10)
     };
     ((a / quantum).round_ties_even() * quantum).copysign(v)
 }

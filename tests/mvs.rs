@@ -225,7 +225,8 @@ fn bad_settings_are_errors() {
     let e = mvs.run(ctx, &cams, &short, &base).unwrap_err();
     assert!(e.to_string().contains("view 2"), "{e}");
     // Host helpers.
-    let (small, w, h) = downscale_rgb(&[1.0, 0.0, 0.0, 0.0, 0.0, 1.0], 2, 1, 2);
+    let (small, w, h) = downscale_rgb(&[1.0, 0.0, 0.0, 0.0, 0.0, 1.0], 2, 1, 2).unwrap();
+    assert!(downscale_rgb(&[1.0; 5], 2, 1, 2).is_err());
     assert_eq!((w, h), (1, 1));
     assert_eq!(small, vec![0.5, 0.0, 0.5]);
     assert!((luminance(&[1.0, 1.0, 1.0])[0] - 1.0).abs() < 1e-6);

@@ -88,7 +88,9 @@ enum BenchCommand {
     /// samples/s, PSNR and the difference from the exact render for each.
     Render(nerf::BenchRenderArgs),
     /// Visibility cost per pixel against the number of training cameras (0 = the camera ray
-    /// alone, the reference), with density evaluations per pixel and per second.
+    /// alone, the reference), for the exact segment march and the transmittance volumes, with
+    /// field evaluations (march) or lookups (volume) per pixel and the volume's difference
+    /// from the march.
     Visibility(visibility::BenchVisibilityArgs),
     /// Quality against time: trains a model per sweep point (table size, levels, features,
     /// finest resolution, samples per ray, batch, steps, and the auto-config's choice), scores

@@ -135,7 +135,8 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
                 c.height
             );
         }
-        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, a.downscale);
+        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, a.downscale)
+            .with_context(|| c.image.display().to_string())?;
         let cam = c.downscaled(a.downscale);
         if (cam.width, cam.height) != (w, h) {
             bail!("internal: downscaled camera and image disagree");

@@ -256,15 +256,24 @@ fn fit_budget(ctx: &Context, cfg: &mut RunConfig, budget: f64, shrink: bool) -> 
         let steps = fit.clamp(1.0, 5000.0) as u32;
         let m = &cfg.model;
         if steps < 1000 && shrink && (m.log2_table > 15 || m.levels > 8) {
+            // Only what is above its floor shrinks.
+            let table = if m.log2_table > 15 {
+                m.log2_table - 1
+            } else {
+                m.log2_table
+            };
+            let levels = if m.levels > 8 {
+                (m.levels - 2).max(8)
+            } else {
+                m.levels
+            };
             eprintln!(
-                "budget {budget:.0} s: {sps:.3e} samples/s fits {fit:.0} steps with table 2^{} and {} levels; reducing to 2^{} and {} levels",
+                "budget {budget:.0} s: {sps:.3e} samples/s fits {fit:.0} steps with table 2^{} and {} levels; reducing to 2^{table} and {levels} levels",
                 m.log2_table,
                 m.levels,
-                (m.log2_table - 1).max(15),
-                (m.levels - 2).max(8)
             );
-            cfg.model.log2_table = (m.log2_table - 1).max(15);
-            cfg.model.levels = (cfg.model.levels - 2).max(8);
+            cfg.model.log2_table = table;
+            cfg.model.levels = levels;
             continue;
         }
         eprintln!(
@@ -488,7 +497,7 @@ impl MarchArgs {
     }
 
     /// The occupancy grid for a model, if one is wanted: one cascade covers NDC's cube; world
-    /// scenes get cascades out to 16 scene radii.
+    /// scenes get cascades out to the far bound (`autoconfig::occupancy_cascades`).
     pub fn occupancy(
         &self,
         model: &extranerf_nerf::model::ModelConfig,
@@ -511,7 +520,7 @@ impl MarchArgs {
         }
         Ok(Some(OccupancyConfig {
             res: self.occupancy_res,
-            cascades: if model.space == "ndc" { 1 } else { 5 },
+            cascades: extranerf_nerf::autoconfig::occupancy_cascades(model),
             threshold: self.occupancy_threshold,
             ..OccupancyConfig::default()
         }))

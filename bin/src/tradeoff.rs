@@ -335,8 +335,16 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
     for &i in &loaded.split.test {
         let cam = &loaded.scene.cameras[i];
         let img = load_image(&cam.image)?;
-        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, a.eval_downscale);
+        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, a.eval_downscale)
+            .with_context(|| cam.image.display().to_string())?;
         tests.push((cam.downscaled(a.eval_downscale), rgb, w, h));
+    }
+    if tests.is_empty() {
+        bail!(
+            "the {} split of {} holds no held-out views to score",
+            a.split,
+            a.scene.display()
+        );
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let prims = Prims::new(ctx)?;
@@ -476,6 +484,8 @@ fn previous_rows(a: &TradeoffArgs, spec: &SceneSpec) -> anyhow::Result<Vec<Row>>
 }
 
 /// Trains one point and scores it: (train seconds, samples/s, PSNR, SSIM, LPIPS, device MiB).
+/// Device memory is the allocator's live bytes, sampled after the trainer is set up and after
+/// each held-out render (the training step allocates nothing per step).
 fn run_point(
     ctx: &Context,
     prims: &Prims,
@@ -576,13 +586,15 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
             "eval_downscale": a.eval_downscale, "points": json,
         }),
     )?;
-    let title = format!(
-        "{}: test PSNR against training time",
-        a.scene
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default()
-    );
+    let name: String = a
+        .scene
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+        .chars()
+        .filter(|c| c.is_alphanumeric() || matches!(c, '_' | '-' | '.' | ' '))
+        .collect();
+    let title = format!("{name}: test PSNR against training time");
     std::fs::write(a.out.join("tradeoff.svg"), svg(rows, &front, &title))?;
     Ok(())
 }

@@ -80,11 +80,12 @@ pub struct VisibilityArgs {
     /// the other training views (for fine-tuning the inpainting model).
     #[arg(long)]
     training_masks: bool,
-    /// Rank for the training masks (0: the number of other views, so a pixel is disoccluded
-    /// when any other view missed it).
+    /// Rank for the training masks (0: the number of other views, at most 8, so a pixel is
+    /// disoccluded when any other view missed it).
     #[arg(long, default_value_t = 0)]
     mask_rank: u32,
-    /// Pixels with visibility below this are masked (to be inpainted).
+    /// Pixels with visibility below this are masked (to be inpainted). Visibility is at most the
+    /// pixel's opacity: what the field does not fill counts as unseen.
     #[arg(long, default_value_t = 0.5)]
     threshold: f32,
     /// Output folder (default RUN/visibility).
@@ -304,7 +305,8 @@ fn summary(
         "masked_fraction": m.masked_fraction(threshold),
         "seconds": seconds,
         "us_per_pixel": seconds * 1e6 / px,
-        "segment_evals_per_pixel": evals / px,
+        // Field evaluations of the segment marches, or volume lookups.
+        "evals_per_pixel": evals / px,
     })
 }
 
@@ -407,8 +409,14 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
         if train.len() < 2 {
             bail!("training masks need at least two training views");
         }
+        let others = train.len() as u32 - 1;
         let rank = if a.mask_rank == 0 {
-            (train.len() as u32 - 1).min(MAX_RANK)
+            others.min(MAX_RANK)
+        } else if a.mask_rank > others {
+            bail!(
+                "--mask-rank {}: each training view has {others} others to be seen by",
+                a.mask_rank
+            );
         } else {
             a.mask_rank
         };

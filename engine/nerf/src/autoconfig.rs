@@ -25,6 +25,16 @@ pub struct AutoModel {
 const MIN_RES: u32 = 16;
 const GROWTH: f64 = 1.5;
 
+/// Occupancy-grid cascades a model's sampling range needs: 1 in NDC (bounded); in world space
+/// enough that the largest cascade (2^(c-1) scene radii) reaches the far bound, 1 to 8.
+pub fn occupancy_cascades(model: &ModelConfig) -> u32 {
+    if model.space == "ndc" {
+        return 1;
+    }
+    let ratio = (model.far as f64 / model.radius.max(1e-9) as f64).max(1.0);
+    (ratio.log2().ceil() as u32 + 1).clamp(1, 8)
+}
+
 /// Chooses the model for `scene` trained on the cameras `train` (indices).
 pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
     let mut model = model_for_scene(scene);
@@ -76,11 +86,11 @@ pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
             "finest resolution {res}: pixel footprint {footprint:.2e} at distance {d:.3} (focal {f:.0} px); the inner ball of diameter {:.3} fills half the grid",
             2.0 * radius
         ));
-        let ratio = (model.far as f64 / radius).max(1.0);
-        let c = (ratio.log2().ceil() as u32 + 1).clamp(1, 8);
+        let c = occupancy_cascades(&model);
         reasons.push(format!(
-            "occupancy: {c} cascades (far bound {:.3} is {ratio:.1} scene radii)",
-            model.far
+            "occupancy: {c} cascades (far bound {:.3} is {:.1} scene radii; used by renders and visibility)",
+            model.far,
+            model.far as f64 / radius
         ));
         (res, c)
     };

@@ -111,10 +111,24 @@ pub fn grey(rgb: &[f32]) -> Vec<f32> {
 
 /// A `width` x `height` RGB image shrunk by an integer `factor` (box filter over whole
 /// blocks; the last partial row and column are dropped). Returns (rgb, width, height).
-pub fn downscale_rgb(rgb: &[f32], width: u32, height: u32, factor: u32) -> (Vec<f32>, u32, u32) {
+///
+/// # Errors
+/// When `rgb` does not hold `width * height * 3` values.
+pub fn downscale_rgb(
+    rgb: &[f32],
+    width: u32,
+    height: u32,
+    factor: u32,
+) -> Result<(Vec<f32>, u32, u32)> {
+    if rgb.len() as u64 != width as u64 * height as u64 * 3 {
+        return Err(GpuError::Usage(format!(
+            "{} values for a {width}x{height} RGB image",
+            rgb.len()
+        )));
+    }
     let f = factor.max(1);
     let (w, h) = ((width / f).max(1), (height / f).max(1));
-    let mut out = vec![0.0f32; (w * h * 3) as usize];
+    let mut out = vec![0.0f32; w as usize * h as usize * 3];
     for y in 0..h {
         for x in 0..w {
             for c in 0..3 {
@@ -124,16 +138,16 @@ pub fn downscale_rgb(rgb: &[f32], width: u32, height: u32, factor: u32) -> (Vec<
                     for dx in 0..f {
                         let (sx, sy) = (x * f + dx, y * f + dy);
                         if sx < width && sy < height {
-                            s += rgb[((sy * width + sx) * 3 + c) as usize];
+                            s += rgb[(sy as usize * width as usize + sx as usize) * 3 + c as usize];
                             n += 1.0;
                         }
                     }
                 }
-                out[((y * w + x) * 3 + c) as usize] = s / n;
+                out[(y as usize * w as usize + x as usize) * 3 + c as usize] = s / n;
             }
         }
     }
-    (out, w, h)
+    Ok((out, w, h))
 }
 
 /// The kernels.
@@ -153,8 +167,8 @@ impl Mvs {
     }
 
     /// Depth for every view against all the others. `cams` and `grey` (one luminance image per
-    /// view) must share one size. All sweeps run first, then all consistency passes, in one
-    /// submission each.
+    /// view) must share one size. The sweeps run first, one submission per view; then every
+    /// consistency pass in one submission.
     pub fn run(
         &self,
         ctx: &Context,

@@ -827,7 +827,18 @@ pub fn visibility_pixel(
         opacity += w;
         depth += w * t;
         let p = to_world(x);
-        if w.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) || !p.is_finite() {
+        // Every segment starts at the previous sample (the near end for the first).
+        let t_prev = if j == 0 {
+            t_of(0.0)
+        } else {
+            t_of(s0 - 0.5 / k)
+        };
+        let xs = o + t_prev * d;
+        let ps = to_world(xs);
+        if w.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || !p.is_finite()
+            || !ps.is_finite()
+        {
             continue;
         }
         let mut ts: Vec<f64> = Vec::new();
@@ -850,42 +861,40 @@ pub fn visibility_pixel(
             let end = if s.ndc {
                 let mut e = centre;
                 if centre.z > -1.0 {
-                    e = p + (-1.0 - p.z) / (centre.z - p.z) * (centre - p);
+                    e = ps + (-1.0 - ps.z) / (centre.z - ps.z) * (centre - ps);
                     e.z = -1.0;
                 }
                 to_field(e)
             } else {
-                let len = (centre - p).length();
+                let len = (centre - ps).length();
                 if len <= s.near {
                     ts.push(1.0);
                     continue;
                 }
-                p + (centre - p) * ((len - s.near) / len)
+                ps + (centre - ps) * ((len - s.near) / len)
             };
             let scale = if s.ndc { 0.5 } else { 1.0 };
-            let t_prev = if j == 0 {
-                t_of(0.0)
-            } else {
-                t_of(s0 - 0.5 / k)
-            };
-            let skip = (t - t_prev) * d.length();
-            let seg = end - x;
+            let seg = end - xs;
             let len = seg.length();
-            if len <= skip {
+            if len <= 0.0 {
                 ts.push(1.0);
                 continue;
             }
             let dir = seg / len;
-            let step = (len - skip) / s.vis_samples as f64;
+            let step = len / s.vis_samples as f64;
             let mut od = 0.0;
             for m in 0..s.vis_samples {
-                let y = x + dir * (skip + (m as f64 + 0.5) * step);
+                let y = xs + dir * ((m as f64 + 0.5) * step);
                 od += density(y.to_array()).max(0.0) * step * scale;
             }
             ts.push((-od).exp());
         }
         ts.sort_by(|a, b| b.total_cmp(a));
-        let v = ts.get(s.rank as usize - 1).copied().unwrap_or(0.0);
+        let v = (s.rank as usize)
+            .checked_sub(1)
+            .and_then(|r| ts.get(r))
+            .copied()
+            .unwrap_or(0.0);
         vis += w * v;
     }
     [vis, opacity, depth]
@@ -949,6 +958,10 @@ pub fn transmittance_volume(
 /// [`transmittance_volume`] returns it): 0 for a sample outside camera k's image or behind
 /// it; else k's T at the previous sample's world position, bilinear across rays (clamped to
 /// the grid), at the near boundary of the stratum that holds it.
+///
+/// # Panics
+/// When `size` has a zero or `volume` holds fewer than `train.len() * w * h * (d + 1)` values
+/// (a test's own mistake: the reference takes no user input).
 pub fn visibility_pixel_volume(
     density: &dyn Fn([f64; 3]) -> f64,
     cam: &crate::data::Camera,
@@ -960,6 +973,12 @@ pub fn visibility_pixel_volume(
 ) -> [f64; 3] {
     use glam::DVec3;
     let [w, h, d] = size;
+    assert!(
+        w > 0 && h > 0 && d > 0 && volume.len() >= train.len() * (w * h * (d + 1)) as usize,
+        "visibility_pixel_volume: a {w}x{h}x{d} volume for {} cameras needs more than {} values",
+        train.len(),
+        volume.len()
+    );
     let px = [
         (pixel % cam.width) as f64 + 0.5,
         (pixel / cam.width) as f64 + 0.5,
@@ -1041,7 +1060,12 @@ pub fn visibility_pixel_volume(
             .map(|c| lookup(c, p_prev, p))
             .collect();
         ts.sort_by(|a, b| b.total_cmp(a));
-        vis += wgt * ts.get(s.rank as usize - 1).copied().unwrap_or(0.0);
+        vis += wgt
+            * (s.rank as usize)
+                .checked_sub(1)
+                .and_then(|r| ts.get(r))
+                .copied()
+                .unwrap_or(0.0);
     }
     [vis, opacity, depth]
 }

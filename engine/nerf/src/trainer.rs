@@ -125,11 +125,16 @@ impl TrainConfig {
             return Err(GpuError::Usage("background must be finite".into()));
         }
         let lr = |v: f32| v.is_finite() && v > 0.0;
-        if !(lr(self.lr_start) && lr(self.lr_end)) || self.decay_steps == 0 {
+        if !(lr(self.lr_start) && lr(self.lr_end)) {
             return Err(GpuError::Usage(format!(
-                "learning rates {} -> {} must be finite and positive, over a positive number of steps ({})",
-                self.lr_start, self.lr_end, self.decay_steps
+                "learning rates {} -> {} must be finite and positive",
+                self.lr_start, self.lr_end
             )));
+        }
+        if self.decay_steps == 0 {
+            return Err(GpuError::Usage(
+                "the learning-rate decay needs a positive number of steps".into(),
+            ));
         }
         Ok(())
     }

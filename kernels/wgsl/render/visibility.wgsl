@@ -10,14 +10,15 @@
 // [0, opacity].
 //
 // The segment toward a camera starts at the previous sample's position (the near end for the
-// first sample) and ends at the camera centre, or where it crosses the NDC near plane
-// (z = -ndc_near, beyond which an NDC field is not defined) for forward-facing scenes, or
-// `near` before the camera centre for world-space scenes. Starting there, a surface that
-// begins between two samples (which the ray's quadrature puts into the second sample's alpha,
-// not into its transmittance) does not hide the sample from a camera that looks along the
-// ray: a camera identical to the pixel's sees what the ray stops at. The segment is marched in
-// the field's space with `vis_samples` stratum midpoints. Its optical depth uses the same unit as a camera ray along the optical axis:
-// world length in world space, half the NDC length in NDC (a camera ray's t grows by 1 per 2 NDC
+// first sample), for every camera, and ends at the camera centre, or where it crosses the NDC
+// near plane (z = -ndc_near, beyond which an NDC field is not defined) for forward-facing
+// scenes, or `near` before the camera centre for world-space scenes. Starting there, a surface
+// that begins between two samples (which the ray's quadrature puts into the second sample's
+// alpha, not into its transmittance) does not hide the sample from the cameras: a camera
+// identical to the pixel's sees what the ray stops at. The frustum test uses the sample itself.
+// The segment is marched in the field's space with `vis_samples` stratum midpoints. Its
+// optical depth uses the same unit as a camera ray along the optical axis: world length in
+// world space, half the NDC length in NDC (a camera ray's t grows by 1 per 2 NDC
 // units of depth). Empty occupancy cells are skipped. The march stops as soon as the
 // transmittance can no longer be among the `rank` largest (exact); `min_transmittance` cuts
 // it earlier (bounded: a value below the cut counts as 0).
@@ -244,10 +245,10 @@ fn volume_lookup(k: u32, p: vec3<f32>, at: vec3<f32>) -> f32 {
     return mix(mix(v00, v01, ax), mix(v10, v11, ax), ay);
 }
 
-// Transmittance from field point x (world p; the first `skip` field units are excluded) to the
-// centre of training camera c; stops (returning 0) once it is at most `floor`. `frame` is the
-// camera whose NDC frame the field point is in.
-fn transmittance(x: vec3<f32>, p: vec3<f32>, skip: f32, c: GpuCamera, frame: GpuCamera, floor: f32,
+// Transmittance from field point x (world position p) to the centre of training camera c;
+// stops (returning 0) once it is at most `floor`. `frame` is the camera whose NDC frame the
+// field point is in.
+fn transmittance(x: vec3<f32>, p: vec3<f32>, c: GpuCamera, frame: GpuCamera, floor: f32,
                  a: ptr<function, Act>, evals: ptr<function, f32>) -> f32 {
     let centre = vec3<f32>(c.c2w0.w, c.c2w1.w, c.c2w2.w);
     var end = centre;
@@ -271,16 +272,16 @@ fn transmittance(x: vec3<f32>, p: vec3<f32>, skip: f32, c: GpuCamera, frame: Gpu
     }
     let seg = end - x;
     let len = length(seg);
-    if !(len > skip) {
+    if !(len > 0.0) {
         return 1.0;
     }
     let dir = seg / len;
-    let step = (len - skip) / f32(params.vis_samples);
+    let step = len / f32(params.vis_samples);
     let dt = step * scale;
     var tau = 0.0;
     let stop = -log(max(floor, 1e-30));
     for (var m = 0u; m < params.vis_samples; m += 1u) {
-        let y = x + dir * (skip + (f32(m) + 0.5) * step);
+        let y = x + dir * ((f32(m) + 0.5) * step);
         tau += optical_depth(density(y, a), dt);
         *evals += 1.0;
         if tau >= stop {
@@ -312,7 +313,6 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     if params.ndc != 0u {
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
-    let dlen = length(ray[1]);
     let inv_k = 1.0 / f32(params.samples);
     let rank = min(params.rank, MAX_RANK);
     let n_train = min(params.n_train, 32u);
@@ -337,7 +337,8 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
             continue;
         }
         let p = to_world(x, cam);
-        let p_prev = to_world(ray[0] + t_prev * ray[1], cam);
+        let x_prev = ray[0] + t_prev * ray[1];
+        let p_prev = to_world(x_prev, cam);
         // A sample at the far end of an NDC ray (z' = 1) has no finite world position.
         if !all(abs(p) < vec3<f32>(3.0e38)) || !all(abs(p_prev) < vec3<f32>(3.0e38)) {
             continue;
@@ -366,7 +367,7 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                 // A transmittance at or below the current rank-th value cannot change the
                 // result.
                 let floor = max(top[rank - 1u], params.min_transmittance);
-                tr = transmittance(x, p, (t - t_prev) * dlen, c, cam, floor, &a, &evals);
+                tr = transmittance(x_prev, p_prev, c, cam, floor, &a, &evals);
             }
             if tr <= top[rank - 1u] {
                 continue;

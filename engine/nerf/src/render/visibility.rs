@@ -18,6 +18,9 @@ use crate::model::Field;
 use crate::render::occupancy::Occupancy;
 use crate::render::rays::{gpu_camera, GpuCamera};
 
+/// 4-byte words of one `GpuCamera`.
+const CAMERA_WORDS: u64 = (std::mem::size_of::<GpuCamera>() / 4) as u64;
+
 /// The largest rank the kernel supports.
 pub const MAX_RANK: u32 = 8;
 /// The most training cameras one pass considers (a 32-bit mask selects them).
@@ -504,6 +507,7 @@ impl Visibility {
                 volume.cameras
             )));
         }
+        train.check_fits(n_train as u64 * CAMERA_WORDS, 4, "volume training cameras")?;
         let (mut p, (level_info, table, density_shape, occ_bits, shapes)) =
             self.density_setup(rec, density)?;
         let [w, h, d] = volume.size;
@@ -555,6 +559,12 @@ impl Visibility {
         }
         pixels.check_fits(2 * n, 4, "visibility pixels")?;
         out.check_fits(4 * n, 4, "visibility output")?;
+        cameras.check_fits(n_cameras as u64 * CAMERA_WORDS, 4, "visibility cameras")?;
+        train.check_fits(
+            n_train as u64 * CAMERA_WORDS,
+            4,
+            "visibility training cameras",
+        )?;
         let (mut p, (level_info, table, density_shape, occ_bits, shapes)) =
             self.density_setup(rec, density)?;
         p.n = count_u32(n, "visibility pixels")?;
