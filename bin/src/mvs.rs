@@ -10,23 +10,15 @@ use extranerf_nerf::data::colmap::read_points3d_bin;
 use extranerf_nerf::data::depth::sparse_depth;
 use extranerf_nerf::data::load_image;
 use extranerf_nerf::mvs::{downscale_rgb, grey, Mvs, MvsConfig, MvsDepth};
-use extranerf_nerf::run::{write_depth_exr, write_png, SceneSpec};
+use extranerf_nerf::run::{write_depth_exr, write_png};
+
+use crate::nerf::SceneArgs;
 
 /// Arguments of `extranerf mvs`.
 #[derive(clap::Args, Debug)]
 pub struct MvsArgs {
-    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
-    #[arg(long, value_name = "DIR")]
-    scene: PathBuf,
-    /// Which views: the training views of this split (extrapolation, fewshot, all).
-    #[arg(long, default_value = "extrapolation")]
-    split: String,
-    /// Training views of the few-shot split.
-    #[arg(long, default_value_t = 3)]
-    fewshot_views: usize,
-    /// LLFF downsampling factor (reads images_N).
-    #[arg(long, default_value_t = 8)]
-    factor: u32,
+    #[command(flatten)]
+    scene: SceneArgs,
     /// Match at 1/N of the images' resolution (box-filtered); maps are written at full size.
     #[arg(long, default_value_t = 2)]
     downscale: u32,
@@ -84,14 +76,7 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
     if a.downscale == 0 {
         bail!("--downscale must be at least 1");
     }
-    let spec = SceneSpec {
-        dir: a.scene.clone(),
-        split: a.split.clone(),
-        fewshot_views: a.fewshot_views,
-        factor: a.factor,
-        sparse_depth: false,
-        depth_dir: None,
-    };
+    let spec = a.scene.spec();
     let loaded = spec.load()?;
     let views: Vec<usize> = loaded.split.train.clone();
     let full: Vec<_> = views
@@ -163,7 +148,7 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         seconds / cams.len() as f64
     );
     // Sparse points, when the scene has them.
-    let points_path = a.scene.join("sparse/0/points3D.bin");
+    let points_path = a.scene.scene.join("sparse/0/points3D.bin");
     let points = if points_path.exists() {
         Some(read_points3d_bin(&points_path)?)
     } else {
@@ -262,9 +247,9 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         rows.push(row);
     }
     let mut doc = serde_json::json!({
-        "scene": a.scene,
-        "split": a.split,
-        "factor": a.factor,
+        "scene": a.scene.scene,
+        "split": a.scene.split,
+        "factor": a.scene.factor,
         "downscale": a.downscale,
         "width": cams[0].width,
         "height": cams[0].height,

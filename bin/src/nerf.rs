@@ -1175,22 +1175,42 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A scene and the views of a split: for the commands that read a scene without a run.
+#[derive(clap::Args, Debug, Clone)]
+pub struct SceneArgs {
+    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
+    #[arg(long, value_name = "DIR")]
+    pub scene: PathBuf,
+    /// Split whose training views are used (extrapolation, fewshot, all).
+    #[arg(long, default_value = "extrapolation")]
+    pub split: String,
+    /// Training views of the few-shot split.
+    #[arg(long, default_value_t = 3)]
+    pub fewshot_views: usize,
+    /// LLFF downsampling factor (reads images_N; sets the intrinsics).
+    #[arg(long, default_value_t = 8)]
+    pub factor: u32,
+}
+
+impl SceneArgs {
+    /// The scene spec (no depth supervision).
+    pub fn spec(&self) -> SceneSpec {
+        SceneSpec {
+            dir: self.scene.clone(),
+            split: self.split.clone(),
+            fewshot_views: self.fewshot_views,
+            factor: self.factor,
+            sparse_depth: false,
+            depth_dir: None,
+        }
+    }
+}
+
 /// Arguments of `extranerf cameras`.
 #[derive(clap::Args, Debug)]
 pub struct CamerasArgs {
-    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
-    #[arg(long, value_name = "DIR")]
-    scene: PathBuf,
-    /// Which views form the rig: the training views of this split (extrapolation, fewshot,
-    /// all).
-    #[arg(long, default_value = "extrapolation")]
-    split: String,
-    /// Training views of the few-shot split.
-    #[arg(long, default_value_t = 3)]
-    fewshot_views: usize,
-    /// LLFF downsampling factor (reads images_N; sets the intrinsics written).
-    #[arg(long, default_value_t = 8)]
-    factor: u32,
+    #[command(flatten)]
+    scene: SceneArgs,
     /// outward (translated in the rig's plane), spiral (LLFF's path, widened, looking at the
     /// focus point) or rotate (turned about the up axis past the captured yaw).
     #[arg(long, default_value = "outward")]
@@ -1208,14 +1228,7 @@ pub struct CamerasArgs {
 
 /// `extranerf cameras`: extrapolated virtual cameras as transforms.json.
 pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
-    let spec = SceneSpec {
-        dir: a.scene.clone(),
-        split: a.split.clone(),
-        fewshot_views: a.fewshot_views,
-        factor: a.factor,
-        sparse_depth: false,
-        depth_dir: None,
-    };
+    let spec = a.scene.spec();
     let loaded = spec.load()?;
     let rig: Vec<_> = loaded
         .split
@@ -1231,7 +1244,7 @@ pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
         a.trajectory,
         a.range,
         rig.len(),
-        a.split,
+        a.scene.split,
         a.out.display()
     );
     Ok(())

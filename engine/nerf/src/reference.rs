@@ -767,139 +767,6 @@ pub struct VisibilitySetup {
     pub mask: u32,
 }
 
-/// Multi-view transmittance visibility (`render/visibility.wgsl`, no cuts, no occupancy) of
-/// one pixel in f64, for a density given in the field's space. Returns (visibility, opacity,
-/// depth).
-pub fn visibility_pixel(
-    density: &dyn Fn([f64; 3]) -> f64,
-    cam: &crate::data::Camera,
-    pixel: u32,
-    train: &[crate::data::Camera],
-    s: &VisibilitySetup,
-) -> [f64; 3] {
-    use glam::DVec3;
-    let px = [
-        (pixel % cam.width) as f64 + 0.5,
-        (pixel / cam.width) as f64 + 0.5,
-    ];
-    let (wo, wd) = camera_ray(cam, px);
-    let (o, d) = if s.ndc {
-        ndc_ray(cam, wo, wd, 1.0)
-    } else {
-        (wo, wd)
-    };
-    let (o, d) = (DVec3::from(o), DVec3::from(d));
-    let ax = -2.0 * (cam.fx as f32) as f64 / cam.width as f64;
-    let ay = -2.0 * (cam.fy as f32) as f64 / cam.height as f64;
-    let to_world = |x: DVec3| {
-        if s.ndc {
-            let z = 2.0 / (x.z - 1.0);
-            DVec3::new(x.x * z / ax, x.y * z / ay, z)
-        } else {
-            x
-        }
-    };
-    let to_field = |p: DVec3| {
-        if s.ndc {
-            DVec3::new(ax * p.x / p.z, ay * p.y / p.z, 1.0 + 2.0 / p.z)
-        } else {
-            p
-        }
-    };
-    let t_of = |u: f64| {
-        if s.ndc {
-            s.near + (s.far - s.near) * u
-        } else {
-            1.0 / (1.0 / s.near + (1.0 / s.far - 1.0 / s.near) * u)
-        }
-    };
-    let k = s.samples as f64;
-    let alpha = |x: f64| 1.0 - (-x).exp();
-    let (mut tau, mut vis, mut opacity, mut depth) = (0.0f64, 0.0, 0.0, 0.0);
-    for j in 0..s.samples {
-        let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
-        let t = t_of(0.5 * (s0 + s1));
-        let dt = t_of(s1) - t_of(s0);
-        let x = o + t * d;
-        let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
-        let w = (-tau).exp() * alpha(xo);
-        tau += xo;
-        opacity += w;
-        depth += w * t;
-        let p = to_world(x);
-        // Every segment starts at the previous sample (the near end for the first).
-        let t_prev = if j == 0 {
-            t_of(0.0)
-        } else {
-            t_of(s0 - 0.5 / k)
-        };
-        let xs = o + t_prev * d;
-        let ps = to_world(xs);
-        if w.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
-            || !p.is_finite()
-            || !ps.is_finite()
-        {
-            continue;
-        }
-        let mut ts: Vec<f64> = Vec::new();
-        for (c_i, c) in train.iter().enumerate() {
-            if c_i >= 32 || (s.mask >> c_i) & 1 == 0 {
-                continue;
-            }
-            let centre = c.centre();
-            let r = glam::DMat3::from_mat4(c.c2w).transpose() * (p - centre);
-            if r.z >= 0.0 {
-                ts.push(0.0);
-                continue;
-            }
-            let u = c.fx * r.x / -r.z + c.cx;
-            let v = -c.fy * r.y / -r.z + c.cy;
-            if !(0.0..=c.width as f64).contains(&u) || !(0.0..=c.height as f64).contains(&v) {
-                ts.push(0.0);
-                continue;
-            }
-            let end = if s.ndc {
-                let mut e = centre;
-                if centre.z > -1.0 {
-                    e = ps + (-1.0 - ps.z) / (centre.z - ps.z) * (centre - ps);
-                    e.z = -1.0;
-                }
-                to_field(e)
-            } else {
-                let len = (centre - ps).length();
-                if len <= s.near {
-                    ts.push(1.0);
-                    continue;
-                }
-                ps + (centre - ps) * ((len - s.near) / len)
-            };
-            let scale = if s.ndc { 0.5 } else { 1.0 };
-            let seg = end - xs;
-            let len = seg.length();
-            if len <= 0.0 {
-                ts.push(1.0);
-                continue;
-            }
-            let dir = seg / len;
-            let step = len / s.vis_samples as f64;
-            let mut od = 0.0;
-            for m in 0..s.vis_samples {
-                let y = xs + dir * ((m as f64 + 0.5) * step);
-                od += density(y.to_array()).max(0.0) * step * scale;
-            }
-            ts.push((-od).exp());
-        }
-        ts.sort_by(|a, b| b.total_cmp(a));
-        let v = (s.rank as usize)
-            .checked_sub(1)
-            .and_then(|r| ts.get(r))
-            .copied()
-            .unwrap_or(0.0);
-        vis += w * v;
-    }
-    [vis, opacity, depth]
-}
-
 /// The camera ray of `pixel` (continuous pixel coordinates) in the field's space (NDC with
 /// near plane 1 when `ndc`).
 fn field_ray(cam: &crate::data::Camera, px: [f64; 2], ndc: bool) -> (glam::DVec3, glam::DVec3) {
@@ -918,6 +785,162 @@ fn sample_t(s: &VisibilitySetup, u: f64) -> f64 {
     } else {
         1.0 / (1.0 / s.near + (1.0 / s.far - 1.0 / s.near) * u)
     }
+}
+
+/// A camera's NDC frame (near plane 1; the kernel's f32 intrinsics): field space <-> world.
+struct Frame {
+    ndc: bool,
+    ax: f64,
+    ay: f64,
+}
+
+impl Frame {
+    fn new(cam: &crate::data::Camera, ndc: bool) -> Frame {
+        Frame {
+            ndc,
+            ax: -2.0 * (cam.fx as f32) as f64 / cam.width as f64,
+            ay: -2.0 * (cam.fy as f32) as f64 / cam.height as f64,
+        }
+    }
+
+    fn to_world(&self, x: glam::DVec3) -> glam::DVec3 {
+        if !self.ndc {
+            return x;
+        }
+        let z = 2.0 / (x.z - 1.0);
+        glam::DVec3::new(x.x * z / self.ax, x.y * z / self.ay, z)
+    }
+
+    fn to_field(&self, p: glam::DVec3) -> glam::DVec3 {
+        if !self.ndc {
+            return p;
+        }
+        glam::DVec3::new(self.ax * p.x / p.z, self.ay * p.y / p.z, 1.0 + 2.0 / p.z)
+    }
+}
+
+/// Pixel coordinates (u, v) of world point p in camera c when it is in front of c and inside its
+/// image (edges included).
+fn in_image(c: &crate::data::Camera, p: glam::DVec3) -> Option<(f64, f64, f64)> {
+    let r = glam::DMat3::from_mat4(c.c2w).transpose() * (p - c.centre());
+    if r.z >= 0.0 {
+        return None;
+    }
+    let u = c.fx * r.x / -r.z + c.cx;
+    let v = -c.fy * r.y / -r.z + c.cy;
+    ((0.0..=c.width as f64).contains(&u) && (0.0..=c.height as f64).contains(&v))
+        .then_some((u, v, -r.z))
+}
+
+/// The part both visibility references share: march the pixel's ray (stratum midpoints, exact
+/// alpha); for each weighted sample at field point x (world p) whose previous sample sits at
+/// field point xs (world ps), `transmittance(k, x, p, xs, ps)` gives selected camera k's
+/// transmittance; the rank-th largest, weighted, sums to the visibility. Returns (visibility,
+/// opacity, depth).
+fn visibility_march(
+    density: &dyn Fn([f64; 3]) -> f64,
+    cam: &crate::data::Camera,
+    pixel: u32,
+    n_train: usize,
+    s: &VisibilitySetup,
+    transmittance: &dyn Fn(usize, glam::DVec3, glam::DVec3, glam::DVec3, glam::DVec3) -> f64,
+) -> [f64; 3] {
+    let px = [
+        (pixel % cam.width) as f64 + 0.5,
+        (pixel / cam.width) as f64 + 0.5,
+    ];
+    let (o, d) = field_ray(cam, px, s.ndc);
+    let frame = Frame::new(cam, s.ndc);
+    let k = s.samples as f64;
+    let (mut tau, mut vis, mut opacity, mut depth) = (0.0f64, 0.0, 0.0, 0.0);
+    for j in 0..s.samples {
+        let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
+        let t = sample_t(s, 0.5 * (s0 + s1));
+        let dt = sample_t(s, s1) - sample_t(s, s0);
+        let x = o + t * d;
+        let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
+        let w = (-tau).exp() * (1.0 - (-xo).exp());
+        tau += xo;
+        opacity += w;
+        depth += w * t;
+        // Every segment starts at the previous sample (the near end for the first).
+        let t_prev = if j == 0 {
+            sample_t(s, 0.0)
+        } else {
+            sample_t(s, s0 - 0.5 / k)
+        };
+        let xs = o + t_prev * d;
+        let (p, ps) = (frame.to_world(x), frame.to_world(xs));
+        if w.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || !p.is_finite()
+            || !ps.is_finite()
+        {
+            continue;
+        }
+        let mut ts: Vec<f64> = (0..n_train.min(32))
+            .filter(|&c| (s.mask >> c) & 1 == 1)
+            .map(|c| transmittance(c, x, p, xs, ps))
+            .collect();
+        ts.sort_by(|a, b| b.total_cmp(a));
+        vis += w
+            * (s.rank as usize)
+                .checked_sub(1)
+                .and_then(|r| ts.get(r))
+                .copied()
+                .unwrap_or(0.0);
+    }
+    [vis, opacity, depth]
+}
+
+/// Multi-view transmittance visibility (`render/visibility.wgsl`, no cuts, no occupancy) of
+/// one pixel in f64, for a density given in the field's space: each segment from the previous
+/// sample to a camera (clipped at the NDC near plane, or `near` before a world-space camera)
+/// marched with `vis_samples` midpoints. Returns (visibility, opacity, depth).
+pub fn visibility_pixel(
+    density: &dyn Fn([f64; 3]) -> f64,
+    cam: &crate::data::Camera,
+    pixel: u32,
+    train: &[crate::data::Camera],
+    s: &VisibilitySetup,
+) -> [f64; 3] {
+    let frame = Frame::new(cam, s.ndc);
+    let segment = |k: usize, _x, p, xs: glam::DVec3, ps: glam::DVec3| -> f64 {
+        let c = &train[k];
+        if in_image(c, p).is_none() {
+            return 0.0;
+        }
+        let centre = c.centre();
+        let end = if s.ndc {
+            let mut e = centre;
+            if centre.z > -1.0 {
+                e = ps + (-1.0 - ps.z) / (centre.z - ps.z) * (centre - ps);
+                e.z = -1.0;
+            }
+            frame.to_field(e)
+        } else {
+            let len = (centre - ps).length();
+            if len <= s.near {
+                return 1.0;
+            }
+            ps + (centre - ps) * ((len - s.near) / len)
+        };
+        let scale = if s.ndc { 0.5 } else { 1.0 };
+        let seg = end - xs;
+        let len = seg.length();
+        if len <= 0.0 {
+            return 1.0;
+        }
+        let dir = seg / len;
+        let step = len / s.vis_samples as f64;
+        let od: f64 = (0..s.vis_samples)
+            .map(|m| {
+                let y = xs + dir * ((m as f64 + 0.5) * step);
+                density(y.to_array()).max(0.0) * step * scale
+            })
+            .sum();
+        (-od).exp()
+    };
+    visibility_march(density, cam, pixel, train.len(), s, &segment)
 }
 
 /// Transmittance volumes (`render/visibility.wgsl`'s `transmittance_volume`) in f64: per
@@ -971,7 +994,6 @@ pub fn visibility_pixel_volume(
     volume: &[f64],
     size: [u32; 3],
 ) -> [f64; 3] {
-    use glam::DVec3;
     let [w, h, d] = size;
     assert!(
         w > 0 && h > 0 && d > 0 && volume.len() >= train.len() * (w * h * (d + 1)) as usize,
@@ -979,40 +1001,18 @@ pub fn visibility_pixel_volume(
         train.len(),
         volume.len()
     );
-    let px = [
-        (pixel % cam.width) as f64 + 0.5,
-        (pixel / cam.width) as f64 + 0.5,
-    ];
-    let (o, dir) = field_ray(cam, px, s.ndc);
-    let ax = -2.0 * (cam.fx as f32) as f64 / cam.width as f64;
-    let ay = -2.0 * (cam.fy as f32) as f64 / cam.height as f64;
-    let to_world = |x: DVec3| {
-        if s.ndc {
-            let z = 2.0 / (x.z - 1.0);
-            DVec3::new(x.x * z / ax, x.y * z / ay, z)
-        } else {
-            x
-        }
-    };
-    let lookup = |k: usize, p: DVec3, at: DVec3| -> f64 {
+    let lookup = |k: usize, _x, p, _xs, ps: glam::DVec3| -> f64 {
         let c = &train[k];
-        let rot = glam::DMat3::from_mat4(c.c2w).transpose();
-        let ra = rot * (at - c.centre());
-        let inside = |r: DVec3| {
-            let u = c.fx * r.x / -r.z + c.cx;
-            let v = -c.fy * r.y / -r.z + c.cy;
-            r.z < 0.0 && (0.0..=c.width as f64).contains(&u) && (0.0..=c.height as f64).contains(&v)
-        };
-        if !inside(ra) {
+        if in_image(c, p).is_none() {
             return 0.0;
         }
-        let r = rot * (p - c.centre());
+        let r = glam::DMat3::from_mat4(c.c2w).transpose() * (ps - c.centre());
         if r.z >= 0.0 {
             return 1.0;
         }
         let u = c.fx * r.x / -r.z + c.cx;
         let v = -c.fy * r.y / -r.z + c.cy;
-        let t = if s.ndc { 1.0 + 1.0 / p.z } else { -r.z };
+        let t = if s.ndc { 1.0 + 1.0 / ps.z } else { -r.z };
         let sp = if s.ndc {
             (t - s.near) / (s.far - s.near)
         } else {
@@ -1030,44 +1030,7 @@ pub fn visibility_pixel_volume(
         let bottom = at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx;
         top * (1.0 - ty) + bottom * ty
     };
-    let k = s.samples as f64;
-    let (mut tau, mut vis, mut opacity, mut depth) = (0.0f64, 0.0, 0.0, 0.0);
-    for j in 0..s.samples {
-        let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
-        let t = sample_t(s, 0.5 * (s0 + s1));
-        let dt = sample_t(s, s1) - sample_t(s, s0);
-        let x = o + t * dir;
-        let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
-        let wgt = (-tau).exp() * (1.0 - (-xo).exp());
-        tau += xo;
-        opacity += wgt;
-        depth += wgt * t;
-        let t_prev = if j == 0 {
-            sample_t(s, 0.0)
-        } else {
-            sample_t(s, s0 - 0.5 / k)
-        };
-        let p = to_world(x);
-        let p_prev = to_world(o + t_prev * dir);
-        if wgt.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
-            || !p.is_finite()
-            || !p_prev.is_finite()
-        {
-            continue;
-        }
-        let mut ts: Vec<f64> = (0..train.len().min(32))
-            .filter(|&c| (s.mask >> c) & 1 == 1)
-            .map(|c| lookup(c, p_prev, p))
-            .collect();
-        ts.sort_by(|a, b| b.total_cmp(a));
-        vis += wgt
-            * (s.rank as usize)
-                .checked_sub(1)
-                .and_then(|r| ts.get(r))
-                .copied()
-                .unwrap_or(0.0);
-    }
-    [vis, opacity, depth]
+    visibility_march(density, cam, pixel, train.len(), s, &lookup)
 }
 
 /// Plane-sweep stereo (`depth/mvs.wgsl`'s `mvs_sweep`) of reference pixel (x, y) of view `r`

@@ -43,3 +43,27 @@ fn ndc_ray(cam: GpuCamera, o_in: vec3<f32>, d_in: vec3<f32>, near: f32) -> array
     let d_ndc = vec3<f32>(ax * (d.x / d.z - o.x / o.z), ay * (d.y / d.z - o.y / o.z), -2.0 * near / o.z);
     return array<vec3<f32>, 2>(o_ndc, d_ndc);
 }
+
+fn camera_centre(c: GpuCamera) -> vec3<f32> {
+    return vec3<f32>(c.c2w0.w, c.c2w1.w, c.c2w2.w);
+}
+
+// Pixel coordinates (centres at +0.5) and depth along the viewing axis of world point p in
+// camera c; all 0 when p is not in front of it (or is NaN).
+fn project_point(p: vec3<f32>, c: GpuCamera) -> vec3<f32> {
+    let r = p - camera_centre(c);
+    // Camera coordinates: the rotation's transpose (its columns) applied to r.
+    let xc = c.c2w0.x * r.x + c.c2w1.x * r.y + c.c2w2.x * r.z;
+    let yc = c.c2w0.y * r.x + c.c2w1.y * r.y + c.c2w2.y * r.z;
+    let zc = c.c2w0.z * r.x + c.c2w1.z * r.y + c.c2w2.z * r.z;
+    if !(zc < 0.0) {
+        return vec3<f32>(0.0);
+    }
+    return vec3<f32>(c.intr.x * xc / -zc + c.intr.z, -c.intr.y * yc / -zc + c.intr.w, -zc);
+}
+
+// True when a projection q (project_point) is in front of camera c and inside its image
+// (edges included).
+fn in_image(q: vec3<f32>, c: GpuCamera) -> bool {
+    return q.z > 0.0 && q.x >= 0.0 && q.x <= f32(c.size.x) && q.y >= 0.0 && q.y <= f32(c.size.y);
+}

@@ -59,22 +59,6 @@ fn ray_dir(c: GpuCamera, px: vec2<f32>) -> vec3<f32> {
     return camera_ray(c, px)[1];
 }
 
-fn centre(c: GpuCamera) -> vec3<f32> {
-    return vec3<f32>(c.c2w0.w, c.c2w1.w, c.c2w2.w);
-}
-
-// Pixel coordinates and depth of world point p in camera c (depth <= 0: behind).
-fn project(p: vec3<f32>, c: GpuCamera) -> vec3<f32> {
-    let r = p - centre(c);
-    let xc = c.c2w0.x * r.x + c.c2w1.x * r.y + c.c2w2.x * r.z;
-    let yc = c.c2w0.y * r.x + c.c2w1.y * r.y + c.c2w2.y * r.z;
-    let zc = c.c2w0.z * r.x + c.c2w1.z * r.y + c.c2w2.z * r.z;
-    if !(zc < 0.0) {
-        return vec3<f32>(0.0);
-    }
-    return vec3<f32>(c.intr.x * xc / -zc + c.intr.z, -c.intr.y * yc / -zc + c.intr.w, -zc);
-}
-
 // Bilinear sample of view v's grey image at pixel coordinates q (centres at +0.5), clamped
 // to the edge.
 fn sample(v: u32, q: vec2<f32>) -> f32 {
@@ -112,7 +96,7 @@ fn mvs_sweep(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
     let x = i32(i % w);
     let y = i32(i / w);
     let ref_cam = cams[params.ref_view];
-    let o = centre(ref_cam);
+    let o = camera_centre(ref_cam);
     let out = params.ref_view * w * h + i;
     // The reference window (clamped at the border), its mean and spread.
     var win: array<f32, 49>;
@@ -158,8 +142,8 @@ fn mvs_sweep(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
             var sab = 0.0;
             var ok = true;
             for (var k = 0; k < side * side; k += 1) {
-                let q = project(o + d * dirs[k], sc);
-                if !(q.z > 0.0 && q.x >= 0.0 && q.y >= 0.0 && q.x <= f32(w) && q.y <= f32(h)) {
+                let q = project_point(o + d * dirs[k], sc);
+                if !in_image(q, sc) {
                     ok = false;
                     break;
                 }
@@ -241,14 +225,14 @@ fn mvs_consistency(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
     }
     let ref_cam = cams[params.ref_view];
     let px = vec2<f32>(f32(i % w) + 0.5, f32(i / w) + 0.5);
-    let p = centre(ref_cam) + d * ray_dir(ref_cam, px);
+    let p = camera_centre(ref_cam) + d * ray_dir(ref_cam, px);
     var agree = 0u;
     for (var s = 0u; s < params.n_views; s += 1u) {
         if ((params.src_mask >> s) & 1u) == 0u || s == params.ref_view {
             continue;
         }
         let sc = cams[s];
-        let q = project(p, sc);
+        let q = project_point(p, sc);
         if !(q.z > 0.0 && q.x >= 0.0 && q.y >= 0.0 && q.x < f32(w) && q.y < f32(h)) {
             continue;
         }
@@ -258,8 +242,8 @@ fn mvs_consistency(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
         if !(ds > 0.0) {
             continue;
         }
-        let ps = centre(sc) + ds * ray_dir(sc, vec2<f32>(f32(sx) + 0.5, f32(sy) + 0.5));
-        let back = project(ps, ref_cam);
+        let ps = camera_centre(sc) + ds * ray_dir(sc, vec2<f32>(f32(sx) + 0.5, f32(sy) + 0.5));
+        let back = project_point(ps, ref_cam);
         if !(back.z > 0.0) {
             continue;
         }

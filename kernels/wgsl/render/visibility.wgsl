@@ -177,27 +177,9 @@ fn to_field(p: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
     return vec3<f32>(ax * p.x / p.z, ay * p.y / p.z, 1.0 + 2.0 * params.ndc_near / p.z);
 }
 
-// Pixel coordinates and depth along the viewing axis of world point p in camera c; z <= 0
-// (or NaN) when p is not in front of it.
-fn project(p: vec3<f32>, c: GpuCamera) -> vec3<f32> {
-    let r = p - vec3<f32>(c.c2w0.w, c.c2w1.w, c.c2w2.w);
-    // Camera coordinates: the rotation's transpose (its columns) applied to r.
-    let xc = c.c2w0.x * r.x + c.c2w1.x * r.y + c.c2w2.x * r.z;
-    let yc = c.c2w0.y * r.x + c.c2w1.y * r.y + c.c2w2.y * r.z;
-    let zc = c.c2w0.z * r.x + c.c2w1.z * r.y + c.c2w2.z * r.z;
-    if !(zc < 0.0) {
-        return vec3<f32>(0.0);
-    }
-    return vec3<f32>(c.intr.x * xc / -zc + c.intr.z, -c.intr.y * yc / -zc + c.intr.w, -zc);
-}
-
-fn inside(q: vec3<f32>, c: GpuCamera) -> bool {
-    return q.z > 0.0 && q.x >= 0.0 && q.x <= f32(c.size.x) && q.y >= 0.0 && q.y <= f32(c.size.y);
-}
-
 // True when world point p is in front of camera c and projects inside its image.
 fn in_frustum(p: vec3<f32>, c: GpuCamera) -> bool {
-    return inside(project(p, c), c);
+    return in_image(project_point(p, c), c);
 }
 
 // Sampling parameter s in [0, 1] of camera rays (inverse of t_of) for distance t.
@@ -215,7 +197,7 @@ fn volume_lookup(k: u32, p: vec3<f32>, at: vec3<f32>) -> f32 {
     if !in_frustum(at, c) {
         return 0.0;
     }
-    let q = project(p, c);
+    let q = project_point(p, c);
     if !(q.z > 0.0) {
         return 1.0;
     }
@@ -250,7 +232,7 @@ fn volume_lookup(k: u32, p: vec3<f32>, at: vec3<f32>) -> f32 {
 // field point is in.
 fn transmittance(x: vec3<f32>, p: vec3<f32>, c: GpuCamera, frame: GpuCamera, floor: f32,
                  a: ptr<function, Act>, evals: ptr<function, f32>) -> f32 {
-    let centre = vec3<f32>(c.c2w0.w, c.c2w1.w, c.c2w2.w);
+    let centre = camera_centre(c);
     var end = centre;
     var scale = 1.0;
     if params.ndc != 0u {
