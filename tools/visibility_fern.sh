@@ -15,6 +15,6 @@ mkdir -p "$OUT"
 "$BIN" cameras --scene "$DATA/llff/fern" --trajectory outward --count 8 --range 1.5 \
     --out "$OUT/outward_cameras.json"
 "$BIN" visibility "$RUN" --views test --cameras "$OUT/outward_cameras.json" --training-masks \
-    --downscale 4 --out "$OUT/maps" 2>&1 | tee "$OUT/visibility.log"
+    --downscale 4 --complete-depth 400 --out "$OUT/maps" 2>&1 | tee "$OUT/visibility.log"
 "$BIN" bench visibility "$RUN" --downscale 8 --json "$OUT/bench_visibility.json" \
     | tee "$OUT/bench_visibility_lavapipe.txt"

@@ -290,6 +290,8 @@ fn train_resume_render_eval_on_fern() {
         "--cameras",
         cams.to_str().unwrap(),
         "--training-masks",
+        "--complete-depth",
+        "30",
     ];
     args.extend(small);
     let (ok, _, err) = extranerf(&args);
@@ -301,6 +303,8 @@ fn train_resume_render_eval_on_fern() {
         "test_000_mask.png",
         "virtual_001_vis.png",
         "trainmask_002_mask.png",
+        "test_000_depth.exr",
+        "virtual_001_depth_completed.exr",
         "visibility.json",
     ] {
         assert!(vis.join(f).exists(), "{f} missing");
@@ -311,6 +315,13 @@ fn train_resume_render_eval_on_fern() {
         serde_json::from_slice(&std::fs::read(vis.join("visibility.json")).unwrap()).unwrap();
     let views = v["views"].as_array().unwrap();
     assert_eq!(views.len(), 1 + 2 + 6, "{v}");
+    for row in views.iter().filter(|r| r["kind"] != "training-mask") {
+        let dc = &row["depth_completion"];
+        assert!(
+            dc["iterations"] == 30 && dc["mean_abs_change"].as_f64().unwrap().is_finite(),
+            "{row}"
+        );
+    }
     for row in views {
         let mean = row["mean_visibility"].as_f64().unwrap();
         let opacity = row["mean_opacity"].as_f64().unwrap();
