@@ -108,6 +108,57 @@ fn saxpy_matches_f64_reference() {
     assert_no_validation_messages(&e.ctx);
 }
 
+/// The tiled matrix product against an f64 reference (several shapes, more than one K slice
+/// and tile row or column), outputs poisoned first; bad shapes are errors.
+#[test]
+fn gemm_matches_f64_reference() {
+    let e = engine();
+    let mut rng = Rng::new(9);
+    for (m, n, k) in [(32u32, 32u32, 16u32), (64, 96, 48), (96, 32, 80)] {
+        let a: Vec<f32> = (0..m * k).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let b: Vec<f32> = (0..k * n).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let ab = Buffer::from_slice(&e.ctx, "a", &a).unwrap();
+        let bb = Buffer::from_slice(&e.ctx, "b", &b).unwrap();
+        let mut c = vec![f32::from_bits(POISON); (m * n) as usize];
+        c.extend(std::iter::repeat_n(f32::from_bits(POISON), GUARD));
+        let cb = Buffer::from_slice(&e.ctx, "c", &c).unwrap();
+        let mut rec = e.ctx.recorder("gemm").unwrap();
+        e.prims
+            .gemm(&mut rec, ab.binding(), bb.binding(), cb.binding(), m, n, k)
+            .unwrap();
+        e.ctx.run(rec).unwrap();
+        let got = cb.read().unwrap();
+        for i in 0..m as usize {
+            for j in 0..n as usize {
+                let (mut want, mut mag) = (0f64, 0f64);
+                for q in 0..k as usize {
+                    let p = a[i * k as usize + q] as f64 * b[q * n as usize + j] as f64;
+                    want += p;
+                    mag += p.abs();
+                }
+                let g = got[i * n as usize + j] as f64;
+                assert!(
+                    (g - want).abs() <= 4.0 * f32::EPSILON as f64 * mag + 1e-30,
+                    "gemm {m}x{n}x{k} at ({i}, {j}): {g} vs {want}"
+                );
+            }
+        }
+        assert!(got[(m * n) as usize..]
+            .iter()
+            .all(|v| v.to_bits() == POISON));
+    }
+    let x = Buffer::<f32>::new(&e.ctx, "x", 4096).unwrap();
+    let mut rec = e.ctx.recorder("gemm bad").unwrap();
+    for (m, n, k) in [(30u32, 32u32, 16u32), (32, 32, 8), (0, 32, 16)] {
+        let err = e
+            .prims
+            .gemm(&mut rec, x.binding(), x.binding(), x.binding(), m, n, k)
+            .unwrap_err();
+        assert!(err.to_string().contains("multiples"), "{err}");
+    }
+    assert_no_validation_messages(&e.ctx);
+}
+
 #[test]
 fn reduce_sum_within_tolerance_of_f64() {
     let e = engine();

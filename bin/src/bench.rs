@@ -470,6 +470,44 @@ impl Bench<'_> {
                 times[1].1 / times[0].1
             ));
         }
+        if self.wanted("gemm") {
+            // An MLP layer as one matrix product: W[64, 64] times activations[64, points], the
+            // points n / 64 rounded down to a multiple of 32 (at least 32).
+            let pts = ((n / 64) / 32 * 32).max(32) as u32;
+            let (m, k) = (64u32, 64u32);
+            let wa = Buffer::<f32>::from_slice(
+                ctx,
+                "bench gemm w",
+                &(0..m * k)
+                    .map(|_| rng.uniform(-1.0, 1.0))
+                    .collect::<Vec<_>>(),
+            )?;
+            let xb = Buffer::<f32>::from_slice(
+                ctx,
+                "bench gemm x",
+                &(0..k * pts)
+                    .map(|_| rng.uniform(-1.0, 1.0))
+                    .collect::<Vec<_>>(),
+            )?;
+            let yb = Buffer::<f32>::new(ctx, "bench gemm y", (m * pts) as usize)?;
+            let t = measure(ctx, &timer, reps, none, |r| {
+                self.prims
+                    .gemm(r, wa.binding(), xb.binding(), yb.binding(), m, pts, k)
+            })?;
+            let ms = median(t.clone());
+            let bytes = 4 * (m as u64 * k as u64 + (k as u64 + m as u64) * pts as u64);
+            self.push(
+                "gemm 64x64 by 64xN (tiled), columns",
+                pts as u64,
+                bytes,
+                t,
+                copy_gbps,
+            );
+            self.notes.push(format!(
+                "gemm 64x64 x 64x{pts}: {:.2} GFLOP/s (an MLP layer over {pts} points; compare the mlp rows' GFLOP/s)",
+                2.0 * m as f64 * k as f64 * pts as f64 / (ms * 1e-3) / 1e9
+            ));
+        }
         if self.wanted("scatter") {
             let distinct = Buffer::<u32>::from_slice(
                 ctx,

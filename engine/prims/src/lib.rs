@@ -33,6 +33,7 @@ pub struct Prims {
     fill: Kernel,
     iota: Kernel,
     saxpy: Kernel,
+    gemm: Kernel,
     reduce: Kernel,
     scan_tiles: Kernel,
     add_offsets: Kernel,
@@ -178,6 +179,7 @@ impl Prims {
             fill: Kernel::new(ctx, &k::fill::fill::DESC)?,
             iota: Kernel::new(ctx, &k::iota::iota::DESC)?,
             saxpy: Kernel::new(ctx, &k::saxpy::saxpy::DESC)?,
+            gemm: Kernel::new(ctx, &k::gemm::gemm::DESC)?,
             reduce: Kernel::new(ctx, &k::reduce::reduce_sum::DESC)?,
             scan_tiles: Kernel::new(ctx, &k::scan::scan_tiles::DESC)?,
             add_offsets: Kernel::new(ctx, &k::scan::add_offsets::DESC)?,
@@ -256,6 +258,44 @@ impl Prims {
             k::saxpy::saxpy::Bindings { x, y }.into_array(),
             &params,
             n.div_ceil(ELEMS_PER_THREAD),
+        )
+    }
+
+    /// Records `c[m, n] = a[m, k] * b[k, n]` (row-major f32, tiled through workgroup memory:
+    /// 32 x 32 tiles of C, 4 x 4 per thread). `m` and `n` must be multiples of 32 and `k` of 16.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn gemm<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        a: Binding<'a>,
+        b: Binding<'a>,
+        c: Binding<'a>,
+        m: u32,
+        n: u32,
+        k: u32,
+    ) -> Result<()> {
+        if m == 0
+            || n == 0
+            || k == 0
+            || !m.is_multiple_of(32)
+            || !n.is_multiple_of(32)
+            || !k.is_multiple_of(16)
+        {
+            return Err(usage(format!(
+                "gemm {m}x{k} by {k}x{n}: m and n must be positive multiples of 32, k of 16"
+            )));
+        }
+        let (m64, n64, k64) = (m as u64, n as u64, k as u64);
+        a.check_fits(m64 * k64, 4, "gemm a")?;
+        b.check_fits(k64 * n64, 4, "gemm b")?;
+        c.check_fits(m64 * n64, 4, "gemm c")?;
+        let tiles = (m64 / 32) * (n64 / 32);
+        let params = k::gemm::Params { m, n, k, _pad: 0 };
+        rec.dispatch(
+            &self.gemm,
+            k::gemm::gemm::Bindings { a, b, c }.into_array(),
+            &params,
+            tiles * 64,
         )
     }
 
