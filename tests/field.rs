@@ -481,7 +481,8 @@ fn contraction_and_sh_match_reference_at_the_extremes() {
 
 #[test]
 fn hash_decay_matches_reference() {
-    use extranerf_nerf::reference::hash_decay;
+    use extranerf_nerf::optim::{Adam, AdamConfig, TableDecay};
+    use extranerf_nerf::reference::{adam_step, hash_decay};
     let e = engine();
     let cfg = HashGridConfig {
         levels: 8,
@@ -497,8 +498,6 @@ fn hash_decay_matches_reference() {
     let g0: Vec<f32> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
     let tb = Buffer::from_slice(&e.ctx, "table", &table).unwrap();
     let gb = Buffer::from_slice(&e.ctx, "grad", &g0).unwrap();
-    // The gradient-only kernel of training steps, on a second copy.
-    let gb2 = Buffer::from_slice(&e.ctx, "grad only", &g0).unwrap();
     let partial = Buffer::<f32>::new(&e.ctx, "partial", grid.decay_partials() as usize).unwrap();
     let total = Buffer::<f32>::new(&e.ctx, "total", 1).unwrap();
     let plan = extranerf_prims::ReducePlan::new(&e.ctx).unwrap();
@@ -511,8 +510,6 @@ fn hash_decay_matches_reference() {
         0.25,
     )
     .unwrap();
-    grid.decay_grad(&mut rec, tb.binding(), gb2.binding(), 0.25)
-        .unwrap();
     e.prims
         .reduce_sum(
             &mut rec,
@@ -530,20 +527,66 @@ fn hash_decay_matches_reference() {
         "loss {got} vs {want_loss}"
     );
     let grad = gb.read().unwrap();
-    let grad2 = gb2.read().unwrap();
-    // Level offsets that are not multiples of 4 exercise the straddling path.
-    assert!(cfg.level_layout().iter().any(|l| l.offset % 4 != 0));
     for i in 0..n {
         let want = g0[i] as f64 + want_grad[i];
-        assert!(
-            (grad2[i] as f64 - want).abs() <= 1e-6,
-            "gradient-only kernel, entry {i}: {} vs {want}",
-            grad2[i]
-        );
         assert!(
             (grad[i] as f64 - want).abs() <= 1e-6,
             "entry {i}: {} vs {want}",
             grad[i]
+        );
+    }
+    // The gradient training folds into Adam, with this grid's level block: one Adam step on
+    // g0 plus decay equals the reference step on g0 plus the reference decay gradient. Level
+    // offsets that are not multiples of 4 exercise the vec4s that straddle two levels.
+    assert!(cfg.level_layout().iter().any(|l| l.offset % 4 != 0));
+    let adam_cfg = AdamConfig::default();
+    let adam = Adam::new(&e.ctx, n as u64, adam_cfg).unwrap();
+    let params = Buffer::from_slice(&e.ctx, "params", &table).unwrap();
+    let g0b = Buffer::from_slice(&e.ctx, "g0", &g0).unwrap();
+    let mut rec = e.ctx.recorder("adam decay").unwrap();
+    let decay = TableDecay {
+        block: grid.level_block().binding(),
+        levels: cfg.levels,
+        start: 0,
+        floats: n as u64,
+        lambda: 0.25,
+    };
+    adam.record_step(
+        &mut rec,
+        params.binding(),
+        g0b.binding(),
+        1,
+        1.0,
+        Some(decay),
+    )
+    .unwrap();
+    e.ctx.run(rec).unwrap();
+    let got = params.read().unwrap();
+    let mut p: Vec<f64> = table.iter().map(|&x| x as f64).collect();
+    let (mut m, mut v) = (vec![0f64; n], vec![0f64; n]);
+    let g_eff: Vec<f32> = (0..n)
+        .map(|i| (g0[i] as f64 + want_grad[i]) as f32)
+        .collect();
+    adam_step(
+        &mut p,
+        &mut m,
+        &mut v,
+        &g_eff,
+        adam_cfg.lr_at(1) as f64,
+        adam_cfg.beta1 as f64,
+        adam_cfg.beta2 as f64,
+        adam_cfg.eps as f64,
+        1,
+        1.0,
+        0.0,
+    );
+    for i in 0..n {
+        let tol = 1e-5 * adam_cfg.lr_start as f64 + 2.0 * f32::EPSILON as f64 * p[i].abs();
+        assert!(
+            (got[i] as f64 - p[i]).abs() <= tol,
+            "Adam with folded decay, entry {i}: {} vs {}",
+            got[i],
+            p[i]
         );
     }
     assert_no_validation_messages(&e.ctx);

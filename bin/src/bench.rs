@@ -250,7 +250,7 @@ impl Bench<'_> {
         if self.wanted("adam") {
             let adam = Adam::new(ctx, n, AdamConfig::default())?;
             let t = measure(ctx, &timer, reps, none, |r| {
-                adam.record_step(r, yf.binding(), xf.binding(), 1, 1.0)
+                adam.record_step(r, yf.binding(), xf.binding(), 1, 1.0, None)
             })?;
             // Reads parameter, gradient and both moments; writes parameter and moments.
             self.push("adam (flat buffer), parameters", n, 7 * bytes, t, copy_gbps);

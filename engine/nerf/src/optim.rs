@@ -66,6 +66,23 @@ impl AdamConfig {
     }
 }
 
+/// Hash decay folded into the Adam update: for the `floats` parameters from `start` (a hash
+/// table), the gradient of `lambda * sum_l mean(V_l^2)`, i.e. `2 lambda V / (size_l F)`, is
+/// added. `block` is the table's level block (`HashGrid::level_block`) with `levels` levels.
+#[derive(Clone, Copy, Debug)]
+pub struct TableDecay<'a> {
+    /// Per level (first float relative to the table, size * features, 0, 0).
+    pub block: Binding<'a>,
+    /// Levels in `block`.
+    pub levels: u32,
+    /// First table float in the parameter buffer.
+    pub start: u64,
+    /// Table floats.
+    pub floats: u64,
+    /// Decay weight.
+    pub lambda: f32,
+}
+
 /// Adam state (first and second moments) for `n` parameters.
 #[derive(Debug)]
 pub struct Adam {
@@ -74,6 +91,8 @@ pub struct Adam {
     m: Buffer<f32>,
     v: Buffer<f32>,
     n: u64,
+    /// Bound as the decay block when there is no hash decay (never read then).
+    no_block: Buffer<[u32; 4]>,
 }
 
 impl Adam {
@@ -87,6 +106,7 @@ impl Adam {
             m: Buffer::from_slice(ctx, "adam first moment", &zeros)?,
             v: Buffer::from_slice(ctx, "adam second moment", &zeros)?,
             n,
+            no_block: Buffer::from_slice(ctx, "adam no decay block", &[[0u32; 4]; 65])?,
         })
     }
 
@@ -114,7 +134,8 @@ impl Adam {
         self.v.write(v)
     }
 
-    /// Records update number `step` (1-based) of `params` with `grads * grad_scale`.
+    /// Records update number `step` (1-based) of `params` with `grads * grad_scale`, plus the
+    /// hash decay gradient when `decay` is given.
     pub fn record_step<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
@@ -122,6 +143,7 @@ impl Adam {
         grads: Binding<'a>,
         step: u32,
         grad_scale: f32,
+        decay: Option<TableDecay<'a>>,
     ) -> Result<()> {
         if step == 0 {
             return Err(GpuError::Usage("Adam steps count from 1".into()));
@@ -139,15 +161,43 @@ impl Adam {
             bias2: (1.0 - (c.beta2 as f64).powi(step as i32)) as f32,
             grad_scale,
             weight_decay: c.weight_decay,
+            decay_lambda: 0.0,
+            decay_start: 0,
+            decay_floats: 0,
+            decay_levels: 0,
             _pad0: 0,
             _pad1: 0,
             _pad2: 0,
         };
+        let mut p = p;
+        let mut block = self.no_block.binding();
+        if let Some(d) = decay {
+            if !(d.lambda >= 0.0 && d.lambda.is_finite() && (1..=64).contains(&d.levels)) {
+                return Err(GpuError::Usage(format!(
+                    "hash decay weight {} must be >= 0, over 1 to 64 levels ({} given)",
+                    d.lambda, d.levels
+                )));
+            }
+            if d.start + d.floats > self.n {
+                return Err(GpuError::Usage(format!(
+                    "hash decay over floats {}..{} of {} parameters",
+                    d.start,
+                    d.start + d.floats,
+                    self.n
+                )));
+            }
+            p.decay_lambda = d.lambda;
+            p.decay_start = d.start as u32;
+            p.decay_floats = d.floats as u32;
+            p.decay_levels = d.levels;
+            block = d.block;
+        }
         let b = k::adam::Bindings {
             param: params,
             grad: grads,
             m1: self.m.binding(),
             m2: self.v.binding(),
+            decay_block: block,
         };
         // 4 vec4s (16 parameters) per thread.
         rec.dispatch(&self.kernel, b.into_array(), &p, self.n.div_ceil(16))

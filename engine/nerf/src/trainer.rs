@@ -14,7 +14,7 @@ use extranerf_prims::{Prims, ReducePlan};
 
 use crate::data::{Camera, Image};
 use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler};
-use crate::optim::{Adam, AdamConfig};
+use crate::optim::{Adam, AdamConfig, TableDecay};
 use crate::render::composite::{Compositor, RayGrads, Samples};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
 use crate::render::march::{MarchCuts, Marcher};
@@ -872,18 +872,26 @@ impl Trainer {
             ws.samples,
             prof,
         )?;
-        if self.cfg.hash_decay_lambda > 0.0 {
-            nerf.field.grid().decay_grad(
-                rec,
-                params[0],
-                d_params[0],
-                self.cfg.hash_decay_lambda,
-            )?;
-        }
-        mark(prof, rec, "hash decay")?;
-        self.adam
-            .record_step(rec, nerf.params.binding(), self.grads.binding(), step, 1.0)?;
-        mark(prof, rec, "adam")
+        // Hash decay's gradient is folded into the Adam pass.
+        let decay = (self.cfg.hash_decay_lambda > 0.0).then(|| {
+            let lay = nerf.field.layout();
+            TableDecay {
+                block: nerf.field.grid().level_block().binding(),
+                levels: nerf.field.config().levels,
+                start: lay.table.0 as u64,
+                floats: lay.table.1 as u64,
+                lambda: self.cfg.hash_decay_lambda,
+            }
+        });
+        self.adam.record_step(
+            rec,
+            nerf.params.binding(),
+            self.grads.binding(),
+            step,
+            1.0,
+            decay,
+        )?;
+        mark(prof, rec, "adam + hash decay")
     }
 
     /// Runs one training step with a timestamp after every stage: `(stage, ms)` in order.

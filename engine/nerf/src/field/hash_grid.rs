@@ -121,12 +121,11 @@ pub struct HashGrid {
     config: HashGridConfig,
     levels: Buffer<HashLevel>,
     /// Per level (first float, size * features, 0, 0), then (floats, 1, 0, 0), padded to 65
-    /// entries: the uniform block of `hash_decay_grad`.
+    /// entries: the uniform block of the hash-decay gradient folded into Adam.
     level_block: Buffer<[u32; 4]>,
     /// Generic kernels (any F) or the F = 2 specialisation.
     kernels: Kernels,
     decay: Kernel,
-    decay_grad: Kernel,
     /// The f16 forward path, when enabled ([`HashGrid::with_f16`]).
     half: Option<Half>,
 }
@@ -180,7 +179,6 @@ impl HashGrid {
                 }
             },
             decay: Kernel::new(ctx, &kdecay::hash_decay::DESC)?,
-            decay_grad: Kernel::new(ctx, &kdecay::hash_decay_grad::DESC)?,
             half: None,
         })
     }
@@ -259,24 +257,11 @@ impl HashGrid {
         rec.dispatch(&self.decay, b.into_array(), &p, n)
     }
 
-    /// Records only the gradient of [`HashGrid::decay`] (no loss value): cheaper, for
-    /// training steps that do not report the decay term.
-    pub fn decay_grad<'a>(
-        &'a self,
-        rec: &mut Recorder<'a>,
-        table: Binding<'a>,
-        d_table: Binding<'a>,
-        lambda: f32,
-    ) -> Result<()> {
-        let (n, p) = self.decay_params(&table, &d_table, lambda)?;
-        let b = kdecay::hash_decay_grad::Bindings {
-            table,
-            d_table,
-            table4: table,
-            d_table4: d_table,
-            level_block: self.level_block.binding(),
-        };
-        rec.dispatch(&self.decay_grad, b.into_array(), &p, n.div_ceil(4))
+    /// Per level (first float, size * features, 0, 0), then (floats, 1, 0, 0), padded to 65
+    /// entries: the level block of the hash-decay gradient Adam folds in
+    /// (`optim::TableDecay`).
+    pub fn level_block(&self) -> &Buffer<[u32; 4]> {
+        &self.level_block
     }
 
     /// The level layout on the device (common/hash_grid.wgsl's `HashLevel` per level).
