@@ -482,7 +482,7 @@ fn contraction_and_sh_match_reference_at_the_extremes() {
 #[test]
 fn hash_decay_matches_reference() {
     use extranerf_nerf::optim::{Adam, AdamConfig, TableDecay};
-    use extranerf_nerf::reference::{adam_step, hash_decay};
+    use extranerf_nerf::reference::{adam_step_with, hash_decay};
     let e = engine();
     let cfg = HashGridConfig {
         levels: 8,
@@ -567,19 +567,7 @@ fn hash_decay_matches_reference() {
     let g_eff: Vec<f32> = (0..n)
         .map(|i| (g0[i] as f64 + want_grad[i]) as f32)
         .collect();
-    adam_step(
-        &mut p,
-        &mut m,
-        &mut v,
-        &g_eff,
-        adam_cfg.lr_at(1) as f64,
-        adam_cfg.beta1 as f64,
-        adam_cfg.beta2 as f64,
-        adam_cfg.eps as f64,
-        1,
-        1.0,
-        0.0,
-    );
+    adam_step_with(&mut p, &mut m, &mut v, &g_eff, &adam_cfg, 1, 1.0);
     for i in 0..n {
         let tol = 1e-5 * adam_cfg.lr_start as f64 + 2.0 * f32::EPSILON as f64 * p[i].abs();
         assert!(

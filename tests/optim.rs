@@ -5,7 +5,7 @@
 
 use extranerf_gpu::Buffer;
 use extranerf_nerf::optim::{Adam, AdamConfig};
-use extranerf_nerf::reference::adam_step;
+use extranerf_nerf::reference::adam_step_with;
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine};
 
@@ -68,19 +68,7 @@ fn run(n: usize, weight_decay: f32, grad_scale: f32, seed: u64) {
         )
         .unwrap();
         e.ctx.run(rec).unwrap();
-        adam_step(
-            &mut p,
-            &mut m,
-            &mut v,
-            &g,
-            cfg.lr_at(step) as f64,
-            cfg.beta1 as f64,
-            cfg.beta2 as f64,
-            cfg.eps as f64,
-            step,
-            grad_scale as f64,
-            weight_decay as f64,
-        );
+        adam_step_with(&mut p, &mut m, &mut v, &g, &cfg, step, grad_scale as f64);
     }
     let got = params.read().unwrap();
     for i in 0..n {
@@ -184,19 +172,7 @@ fn adam_with_folded_hash_decay_matches_reference() {
         let g_eff: Vec<f32> = (0..n)
             .map(|i| (g[i] as f64 + coef(i) * p[i]) as f32)
             .collect();
-        adam_step(
-            &mut p,
-            &mut m,
-            &mut v,
-            &g_eff,
-            cfg.lr_at(step) as f64,
-            cfg.beta1 as f64,
-            cfg.beta2 as f64,
-            cfg.eps as f64,
-            step,
-            1.0,
-            0.0,
-        );
+        adam_step_with(&mut p, &mut m, &mut v, &g_eff, &cfg, step, 1.0);
     }
     let got = params.read().unwrap();
     for i in 0..n {

@@ -336,6 +336,32 @@ pub fn adam_step(
     }
 }
 
+/// [`adam_step`] with `cfg`'s settings at update `step`: its scheduled learning rate, betas,
+/// eps and weight decay.
+pub fn adam_step_with(
+    p: &mut [f64],
+    m: &mut [f64],
+    v: &mut [f64],
+    g: &[f32],
+    cfg: &crate::optim::AdamConfig,
+    step: u32,
+    grad_scale: f64,
+) {
+    adam_step(
+        p,
+        m,
+        v,
+        g,
+        cfg.lr_at(step) as f64,
+        cfg.beta1 as f64,
+        cfg.beta2 as f64,
+        cfg.eps as f64,
+        step,
+        grad_scale,
+        cfg.weight_decay as f64,
+    );
+}
+
 /// Contraction into [0, 1]^3 in f64 (see `field::encodings::Contraction`).
 pub fn contract(x: [f32; 3], scene: &crate::field::encodings::SceneBox) -> [f64; 3] {
     use crate::field::encodings::Contraction;
