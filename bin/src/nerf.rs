@@ -225,17 +225,27 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
     train_loop(ctx, &cfg, &run, params, moments)
 }
 
-/// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed.
-pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig) -> anyhow::Result<f64> {
+/// A trainer for `cfg` from freshly initialised parameters, and its training views on the
+/// device (after checking the settings).
+pub fn fresh_trainer(
+    ctx: &Context,
+    cfg: &RunConfig,
+    loaded: &extranerf_nerf::run::LoadedScene,
+) -> anyhow::Result<(Trainer, TrainData)> {
     cfg.model.validate()?;
     cfg.train.validate()?;
-    let loaded = cfg.scene.load()?;
-    let views = training_views(&cfg.scene, &loaded, &cfg.model)?;
+    let views = training_views(&cfg.scene, loaded, &cfg.model)?;
     let params = extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed);
     let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
     let data = TrainData::new(ctx, &views)?;
+    Ok((Trainer::new(ctx, nerf, cfg.train.clone(), 0, None)?, data))
+}
+
+/// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed.
+pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig) -> anyhow::Result<f64> {
+    let loaded = cfg.scene.load()?;
+    let (mut trainer, data) = fresh_trainer(ctx, cfg, &loaded)?;
     let prims = Prims::new(ctx)?;
-    let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), 0, None)?;
     trainer.run_steps(ctx, &prims, &data, 5)?;
     let t = Instant::now();
     trainer.run_steps(ctx, &prims, &data, 20)?;

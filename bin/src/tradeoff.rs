@@ -13,8 +13,8 @@ use extranerf_nerf::data::load_image;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
 use extranerf_nerf::mvs::downscale_rgb;
 use extranerf_nerf::render::march::MarchCuts;
-use extranerf_nerf::run::{training_views, RunConfig, SceneSpec};
-use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer};
+use extranerf_nerf::run::{RunConfig, SceneSpec};
+use extranerf_nerf::trainer::{March, TrainConfig};
 use extranerf_prims::Prims;
 
 /// Arguments of `extranerf bench tradeoff`.
@@ -494,13 +494,7 @@ fn run_point(
     tests: &[(extranerf_nerf::data::Camera, Vec<f32>, u32, u32)],
     lpips: &Lpips,
 ) -> anyhow::Result<(f64, f64, f64, f64, f64, f64)> {
-    cfg.model.validate()?;
-    cfg.train.validate()?;
-    let views = training_views(&cfg.scene, loaded, &cfg.model)?;
-    let params = extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed);
-    let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
-    let data = TrainData::new(ctx, &views)?;
-    let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), 0, None)?;
+    let (mut trainer, data) = crate::nerf::fresh_trainer(ctx, cfg, loaded)?;
     let mut peak = ctx.allocated_bytes()?.0;
     let t = Instant::now();
     while trainer.step() < cfg.train.steps {

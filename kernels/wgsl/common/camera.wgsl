@@ -27,6 +27,11 @@ fn camera_ray(cam: GpuCamera, px: vec2<f32>) -> array<vec3<f32>, 2> {
     return array<vec3<f32>, 2>(o, d);
 }
 
+// The x and y scales of camera cam's NDC frame: NDC x = ax * x / z, y = ay * y / z.
+fn ndc_scale(cam: GpuCamera) -> vec2<f32> {
+    return vec2<f32>(-2.0 * cam.intr.x / f32(cam.size.x), -2.0 * cam.intr.y / f32(cam.size.y));
+}
+
 // NeRF's ndc_rays: moves the origin to the plane z = -near and maps the frustum to [-1, 1]^3
 // (the far end at infinity becomes z = 1). A direction parallel to the near plane is nudged to
 // a tiny -z component so the result stays finite.
@@ -37,10 +42,9 @@ fn ndc_ray(cam: GpuCamera, o_in: vec3<f32>, d_in: vec3<f32>, near: f32) -> array
     }
     let t = -(near + o_in.z) / d.z;
     let o = o_in + t * d;
-    let ax = -2.0 * cam.intr.x / f32(cam.size.x);
-    let ay = -2.0 * cam.intr.y / f32(cam.size.y);
-    let o_ndc = vec3<f32>(ax * o.x / o.z, ay * o.y / o.z, 1.0 + 2.0 * near / o.z);
-    let d_ndc = vec3<f32>(ax * (d.x / d.z - o.x / o.z), ay * (d.y / d.z - o.y / o.z), -2.0 * near / o.z);
+    let a = ndc_scale(cam);
+    let o_ndc = vec3<f32>(a.x * o.x / o.z, a.y * o.y / o.z, 1.0 + 2.0 * near / o.z);
+    let d_ndc = vec3<f32>(a.x * (d.x / d.z - o.x / o.z), a.y * (d.y / d.z - o.y / o.z), -2.0 * near / o.z);
     return array<vec3<f32>, 2>(o_ndc, d_ndc);
 }
 

@@ -162,19 +162,17 @@ fn to_world(x: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
     if params.ndc == 0u {
         return x;
     }
-    let ax = -2.0 * cam.intr.x / f32(cam.size.x);
-    let ay = -2.0 * cam.intr.y / f32(cam.size.y);
+    let a = ndc_scale(cam);
     let z = 2.0 * params.ndc_near / (x.z - 1.0);
-    return vec3<f32>(x.x * z / ax, x.y * z / ay, z);
+    return vec3<f32>(x.x * z / a.x, x.y * z / a.y, z);
 }
 
 fn to_field(p: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
     if params.ndc == 0u {
         return p;
     }
-    let ax = -2.0 * cam.intr.x / f32(cam.size.x);
-    let ay = -2.0 * cam.intr.y / f32(cam.size.y);
-    return vec3<f32>(ax * p.x / p.z, ay * p.y / p.z, 1.0 + 2.0 * params.ndc_near / p.z);
+    let a = ndc_scale(cam);
+    return vec3<f32>(a.x * p.x / p.z, a.y * p.y / p.z, 1.0 + 2.0 * params.ndc_near / p.z);
 }
 
 // True when world point p is in front of camera c and projects inside its image.

@@ -50,6 +50,17 @@ impl MarchCuts {
 
 use crate::field::mlp::BLOCK_FLOATS as MLP_BLOCK_FLOATS;
 
+/// The fused kernels' sampling range: world space is linear in disparity, so it needs
+/// 0 < near < far (NDC takes any range).
+pub(crate) fn check_sampling_range(ndc: bool, near: f32, far: f32) -> Result<()> {
+    if !(ndc || near > 0.0 && far > near) {
+        return Err(GpuError::Usage(format!(
+            "world-space sampling is linear in disparity and needs 0 < near < far, not {near} and {far}"
+        )));
+    }
+    Ok(())
+}
+
 /// The fused march kernels.
 #[derive(Debug)]
 pub struct Marcher {
@@ -113,13 +124,7 @@ impl Marcher {
             return Err(GpuError::Usage("samples per ray must be positive".into()));
         }
         let ndc = cfg.space == "ndc";
-        let range_ok = cfg.near > 0.0 && cfg.far > cfg.near;
-        if !ndc && !range_ok {
-            return Err(GpuError::Usage(format!(
-                "world-space sampling is linear in disparity and needs 0 < near < far, not {} and {}",
-                cfg.near, cfg.far
-            )));
-        }
+        check_sampling_range(ndc, cfg.near, cfg.far)?;
         Ok(k::Params {
             n: 0,
             samples,

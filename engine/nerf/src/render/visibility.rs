@@ -15,6 +15,7 @@ use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recor
 use crate::data::Camera;
 use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
+use crate::render::march::check_sampling_range;
 use crate::render::occupancy::Occupancy;
 use crate::render::rays::{gpu_camera, GpuCamera};
 
@@ -425,12 +426,7 @@ impl Visibility {
                     )));
                 }
                 let ndc = c.space == "ndc";
-                if !(ndc || c.near > 0.0 && c.far > c.near) {
-                    return Err(GpuError::Usage(format!(
-                        "world-space sampling needs 0 < near < far, not {} and {}",
-                        c.near, c.far
-                    )));
-                }
+                check_sampling_range(ndc, c.near, c.far)?;
                 let scene = field.scene();
                 p.ndc = u32::from(ndc);
                 p.spacing = u32::from(!ndc);
@@ -465,12 +461,7 @@ impl Visibility {
                 )
             }
             Density::Analytic(a) => {
-                if !(a.ndc || a.near > 0.0 && a.far > a.near) {
-                    return Err(GpuError::Usage(format!(
-                        "world-space sampling needs 0 < near < far, not {} and {}",
-                        a.near, a.far
-                    )));
-                }
+                check_sampling_range(a.ndc, a.near, a.far)?;
                 p.source = 1;
                 p.n_shapes = a.shapes.len() as u32;
                 p.ndc = u32::from(a.ndc);
