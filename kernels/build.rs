@@ -155,7 +155,9 @@ fn compile_file(
     let caps = Capabilities::IMMEDIATES
         | Capabilities::SUBGROUP
         | Capabilities::SHADER_FLOAT32_ATOMIC
-        | Capabilities::SHADER_FLOAT16;
+        | Capabilities::SHADER_FLOAT16
+        // pack2x16float and friends: core SPIR-V (GLSL.std.450 PackHalf2x16), no device feature.
+        | Capabilities::SHADER_FLOAT16_IN_FLOAT32;
     let info = Validator::new(ValidationFlags::all(), caps)
         .validate(&module)
         .map_err(|e| {

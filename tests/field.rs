@@ -6,7 +6,7 @@
 
 use extranerf_gpu::{Buffer, GpuError};
 use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
-use extranerf_nerf::reference::{hash_grid_backward, hash_grid_forward};
+use extranerf_nerf::reference::{hash_grid_backward, hash_grid_forward, round_f16};
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine, POISON};
 
@@ -91,23 +91,6 @@ fn check(cfg: HashGridConfig, n: usize, seed: u64) {
             "{cfg:?} table entry {i}: {g} vs {w} (magnitude {m})"
         );
     }
-}
-
-/// f32 -> f16 -> f32 as `table_to_f16` does it: NaN to 0, clamped to +-65504, rounded to the
-/// nearest f16 (ties to even), subnormals below 2^-14.
-fn round_f16(v: f32) -> f32 {
-    if v.is_nan() {
-        return 0.0;
-    }
-    let a = v.abs().min(65504.0);
-    // The exponent from the bits (log2 can round up just below a power of two).
-    let exp = ((a.to_bits() >> 23) & 0xff) as i32 - 127;
-    let quantum = if a < 2f32.powi(-14) {
-        2f32.powi(-24)
-    } else {
-        2f32.powi(exp - 10)
-    };
-    ((a / quantum).round_ties_even() * quantum).copysign(v)
 }
 
 /// The f16 forward path: exact against the f64 reference on the table rounded to f16, within
@@ -303,29 +286,47 @@ fn hash_grid_sizes_and_errors() {
     assert_no_validation_messages(&e.ctx);
 }
 
-fn check_mlp(dims: Vec<u32>, n: usize, seed: u64, storage_only: bool) {
+/// Which MLP kernels `check_mlp` runs.
+#[derive(Clone, Copy, PartialEq)]
+enum MlpPath {
+    Storage,
+    Block,
+    /// The uniform-block kernels with the backward record in f16.
+    F16,
+}
+
+/// The MLP kernels against the f64 reference on random inputs; returns the largest weight
+/// gradient error relative to the largest gradient, against the exact (unrounded) reference.
+/// `dy_scale` multiplies the output gradients.
+fn check_mlp(dims: Vec<u32>, n: usize, seed: u64, path: MlpPath, dy_scale: f32) -> f64 {
     use extranerf_nerf::field::mlp::{Mlp, MlpConfig};
-    use extranerf_nerf::reference::{mlp_backward, mlp_forward};
+    use extranerf_nerf::reference::{mlp_backward, mlp_forward, mlp_weight_grad_f16};
     let e = engine();
     let cfg = MlpConfig { dims };
-    let mlp = if storage_only {
-        Mlp::with_storage_kernels(&e.ctx, cfg.clone()).unwrap()
-    } else {
-        Mlp::new(&e.ctx, cfg.clone()).unwrap()
+    let mlp = match path {
+        MlpPath::Storage => Mlp::with_storage_kernels(&e.ctx, cfg.clone()).unwrap(),
+        MlpPath::Block => Mlp::new(&e.ctx, cfg.clone()).unwrap(),
+        MlpPath::F16 => Mlp::new(&e.ctx, cfg.clone())
+            .unwrap()
+            .with_f16(&e.ctx)
+            .unwrap(),
     };
+    assert_eq!(mlp.is_f16(), path == MlpPath::F16);
     let mut rng = Rng::new(seed);
     let (n_in, n_out) = (cfg.dims[0] as usize, *cfg.dims.last().unwrap() as usize);
     let w: Vec<f32> = (0..cfg.param_count())
         .map(|_| rng.uniform(-0.4, 0.4))
         .collect();
     let x: Vec<f32> = (0..n * n_in).map(|_| rng.uniform(-1.0, 1.0)).collect();
-    let dy: Vec<f32> = (0..n * n_out).map(|_| rng.uniform(-1.0, 1.0)).collect();
+    let dy: Vec<f32> = (0..n * n_out)
+        .map(|_| rng.uniform(-1.0, 1.0) * dy_scale)
+        .collect();
     let wb = Buffer::from_slice(&e.ctx, "w", &w).unwrap();
     let xb = Buffer::from_slice(&e.ctx, "x", &x).unwrap();
     let dyb = Buffer::from_slice(&e.ctx, "dy", &dy).unwrap();
     let yb = Buffer::from_slice(&e.ctx, "y", &vec![f32::from_bits(POISON); n * n_out]).unwrap();
     let dxb = Buffer::from_slice(&e.ctx, "dx", &vec![f32::from_bits(POISON); n * n_in]).unwrap();
-    let saved = Buffer::<f32>::new(&e.ctx, "saved", n * cfg.saved_stride()).unwrap();
+    let saved = Buffer::<f32>::new(&e.ctx, "saved", n * mlp.saved_words()).unwrap();
     let dwb = Buffer::<f32>::new(&e.ctx, "dw", cfg.param_count()).unwrap();
     let mut rec = e.ctx.recorder("mlp").unwrap();
     mlp.forward(&mut rec, wb.binding(), xb.binding(), yb.binding(), n as u64)
@@ -346,7 +347,7 @@ fn check_mlp(dims: Vec<u32>, n: usize, seed: u64, storage_only: bool) {
     .unwrap();
     e.ctx.run(rec).unwrap();
     let close = |got: &[f32], want: &[f64], what: &str| {
-        let scale = want.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        let scale = want.iter().fold(f64::MIN_POSITIVE, |m, v| m.max(v.abs()));
         for (i, (&g, &r)) in got.iter().zip(want).enumerate() {
             // f32 dot products of at most 64 terms (and sums over n points for the weights):
             // 1e-5 of the largest magnitude.
@@ -360,7 +361,27 @@ fn check_mlp(dims: Vec<u32>, n: usize, seed: u64, storage_only: bool) {
     close(&yb.read().unwrap(), &mlp_forward(&cfg, &w, &x), "output");
     let (d_in, d_w) = mlp_backward(&cfg, &w, &x, &dy);
     close(&dxb.read().unwrap(), &d_in, "input gradient");
-    close(&dwb.read().unwrap(), &d_w, "weight gradient");
+    let got = dwb.read().unwrap();
+    if path == MlpPath::F16 {
+        // Against the reference on the same f16 record (exact up to f32 sums and the odd f16
+        // tie rounded the other way from an f32 rather than f64 value).
+        let want = mlp_weight_grad_f16(&cfg, &w, &x, &dy);
+        let scale = want.iter().fold(f64::MIN_POSITIVE, |m, v| m.max(v.abs()));
+        for (i, (&g, &r)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                g.is_finite() && (g as f64 - r).abs() <= 1e-4 * scale,
+                "MLP {:?} f16 weight gradient {i}: {g} vs {r}",
+                cfg.dims
+            );
+        }
+    } else {
+        close(&got, &d_w, "weight gradient");
+    }
+    let scale = d_w.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    got.iter()
+        .zip(&d_w)
+        .fold(0.0f64, |m, (&g, &r)| m.max((g as f64 - r).abs()))
+        / scale
 }
 
 #[test]
@@ -379,10 +400,12 @@ fn mlp_forward_and_gradients_match_reference() {
         let cfg = extranerf_nerf::field::mlp::MlpConfig { dims: dims.clone() };
         let mlp = extranerf_nerf::field::mlp::Mlp::new(&engine().ctx, cfg).unwrap();
         assert_eq!(mlp.uses_block(), block, "{dims:?}");
-        check_mlp(dims.clone(), n, seed, false);
         if block {
+            check_mlp(dims.clone(), n, seed, MlpPath::Block, 1.0);
             // The storage-buffer kernels on the same shape (the benchmark's reference path).
-            check_mlp(dims, n, seed, true);
+            check_mlp(dims, n, seed, MlpPath::Storage, 1.0);
+        } else {
+            check_mlp(dims, n, seed, MlpPath::Storage, 1.0);
         }
     }
     let bad = extranerf_nerf::field::mlp::MlpConfig {
@@ -392,6 +415,42 @@ fn mlp_forward_and_gradients_match_reference() {
         extranerf_nerf::field::mlp::Mlp::new(&engine().ctx, bad),
         Err(GpuError::Usage(_))
     ));
+    assert_no_validation_messages(&engine().ctx);
+}
+
+/// The f16 backward record: the weight gradients match the reference on the same rounded
+/// record, stay within f16 rounding of the exact ones, and the block scaling keeps gradients
+/// far below f16's range (1e-9) and above it (1e6) alive and finite. Prints the error.
+#[test]
+fn mlp_f16_record_matches_the_reference() {
+    use extranerf_nerf::field::mlp::{Mlp, MlpConfig};
+    for (dims, n, seed) in [
+        (vec![32, 64, 16], 1000, 21),
+        (vec![32, 64, 64, 3], 777, 22),
+        (vec![4, 1], 257, 23),
+    ] {
+        for dy_scale in [1.0, 1e-9, 1e6] {
+            let err = check_mlp(dims.clone(), n, seed, MlpPath::F16, dy_scale);
+            eprintln!(
+                "f16 MLP record {dims:?}, output gradients x {dy_scale:e}: weight gradient max |f16 - exact| / max |grad| = {err:.2e}"
+            );
+            // f16 keeps 11 bits: about 5e-4 per product at worst, averaging down over the sum.
+            assert!(err < 2e-3, "{dims:?} x {dy_scale:e}: {err}");
+        }
+    }
+    // Widths that are not multiples of 4 have no f16 record: a clear error.
+    let odd = Mlp::new(
+        &engine().ctx,
+        MlpConfig {
+            dims: vec![5, 7, 3],
+        },
+    )
+    .unwrap();
+    let e = odd.with_f16(&engine().ctx).unwrap_err();
+    assert!(
+        matches!(e, GpuError::Usage(_)) && e.to_string().contains("f16"),
+        "{e}"
+    );
     assert_no_validation_messages(&engine().ctx);
 }
 

@@ -94,6 +94,17 @@ fn measure<'a>(
         .collect())
 }
 
+/// `mlp.backward` on `[weights, inputs, d_outputs, d_inputs, saved, d_weights]`.
+fn mlp_backward<'a>(
+    r: &mut Recorder<'a>,
+    mlp: &'a Mlp,
+    b: [&'a Buffer<f32>; 6],
+    n: u64,
+) -> extranerf_gpu::Result<()> {
+    let [w, x, dy, dx, saved, dw] = b.map(|b| b.binding());
+    mlp.backward(r, w, x, dy, dx, saved, dw, n)
+}
+
 fn none(_: &mut Recorder<'_>) -> extranerf_gpu::Result<()> {
     Ok(())
 }
@@ -416,16 +427,23 @@ impl Bench<'_> {
                 Buffer::<f32>::new(ctx, "bench mlp saved", pts as usize * cfg.saved_stride())?;
             let dw = Buffer::<f32>::new(ctx, "bench mlp dw", cfg.param_count())?;
             let flops = 2 * pts * (32 * 64 + 64 * 64 + 64 * 3);
-            // The uniform-block kernels (what training uses) and the storage-buffer kernels as
+            // The uniform-block kernels (what training uses), the same with the backward record
+            // in f16 (precision f16) where the device has it, and the storage-buffer kernels as
             // the same-run reference (the weight-gradient pass is shared).
+            let mut variants = vec![("uniform block", Mlp::new(ctx, cfg.clone())?)];
+            match Mlp::new(ctx, cfg.clone())?.with_f16(ctx) {
+                Ok(m) => variants.push(("uniform block, f16 record", m)),
+                Err(e) => self
+                    .notes
+                    .push(format!("mlp: no f16 record on this device: {e}")),
+            }
+            variants.push((
+                "storage buffer",
+                Mlp::with_storage_kernels(ctx, cfg.clone())?,
+            ));
             let mut times = Vec::new();
-            for (label, mlp) in [
-                ("uniform block", Mlp::new(ctx, cfg.clone())?),
-                (
-                    "storage buffer",
-                    Mlp::with_storage_kernels(ctx, cfg.clone())?,
-                ),
-            ] {
+            let mut grads = Vec::new();
+            for (label, mlp) in &variants {
                 let t = measure(ctx, &timer, reps, none, |r| {
                     mlp.forward(r, w.binding(), x.binding(), y.binding(), pts)
                 })?;
@@ -437,23 +455,14 @@ impl Bench<'_> {
                     t,
                     copy_gbps,
                 );
-                let t = measure(ctx, &timer, reps, none, |r| {
-                    mlp.backward(
-                        r,
-                        w.binding(),
-                        x.binding(),
-                        y.binding(),
-                        dx.binding(),
-                        saved.binding(),
-                        dw.binding(),
-                        pts,
-                    )
-                })?;
+                // The output doubles as the output gradient.
+                let bufs = [&w, &x, &y, &dx, &saved, &dw];
+                let t = measure(ctx, &timer, reps, none, |r| mlp_backward(r, mlp, bufs, pts))?;
                 let bwd_ms = median(t.clone());
                 self.push(
                     &format!("mlp bwd, data + weights ({label}), points"),
                     pts,
-                    4 * pts * (35 + 2 * cfg.saved_stride() as u64),
+                    4 * pts * (35 + 2 * mlp.saved_words() as u64),
                     t,
                     copy_gbps,
                 );
@@ -462,13 +471,39 @@ impl Bench<'_> {
                     flops as f64 / (fwd_ms * 1e-3) / 1e9,
                     (fwd_ms + bwd_ms) * 1e3 / pts as f64
                 ));
-                times.push((fwd_ms, bwd_ms));
+                times.push((*label, fwd_ms, bwd_ms));
+                // One fresh weight gradient per variant, for the f16 error below.
+                let mut rec = ctx.recorder("bench mlp gradient")?;
+                rec.fill_words(dw.binding(), cfg.param_count() as u64, 0)?;
+                mlp_backward(&mut rec, mlp, bufs, pts)?;
+                ctx.run(rec)?;
+                grads.push(dw.read()?);
             }
-            self.notes.push(format!(
-                "mlp: uniform block vs storage buffer in this run: fwd {:.2}x, bwd {:.2}x faster",
-                times[1].0 / times[0].0,
-                times[1].1 / times[0].1
-            ));
+            let (_, f, b) = times[0];
+            for &(label, fwd_ms, bwd_ms) in &times[1..] {
+                self.notes.push(format!(
+                    "mlp: uniform block vs {label} in this run: fwd {:.2}x, bwd {:.2}x faster",
+                    fwd_ms / f,
+                    bwd_ms / b
+                ));
+            }
+            if let Some(i) = variants.iter().position(|(_, m)| m.is_f16()) {
+                let (g32, g16) = (&grads[0], &grads[i]);
+                let scale = g32.iter().fold(0f32, |m, v| m.max(v.abs()));
+                let worst = g32
+                    .iter()
+                    .zip(g16)
+                    .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+                let mean =
+                    g32.iter().zip(g16).map(|(a, b)| (a - b).abs()).sum::<f32>() / g32.len() as f32;
+                self.notes.push(format!(
+                    "mlp f16 record at {pts} points: weight gradient vs f32 max |d| {:.2e}, mean |d| {:.2e} of the largest gradient ({scale:.3e}); record {} vs {} bytes per point",
+                    worst / scale,
+                    mean / scale,
+                    4 * variants[i].1.saved_words(),
+                    4 * cfg.saved_stride()
+                ));
+            }
         }
         if self.wanted("gemm") {
             // An MLP layer as one matrix product: W[64, 64] times activations[64, points], the

@@ -69,8 +69,10 @@ pub struct TrainArgs {
     /// Hidden width of both MLPs (paper: 64).
     #[arg(long)]
     width: Option<u32>,
-    /// f32, or f16: the forward pass reads an f16 copy of the hash table (f32 master weights;
-    /// needs 2 features per level and a device with shaderFloat16 and 16-bit storage).
+    /// f32, or f16: the forward pass reads an f16 copy of the hash table and the MLP backward
+    /// keeps its saved activations and gradients in f16 with per-segment power-of-two scales
+    /// (f32 master weights and arithmetic; needs 2 features per level, MLP widths in multiples
+    /// of 4, and a device with shaderFloat16 and 16-bit storage).
     #[arg(long, value_parser = ["f32", "f16"])]
     precision: Option<String>,
     /// Dense depth maps for the training views (`<image stem>.npy` or `.exr`, view depth in the

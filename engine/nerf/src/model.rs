@@ -55,7 +55,9 @@ pub struct ModelConfig {
     /// "none", "l2" (mip-NeRF 360) or "linf".
     pub contraction: String,
     /// "f32", or "f16": hash-table reads in the forward pass from an f16 copy of the f32 master
-    /// table (training and the standalone kernels; the fused march reads the f32 table).
+    /// table, and the MLP backward's saved activations and pre-activation gradients in f16
+    /// with a power-of-two scale per point and segment (training and the standalone kernels;
+    /// the fused march reads the f32 table). Arithmetic stays f32.
     #[serde(default = "default_precision")]
     pub precision: String,
 }
@@ -318,6 +320,16 @@ pub struct FieldIo<'a> {
     pub rgb: Binding<'a>,
 }
 
+/// An MLP of the field at `precision` (its backward record in f16 for "f16").
+fn mlp(ctx: &Context, config: MlpConfig, precision: &str) -> Result<Mlp> {
+    let m = Mlp::new(ctx, config)?;
+    if precision == "f16" {
+        m.with_f16(ctx)
+    } else {
+        Ok(m)
+    }
+}
+
 /// Gradient buffers of the backward pass.
 #[derive(Clone, Copy, Debug)]
 pub struct FieldGrads<'a> {
@@ -333,9 +345,9 @@ pub struct FieldGrads<'a> {
     pub d_dens: Binding<'a>,
     /// `[n, L*F]` scratch.
     pub d_encoded: Binding<'a>,
-    /// `[n, density saved_stride]` scratch.
+    /// `[n, density saved_words]` scratch.
     pub saved_density: Binding<'a>,
-    /// `[n, colour saved_stride]` scratch.
+    /// `[n, colour saved_words]` scratch.
     pub saved_color: Binding<'a>,
 }
 
@@ -370,8 +382,8 @@ impl Field {
                     g
                 }
             },
-            density: Mlp::new(ctx, config.density_mlp())?,
-            color: Mlp::new(ctx, config.color_mlp())?,
+            density: mlp(ctx, config.density_mlp(), &config.precision)?,
+            color: mlp(ctx, config.color_mlp(), &config.precision)?,
             enc: Encodings::new(ctx)?,
             density_fwd: Kernel::new(ctx, &kh::density_head_fwd::DESC)?,
             color_fwd: Kernel::new(ctx, &kh::color_head_fwd::DESC)?,
@@ -428,8 +440,8 @@ impl Field {
             ("d_color_in", g + 16),
             ("d_dens", g),
             ("d_encoded", enc),
-            ("saved_density", self.config.density_mlp().saved_stride()),
-            ("saved_color", self.config.color_mlp().saved_stride()),
+            ("saved_density", self.density.saved_words()),
+            ("saved_color", self.color.saved_words()),
         ]
     }
 

@@ -120,12 +120,70 @@ fn mlp_point(cfg: &MlpConfig, weights: &[f32], x: &[f32]) -> (Vec<Vec<f64>>, Vec
     (acts, pres)
 }
 
+/// f32 -> f16 -> f32: NaN to 0, clamped to +-65504, rounded to the nearest f16 (ties to even),
+/// subnormals below 2^-14 (as `table_to_f16` stores the f16 table).
+pub fn round_f16(v: f32) -> f32 {
+    if v.is_nan() {
+        return 0.0;
+    }
+    let a = v.abs().min(65504.0);
+    // The exponent from the bits (log2 can round up just below a power of two).
+    let exp = ((a.to_bits() >> 23) & 0xff) as i32 - 127;
+    let quantum = if a < 2f32.powi(-14) {
+        2f32.powi(-24)
+    } else {
+        2f32.powi(exp - 10)
+    };
+    ((a / quantum).round_ties_even() * quantum).copysign(v)
+}
+
+/// One segment of the f16 MLP record (`field/mlp_f16.wgsl`) stored and read back: scaled by
+/// 2^-k so that its largest magnitude lies in [2^14, 2^15), rounded to f16, scaled back. With
+/// `relu_out`, positive values stay at least 2^-14 after scaling.
+pub fn f16_segment(v: &[f64], relu_out: bool) -> Vec<f64> {
+    let m = v.iter().fold(0f32, |m, &x| m.max((x as f32).abs()));
+    let e = ((m.to_bits() >> 23) & 0xff) as i32 - 127;
+    let k = (e - 14).clamp(-126, 126);
+    v.iter()
+        .map(|&x| {
+            let mut s = x as f32 * 2f32.powi(-k);
+            if relu_out && s > 0.0 {
+                s = s.max(2f32.powi(-14));
+            }
+            round_f16(s) as f64 * 2f64.powi(k)
+        })
+        .collect()
+}
+
+/// The weight gradient of [`mlp_backward`] from the f16 record: every layer's input and
+/// pre-activation gradient pass through [`f16_segment`] before the products are summed (in
+/// f64). The input gradient is not affected (the data pass is f32).
+pub fn mlp_weight_grad_f16(
+    cfg: &MlpConfig,
+    weights: &[f32],
+    inputs: &[f32],
+    d_outputs: &[f32],
+) -> Vec<f64> {
+    mlp_backward_record(cfg, weights, inputs, d_outputs, true).1
+}
+
 /// MLP backward in f64: (dL/dinputs, dL/dweights) for `d_outputs`.
 pub fn mlp_backward(
     cfg: &MlpConfig,
     weights: &[f32],
     inputs: &[f32],
     d_outputs: &[f32],
+) -> (Vec<f64>, Vec<f64>) {
+    mlp_backward_record(cfg, weights, inputs, d_outputs, false)
+}
+
+/// [`mlp_backward`], with the weight gradient's record through [`f16_segment`] when `f16`.
+fn mlp_backward_record(
+    cfg: &MlpConfig,
+    weights: &[f32],
+    inputs: &[f32],
+    d_outputs: &[f32],
+    f16: bool,
 ) -> (Vec<f64>, Vec<f64>) {
     let (n_in, n_out) = (cfg.dims[0] as usize, cfg.dims[cfg.layers()] as usize);
     let mut d_in = Vec::with_capacity(inputs.len());
@@ -140,11 +198,16 @@ pub fn mlp_backward(
             let delta: Vec<f64> = (0..no)
                 .map(|o| if last || pres[l][o] > 0.0 { g[o] } else { 0.0 })
                 .collect();
+            let (dq, xq) = if f16 {
+                (f16_segment(&delta, false), f16_segment(&acts[l], l > 0))
+            } else {
+                (delta.clone(), acts[l].clone())
+            };
             for o in 0..no {
                 for j in 0..ni {
-                    d_w[off + o * ni + j] += delta[o] * acts[l][j];
+                    d_w[off + o * ni + j] += dq[o] * xq[j];
                 }
-                d_w[off + no * ni + o] += delta[o];
+                d_w[off + no * ni + o] += dq[o];
             }
             g = (0..ni)
                 .map(|j| {

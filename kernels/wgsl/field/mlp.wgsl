@@ -6,6 +6,7 @@
 //!include common/dispatch.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
+//!include common/mlp_wgrad.wgsl
 
 struct Params {
     n: u32,
@@ -142,105 +143,36 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-// Weight gradients: dW_l = sum over points of delta_l (x) input_l, db_l = sum of delta_l. One
-// thread per (block of 4 rows x 4 columns of one layer, group of points); the column block past
-// the last one holds the biases. Per point a thread loads one vec4 of deltas and one vec4 of
-// inputs for 16 FMAs. Lanes of a subgroup that share a block (groups is a multiple of the
-// subgroup size) sum in the subgroup; one lane adds the 16 sums with f32 atomics.
+// Weight gradients (common/mlp_wgrad.wgsl): per point a thread loads one vec4 of deltas and one
+// vec4 of inputs for 16 FMAs.
 @compute @workgroup_size(64)
 fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
              @builtin(local_invocation_index) lid: u32,
              @builtin(subgroup_invocation_id) lane: u32) {
     let t = linear_group(wid, nwg) * 64u + lid;
-    let s = shape_buf[0];
-    let groups = params.groups;
-    let blk = t / groups;
-    let grp = t % groups;
-    // Find the layer of the block: (weights offset, saved offset, widths, first block).
-    var valid = false;
-    var off = 0u;
-    var at = 0u;
-    var ni = 1u;
-    var no = 1u;
-    var local = 0u;
-    var first = 0u;
-    for (var l = 0u; l < s.layers; l += 1u) {
-        let a = mlp_dim(s, l);
-        let b = mlp_dim(s, l + 1u);
-        let nb = (pad4(b) / 4u) * (pad4(a) / 4u + 1u);
-        if !valid && blk < first + nb {
-            valid = true;
-            off = mlp_offset(s, l);
-            ni = a;
-            no = b;
-            local = blk - first;
-        }
-        if !valid {
-            at += pad4(a) + pad4(b);
-        }
-        first += nb;
-    }
-    let cols = pad4(ni) / 4u + 1u;
-    let o0 = (local / cols) * 4u;
-    let j4 = local % cols;
-    let bias = j4 + 1u == cols;
-    let j0 = j4 * 4u;
-    var acc0 = vec4<f32>(0.0);
-    var acc1 = vec4<f32>(0.0);
-    var acc2 = vec4<f32>(0.0);
-    var acc3 = vec4<f32>(0.0);
-    if valid {
+    let blk = t / params.groups;
+    let grp = t % params.groups;
+    let b = wgrad_block(shape_buf[0], blk);
+    var acc = array<vec4<f32>, 4>();
+    if b.valid {
         let p0 = grp * params.chunk;
         let p1 = min(p0 + params.chunk, params.n);
         let stride4 = params.saved_stride / 4u;
-        let d_at = (at + pad4(ni) + o0) / 4u;
-        let x_at = (at + j0) / 4u;
+        let d_at = (b.at + pad4(b.ni) + b.o0) / 4u;
+        let x_at = (b.at + b.j0) / 4u;
         for (var p = p0; p < p1; p += 1u) {
             let d = saved4[p * stride4 + d_at];
             var x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
-            if !bias {
+            if !b.bias {
                 x = saved4[p * stride4 + x_at];
             }
-            acc0 += d.x * x;
-            acc1 += d.y * x;
-            acc2 += d.z * x;
-            acc3 += d.w * x;
+            acc[0] += d.x * x;
+            acc[1] += d.y * x;
+            acc[2] += d.z * x;
+            acc[3] += d.w * x;
         }
     }
-    // Every lane reaches the subgroup operations (no early return above).
-    let shared_block = subgroupAll(subgroupBroadcastFirst(blk) == blk);
-    if shared_block {
-        acc0 = subgroupAdd(acc0);
-        acc1 = subgroupAdd(acc1);
-        acc2 = subgroupAdd(acc2);
-        acc3 = subgroupAdd(acc3);
-    }
-    if !valid || (shared_block && lane != subgroupBroadcastFirst(lane)) {
-        return;
-    }
-    for (var r = 0u; r < 4u; r += 1u) {
-        let o = o0 + r;
-        if o >= no {
-            break;
-        }
-        var v = acc0;
-        if r == 1u {
-            v = acc1;
-        } else if r == 2u {
-            v = acc2;
-        } else if r == 3u {
-            v = acc3;
-        }
-        if bias {
-            atomicAdd(&d_weights[off + no * ni + o], v.x);
-            continue;
-        }
-        for (var c = 0u; c < 4u; c += 1u) {
-            if j0 + c < ni {
-                atomicAdd(&d_weights[off + o * ni + j0 + c], v[c]);
-            }
-        }
-    }
+    wgrad_flush(b, blk, lane, acc);
 }
 
 // mlp_fwd with the weights in the uniform block.

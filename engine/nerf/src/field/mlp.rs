@@ -3,6 +3,7 @@
 //! WGSL layout (`common/mlp.wgsl`).
 
 use extranerf_gpu::kernels::field::mlp as k;
+use extranerf_gpu::kernels::field::mlp_f16 as k16;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
 pub use k::MlpShape;
@@ -101,6 +102,15 @@ pub struct Mlp {
     groups: u32,
     /// The uniform-block kernels and their weight block, when the shape suits them.
     block: Option<Block>,
+    /// The backward kernels with an f16 record, when enabled ([`Mlp::with_f16`]).
+    f16: Option<F16>,
+}
+
+/// The backward pass with the saved record in f16 (`field/mlp_f16.wgsl`).
+#[derive(Debug)]
+struct F16 {
+    bwd: Kernel,
+    wgrad: Kernel,
 }
 
 #[derive(Debug)]
@@ -149,6 +159,7 @@ impl Mlp {
         };
         Ok(Mlp {
             block,
+            f16: None,
             groups: WGRAD_GROUPS.max(ctx.info().subgroup_size),
             shape: Buffer::from_slice(ctx, "mlp shape", &[config.shape()])?,
             config,
@@ -156,6 +167,41 @@ impl Mlp {
             bwd: Kernel::new(ctx, &k::mlp_bwd_data::DESC)?,
             wgrad: Kernel::new(ctx, &k::mlp_wgrad::DESC)?,
         })
+    }
+
+    /// Stores the backward pass's saved record (every layer's input and pre-activation
+    /// gradient) in f16 with a power-of-two scale per point and segment, half the bytes of the
+    /// f32 record; arithmetic and the forward pass stay f32. Needs the uniform-block shape
+    /// ([`Mlp::uses_block`]); the values are packed into words, so any device runs it.
+    pub fn with_f16(mut self, ctx: &Context) -> Result<Mlp> {
+        if self.block.is_none() {
+            return Err(GpuError::Usage(format!(
+                "the f16 MLP record needs widths and offsets in multiples of 4 and at most {BLOCK_FLOATS} parameters; {:?} has {}",
+                self.config.dims,
+                self.config.param_count()
+            )));
+        }
+        self.f16 = Some(F16 {
+            bwd: Kernel::new(ctx, &k16::mlp_bwd_data_f16::DESC)?,
+            wgrad: Kernel::new(ctx, &k16::mlp_wgrad_f16::DESC)?,
+        });
+        Ok(self)
+    }
+
+    /// True when the backward pass keeps its record in f16.
+    pub fn is_f16(&self) -> bool {
+        self.f16.is_some()
+    }
+
+    /// 32-bit words per point of the backward pass's `saved` scratch: the f32 record
+    /// ([`MlpConfig::saved_stride`]), or the f16 one (half of it plus a 4-word header).
+    pub fn saved_words(&self) -> usize {
+        let f = self.config.saved_stride();
+        if self.f16.is_some() {
+            f / 2 + 4
+        } else {
+            f
+        }
     }
 
     /// The shape record on the device (common/mlp.wgsl's `MlpShape`).
@@ -178,7 +224,12 @@ impl Mlp {
         Ok(k::Params {
             n: n32,
             chunk: n32.div_ceil(self.groups).max(1),
-            saved_stride: self.config.saved_stride() as u32,
+            // In units of 4 f16 values for the f16 record (its words / 2).
+            saved_stride: if self.f16.is_some() {
+                self.saved_words() as u32 / 2
+            } else {
+                self.saved_words() as u32
+            },
             groups: self.groups,
         })
     }
@@ -217,7 +268,7 @@ impl Mlp {
 
     /// Records the backward pass for `d_outputs[n, out]`: writes `d_inputs[n, in]` and adds
     /// the parameter gradient to `d_weights` (zero it first for a fresh gradient). `saved`
-    /// holds `n * saved_stride()` floats of scratch.
+    /// holds `n * saved_words()` words of scratch.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand of the backward pass
     pub fn backward<'a>(
         &'a self,
@@ -237,12 +288,30 @@ impl Mlp {
         d_inputs.check_fits(n * c.dims[0] as u64, 4, "MLP input gradients")?;
         d_outputs.check_fits(n * c.dims[c.layers()] as u64, 4, "MLP output gradients")?;
         saved.check_fits(
-            n * c.saved_stride() as u64,
+            n * self.saved_words() as u64,
             4,
             "MLP saved activations (process fewer points per call)",
         )?;
         let p = self.params(n)?;
         let shape_buf = self.shape.binding();
+        if let (Some(f16), Some(block)) = (&self.f16, &self.block) {
+            let b = k16::mlp_bwd_data_f16::Bindings {
+                shape_buf,
+                inputs,
+                d_outputs,
+                d_inputs,
+                saved,
+                mlp: block.load(rec, weights, c)?,
+            };
+            rec.dispatch(&f16.bwd, b.into_array(), &p, n)?;
+            let b = k16::mlp_wgrad_f16::Bindings {
+                shape_buf,
+                saved,
+                d_weights,
+            };
+            let threads = c.wgrad_blocks() * self.groups as u64;
+            return rec.dispatch(&f16.wgrad, b.into_array(), &p, threads);
+        }
         if let Some(block) = &self.block {
             let block_weights = block.load(rec, weights, c)?;
             let b = k::mlp_bwd_data_block::Bindings {
