@@ -33,9 +33,19 @@ fn points(rng: &mut Rng, n: usize) -> Vec<f32> {
 }
 
 fn check(cfg: HashGridConfig, n: usize, seed: u64) {
+    check_grid(cfg, n, seed, None);
+}
+
+/// The encoding against the f64 reference; with `limit`, as if one binding held at most that
+/// many bytes (so the table is split in two ranges).
+fn check_grid(cfg: HashGridConfig, n: usize, seed: u64, limit: Option<u64>) {
     let e = engine();
     let mut rng = Rng::new(seed);
-    let grid = HashGrid::new(&e.ctx, cfg).unwrap();
+    let grid = match limit {
+        None => HashGrid::new(&e.ctx, cfg).unwrap(),
+        Some(l) => HashGrid::with_binding_limit(&e.ctx, cfg, l).unwrap(),
+    };
+    assert_eq!(grid.split().is_some(), limit.is_some(), "{cfg:?} {limit:?}");
     let count = cfg.param_count() as usize;
     let table: Vec<f32> = (0..count).map(|_| rng.uniform(-1.0, 1.0)).collect();
     let pos = points(&mut rng, n);
@@ -207,6 +217,77 @@ fn hash_grid_matches_reference_dense_and_hashed() {
         1,
     );
     assert_no_validation_messages(&engine().ctx);
+}
+
+/// Tables larger than one binding are split in two at a level boundary: forward and backward
+/// match the reference for every feature width and for the f16 path, and a table that two
+/// bindings cannot hold is a clear error.
+#[test]
+fn hash_grid_split_tables_match_reference() {
+    use extranerf_nerf::field::hash_grid::split_table;
+    let cfg = HashGridConfig {
+        levels: 6,
+        features: 2,
+        log2_table: 10,
+        min_res: 4,
+        max_res: 64,
+    };
+    let total = cfg.param_count() * 4;
+    for features in [1, 2, 4, 8] {
+        let c = HashGridConfig { features, ..cfg };
+        // Three quarters of the table per binding: levels are cut whole, so the first range
+        // takes what fits and the second (from an offset rounded down to 128 floats) the rest.
+        let limit = c.param_count() * 4 * 3 / 4;
+        check_grid(c, 700, 31 + features as u64, Some(limit));
+    }
+    let sp = split_table(&cfg.level_layout(), 2, total * 3 / 4)
+        .unwrap()
+        .unwrap();
+    assert!(sp.level > 0 && sp.hi_base.is_multiple_of(128) && sp.hi_base <= sp.lo_floats);
+    assert!(split_table(&cfg.level_layout(), 2, total)
+        .unwrap()
+        .is_none());
+    // Two ranges of a third of the table cannot hold it.
+    let e = split_table(&cfg.level_layout(), 2, total / 3).unwrap_err();
+    assert!(matches!(e, GpuError::BufferTooLarge { .. }), "{e}");
+    // The f16 path on a split table: the two ranges convert into one f16 copy.
+    let e = engine();
+    if e.ctx.info().shader_float16 && e.ctx.info().storage_buffer_16bit {
+        let mut rng = Rng::new(41);
+        let n = 500;
+        let grid = HashGrid::with_binding_limit(&e.ctx, cfg, total * 3 / 4)
+            .unwrap()
+            .with_f16(&e.ctx)
+            .unwrap();
+        assert!(grid.split().is_some());
+        let table: Vec<f32> = (0..cfg.param_count())
+            .map(|_| rng.uniform(-2.0, 2.0))
+            .collect();
+        let pos = points(&mut rng, n);
+        let out_len = n * cfg.output_dim() as usize;
+        let tb = Buffer::from_slice(&e.ctx, "table", &table).unwrap();
+        let pb = Buffer::from_slice(&e.ctx, "positions", &pos).unwrap();
+        let enc = Buffer::<f32>::new(&e.ctx, "encoded", out_len).unwrap();
+        let mut rec = e.ctx.recorder("split f16").unwrap();
+        grid.forward(
+            &mut rec,
+            pb.binding(),
+            tb.binding(),
+            enc.binding(),
+            n as u64,
+        )
+        .unwrap();
+        e.ctx.run(rec).unwrap();
+        let rounded: Vec<f32> = table.iter().map(|&v| round_f16(v)).collect();
+        let want = hash_grid_forward(&cfg, &rounded, &pos);
+        for (i, (&g, &w)) in enc.read().unwrap().iter().zip(&want).enumerate() {
+            assert!(
+                g.is_finite() && (g as f64 - w).abs() <= 2e-5,
+                "split f16 output {i}: {g} vs {w}"
+            );
+        }
+    }
+    assert_no_validation_messages(&e.ctx);
 }
 
 #[test]

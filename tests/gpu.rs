@@ -63,6 +63,7 @@ fn unknown_device_is_a_clear_error() {
     let err = Context::new(&ContextDesc {
         validation: Validation::Off,
         device: Some("no-such-gpu-xyz".into()),
+        max_binding_bytes: None,
     })
     .unwrap_err();
     match &err {
@@ -78,6 +79,7 @@ fn unknown_device_is_a_clear_error() {
     let err = Context::new(&ContextDesc {
         validation: Validation::Off,
         device: Some("99".into()),
+        max_binding_bytes: None,
     })
     .unwrap_err();
     assert!(matches!(err, GpuError::DeviceNotFound { .. }), "{err}");
@@ -91,6 +93,7 @@ fn device_chosen_by_index_and_name() {
     let by_index = Context::new(&ContextDesc {
         validation: Validation::Off,
         device: Some("0".into()),
+        max_binding_bytes: None,
     })
     .unwrap();
     assert_eq!(by_index.info().name, first.name);
@@ -98,6 +101,7 @@ fn device_chosen_by_index_and_name() {
     let by_name = Context::new(&ContextDesc {
         validation: Validation::Off,
         device: Some(part),
+        max_binding_bytes: None,
     })
     .unwrap();
     assert!(by_name
@@ -110,16 +114,55 @@ fn device_chosen_by_index_and_name() {
 #[test]
 fn buffer_limits_and_ranges_are_errors_not_panics() {
     let e = engine();
-    let limit = e.ctx.info().max_storage_buffer_range;
+    // Beyond what the device allocates: an error naming the buffer.
+    let limit = e.ctx.info().max_buffer_bytes;
+    assert!(limit >= e.ctx.info().max_storage_buffer_range);
     let err = Buffer::<u32>::new(&e.ctx, "huge table", (limit / 4 + 1) as usize).unwrap_err();
     match &err {
         GpuError::BufferTooLarge { name, limit: l, .. } => {
             assert_eq!(name, "huge table");
             assert_eq!(*l, limit);
-            assert!(err.to_string().contains("maxStorageBufferRange"));
+            assert!(err.to_string().contains("maxMemoryAllocationSize"));
         }
         other => panic!("expected BufferTooLarge, got {other}"),
     }
+    // A buffer larger than one binding is created, bound in ranges, and refused whole, by
+    // name, on a context that limits bindings to 4 KiB.
+    let small = Context::new(&ContextDesc {
+        max_binding_bytes: Some(4096),
+        ..desc()
+    })
+    .unwrap();
+    let prims = extranerf_prims::Prims::new(&small).unwrap();
+    let big = Buffer::<f32>::from_slice(&small, "big", &vec![1.0; 2048]).unwrap();
+    let y = Buffer::<f32>::from_slice(&small, "y", &vec![0.0; 1024]).unwrap();
+    let mut rec = small.recorder("ranges").unwrap();
+    prims
+        .saxpy(
+            &mut rec,
+            2.0,
+            big.binding().sub(4096, 4096).unwrap(),
+            y.binding(),
+            1024,
+        )
+        .unwrap();
+    let whole = prims.saxpy(&mut rec, 2.0, big.binding(), y.binding(), 1024);
+    match whole {
+        Err(err @ GpuError::BufferTooLarge { .. }) => {
+            assert!(
+                err.to_string().contains("big")
+                    && err.to_string().contains("maxStorageBufferRange"),
+                "{err}"
+            );
+        }
+        other => panic!("expected BufferTooLarge, got {other:?}"),
+    }
+    small.run(rec).unwrap();
+    assert!(y.read().unwrap().iter().all(|&v| v == 2.0));
+    // Sub-ranges must start on 256 bytes and stay inside.
+    assert!(big.binding().sub(100, 16).is_err());
+    assert!(big.binding().sub(4096, 8192).is_err());
+    assert_no_validation_messages(&small);
     let b = Buffer::<u32>::new(&e.ctx, "small", 10).unwrap();
     assert!(matches!(b.write(&[1; 11]), Err(GpuError::Usage(_))));
     assert!(matches!(b.write_at(8, &[1; 3]), Err(GpuError::Usage(_))));
@@ -341,6 +384,7 @@ fn resources_of_another_context_are_refused() {
     let other = Context::new(&ContextDesc {
         validation: Validation::Off,
         device: None,
+        max_binding_bytes: None,
     })
     .unwrap();
     let foreign = Buffer::<u32>::new(&other, "foreign", 16).unwrap();

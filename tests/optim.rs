@@ -109,8 +109,16 @@ fn adam_matches_reference() {
 /// Hash decay folded into Adam: the update equals Adam on gradient + 2 lambda V / (size_l F)
 /// for the table's floats (levels of several sizes, boundaries inside vec4s, a table that
 /// starts and ends off the buffer's ends), and plain Adam elsewhere.
+/// With `chunk`, Adam updates that many floats per dispatch (the ranged path of buffers larger
+/// than one binding), across the table's start and its level bounds.
 #[test]
 fn adam_with_folded_hash_decay_matches_reference() {
+    for chunk in [None, Some(64), Some(192)] {
+        adam_decay_case(chunk);
+    }
+}
+
+fn adam_decay_case(chunk: Option<u64>) {
     use extranerf_nerf::optim::TableDecay;
     let e = engine();
     let cfg = AdamConfig {
@@ -141,6 +149,10 @@ fn adam_with_folded_hash_decay_matches_reference() {
         2.0 * lambda as f64 / block[l][1] as f64
     };
     let adam = Adam::new(&e.ctx, n as u64, cfg).unwrap();
+    let adam = match chunk {
+        None => adam,
+        Some(c) => adam.with_chunk(c),
+    };
     let blk = Buffer::from_slice(&e.ctx, "level block", &block).unwrap();
     let mut rng = Rng::new(17);
     let p0: Vec<f32> = (0..n).map(|_| rng.uniform(-1.0, 1.0)).collect();
@@ -179,7 +191,7 @@ fn adam_with_folded_hash_decay_matches_reference() {
         let tol = 1e-5 * cfg.lr_start as f64 + 2.0 * f32::EPSILON as f64 * p[i].abs();
         assert!(
             (got[i] as f64 - p[i]).abs() <= tol,
-            "param {i} (decay coefficient {}): {} vs {}",
+            "chunk {chunk:?} param {i} (decay coefficient {}): {} vs {}",
             coef(i),
             got[i],
             p[i]

@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
-use extranerf_gpu::Buffer;
+use extranerf_gpu::{Buffer, GpuError};
 use extranerf_nerf::reference::{composite_backward, composite_forward, distortion};
 use extranerf_nerf::render::composite::{Compositor, RayGrads, Samples};
 use extranerf_prims::reference::Rng;
@@ -690,6 +690,7 @@ fn stratified_samples_match_reference() {
                 k,
                 spacing,
                 seed,
+                None,
             )
             .unwrap();
         e.ctx.run(rec).unwrap();
@@ -746,6 +747,216 @@ fn stratified_samples_match_reference() {
             );
         }
     }
+    assert_no_validation_messages(&e.ctx);
+}
+
+/// Occupancy-aware sampling against the f64 reference: random, empty and full grids, linear
+/// and disparity spacing, with and without jitter. Rays whose probe centres sit within rounding
+/// of a cell face are skipped (f32 and f64 may put them in different cells). A ray whose probes
+/// are all occupied, or none (points outside the grid count as occupied), gets the plain
+/// stratified samples.
+#[test]
+fn occupied_samples_match_reference() {
+    use extranerf_nerf::field::encodings::{Contraction, SceneBox};
+    use extranerf_nerf::reference::{occ_cell, stratified, stratified_occupied};
+    use extranerf_nerf::render::occupancy::{Occupancy, OccupancyConfig};
+    use extranerf_nerf::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing};
+    let e = engine();
+    let sampler = Sampler::new(&e.ctx).unwrap();
+    let cfg = OccupancyConfig {
+        res: 8,
+        cascades: 1,
+        ..OccupancyConfig::default()
+    };
+    let occ = Occupancy::new(&e.ctx, cfg).unwrap();
+    let mut rng = Rng::new(83);
+    let (n, k, m) = (400usize, 19u32, 64u32);
+    // Rays through the grid's cube (|u| <= 1), some parallel to an axis, some leaving it.
+    let o: Vec<[f32; 4]> = (0..n)
+        .map(|_| [rng.uniform(-0.9, 0.9), rng.uniform(-0.9, 0.9), 0.9, 0.0])
+        .collect();
+    let d: Vec<[f32; 4]> = (0..n)
+        .map(|i| {
+            if i % 5 == 0 {
+                [0.0, 0.0, -1.0, 0.0]
+            } else {
+                [rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6), -1.0, 0.0]
+            }
+        })
+        .collect();
+    let nf: Vec<[f32; 2]> = (0..n)
+        .map(|_| {
+            let a = rng.uniform(0.05, 0.3);
+            [a, a + rng.uniform(0.5, 2.0)]
+        })
+        .collect();
+    let f4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let (ob, db) = (
+        Buffer::from_slice(&e.ctx, "o", &f4(&o)).unwrap(),
+        Buffer::from_slice(&e.ctx, "d", &f4(&d)).unwrap(),
+    );
+    let nfb = Buffer::from_slice(
+        &e.ctx,
+        "near_far",
+        &nf.iter().flatten().copied().collect::<Vec<f32>>(),
+    )
+    .unwrap();
+    let total = n * k as usize;
+    let pos = Buffer::<f32>::new(&e.ctx, "positions", 3 * total).unwrap();
+    let tdt = Buffer::<f32>::new(&e.ctx, "t_dt", 2 * total).unwrap();
+    let sds = Buffer::<f32>::new(&e.ctx, "s_ds", 2 * total).unwrap();
+    let rays = Buffer::<u32>::new(&e.ctx, "rays", 2 * n).unwrap();
+    let words = (cfg.cells() as usize).div_ceil(32);
+    let random: Vec<u32> = (0..words).map(|_| rng.next_u32()).collect();
+    let (mut checked, mut plain_rays) = (0, 0);
+    for (grid, bits) in [
+        ("random", random),
+        ("empty", vec![0u32; words]),
+        ("full", vec![u32::MAX; words]),
+    ] {
+        occ.bits().write(&bits).unwrap();
+        for (spacing, seed) in [
+            (Spacing::Linear, None),
+            (Spacing::Linear, Some(5u32)),
+            (Spacing::Disparity, Some(9u32)),
+        ] {
+            let disparity = spacing == Spacing::Disparity;
+            let out = SampleOutputs {
+                positions: pos.binding(),
+                t_dt: tdt.binding(),
+                s_ds: sds.binding(),
+                rays: rays.binding(),
+            };
+            let skip = SkipEmpty {
+                grid: &occ,
+                scene: SceneBox {
+                    center: [0.0; 3],
+                    radius: 1.0,
+                    contraction: Contraction::None,
+                },
+                probes: m,
+            };
+            let mut rec = e.ctx.recorder("sample occupied").unwrap();
+            sampler
+                .record(
+                    &mut rec,
+                    ob.binding(),
+                    db.binding(),
+                    nfb.binding(),
+                    &out,
+                    n as u64,
+                    k,
+                    spacing,
+                    seed,
+                    Some(&skip),
+                )
+                .unwrap();
+            e.ctx.run(rec).unwrap();
+            let (t, s) = (tdt.read().unwrap(), sds.read().unwrap());
+            'rays: for ray in 0..n {
+                let (near, far) = (nf[ray][0], nf[ray][1]);
+                let mut occupied = Vec::new();
+                for j in 0..m {
+                    let sj = (j as f64 + 0.5) / m as f64;
+                    let tj = if disparity {
+                        1.0 / ((1.0 - sj) / near as f64 + sj / far as f64)
+                    } else {
+                        near as f64 + sj * (far - near) as f64
+                    };
+                    let u = [0, 1, 2].map(|c| (o[ray][c] as f64 + tj * d[ray][c] as f64) as f32);
+                    let (cell, edge) = occ_cell(u, cfg.res, cfg.cascades);
+                    if edge {
+                        continue 'rays;
+                    }
+                    occupied
+                        .push(cell.is_none_or(|c| (bits[c as usize / 32] >> (c % 32)) & 1 == 1));
+                }
+                let want =
+                    stratified_occupied(ray as u32, near, far, k, disparity, seed, &occupied);
+                if occupied.iter().all(|&b| b == occupied[0]) {
+                    // No occupied interval, or all: the plain strata.
+                    plain_rays += 1;
+                    let plain = stratified(ray as u32, near, far, k, disparity, seed);
+                    for (a, b) in want.iter().zip(&plain) {
+                        for c in 0..4 {
+                            assert!(
+                                (a[c] - b[c]).abs() <= 1e-9 * b[c].abs().max(1.0),
+                                "{grid} ray {ray} field {c}: {} vs plain {}",
+                                a[c],
+                                b[c]
+                            );
+                        }
+                    }
+                }
+                let mut sum_ds = 0.0;
+                for (i, w) in want.iter().enumerate() {
+                    let idx = ray * k as usize + i;
+                    let got = [t[2 * idx], t[2 * idx + 1], s[2 * idx], s[2 * idx + 1]];
+                    for c in 0..4 {
+                        // dt sums differences of f32 distances: add a few ulps of t.
+                        let slack = if c == 1 { 2e-6 * w[0].abs() } else { 0.0 };
+                        assert!(
+                            (got[c] as f64 - w[c]).abs() <= 2e-5 * w[c].abs().max(1e-2) + slack,
+                            "{grid} {spacing:?} ray {ray} sample {i} field {c}: {} vs {}",
+                            got[c],
+                            w[c]
+                        );
+                    }
+                    sum_ds += got[3] as f64;
+                }
+                // The strata tile the occupied part of s.
+                let frac = occupied.iter().filter(|&&b| b).count().max(1) as f64 / m as f64;
+                let frac = if occupied.iter().any(|&b| b) {
+                    frac
+                } else {
+                    1.0
+                };
+                assert!(
+                    (sum_ds - frac).abs() <= 1e-4,
+                    "{grid} ray {ray}: {sum_ds} vs {frac}"
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 3000, "only {checked} rays clear of cell faces");
+    assert!(
+        plain_rays > 300 && plain_rays < checked - 300,
+        "{plain_rays} of {checked} rays were all or nothing"
+    );
+    // Probe counts outside 1..=256 are refused.
+    let out = SampleOutputs {
+        positions: pos.binding(),
+        t_dt: tdt.binding(),
+        s_ds: sds.binding(),
+        rays: rays.binding(),
+    };
+    let bad = SkipEmpty {
+        grid: &occ,
+        scene: SceneBox {
+            center: [0.0; 3],
+            radius: 1.0,
+            contraction: Contraction::None,
+        },
+        probes: 257,
+    };
+    let mut rec = e.ctx.recorder("bad probes").unwrap();
+    let err = sampler
+        .record(
+            &mut rec,
+            ob.binding(),
+            db.binding(),
+            nfb.binding(),
+            &out,
+            n as u64,
+            k,
+            Spacing::Linear,
+            None,
+            Some(&bad),
+        )
+        .unwrap_err();
+    assert!(matches!(err, GpuError::Usage(_)), "{err}");
+    drop(rec);
     assert_no_validation_messages(&e.ctx);
 }
 

@@ -22,6 +22,7 @@ pub fn desc() -> ContextDesc {
     ContextDesc {
         validation: Validation::from_env(Validation::IfAvailable),
         device: None,
+        max_binding_bytes: None,
     }
 }
 

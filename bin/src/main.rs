@@ -108,6 +108,7 @@ fn context(cli: &Cli) -> anyhow::Result<Context> {
     Context::new(&ContextDesc {
         validation,
         device: cli.device.clone(),
+        max_binding_bytes: None,
     })
     .context("creating the Vulkan device")
 }

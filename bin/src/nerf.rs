@@ -94,6 +94,29 @@ pub struct TrainArgs {
     /// Seed of the initialisation and batches.
     #[arg(long)]
     seed: Option<u64>,
+    /// Skip empty space while training: an occupancy grid of this many cells per axis (0:
+    /// off, the default). Each ray's strata then cover only the part of it in occupied cells,
+    /// so the same samples per ray sit closer together where there is content.
+    #[arg(long, value_name = "CELLS")]
+    occupancy_res: Option<u32>,
+    /// Cascades of the training grid (default: 1 in NDC, enough to reach the far bound in
+    /// world space).
+    #[arg(long)]
+    occupancy_cascades: Option<u32>,
+    /// Steps per sweep of the training grid (each step refreshes 1/N of the cells; the
+    /// occupied bits are rebuilt after every sweep) [default: 16].
+    #[arg(long, value_name = "N")]
+    occupancy_every: Option<u32>,
+    /// Steps that sample whole rays before the grid takes over [default: 256].
+    #[arg(long, value_name = "STEPS")]
+    occupancy_warmup: Option<u32>,
+    /// Probe intervals per ray tested against the grid (1 to 256) [default: 128].
+    #[arg(long, value_name = "N")]
+    occupancy_probes: Option<u32>,
+    /// A cell counts as empty when one sample there would be less opaque than this, at the
+    /// mean sample spacing (or when its density is below the grid's mean) [default: 0.01].
+    #[arg(long, value_name = "ALPHA")]
+    occupancy_opacity: Option<f32>,
     /// Steps between progress lines (1 to 64).
     #[arg(long, default_value_t = 25)]
     log_every: u32,
@@ -133,6 +156,12 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--grad-scaling", a.grad_scaling),
             ("--seed", a.seed.is_some()),
             ("--auto", a.auto),
+            ("--occupancy-res", a.occupancy_res.is_some()),
+            ("--occupancy-cascades", a.occupancy_cascades.is_some()),
+            ("--occupancy-every", a.occupancy_every.is_some()),
+            ("--occupancy-warmup", a.occupancy_warmup.is_some()),
+            ("--occupancy-probes", a.occupancy_probes.is_some()),
+            ("--occupancy-opacity", a.occupancy_opacity.is_some()),
             ("--budget", a.budget.is_some()),
         ]
         .iter()
@@ -193,6 +222,12 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         apply(&mut train.distortion_lambda, a.distortion_lambda);
         apply(&mut train.hash_decay_lambda, a.hash_decay);
         apply(&mut train.seed, a.seed);
+        apply(&mut train.occupancy_res, a.occupancy_res);
+        apply(&mut train.occupancy_cascades, a.occupancy_cascades);
+        apply(&mut train.occupancy_every, a.occupancy_every);
+        apply(&mut train.occupancy_warmup, a.occupancy_warmup);
+        apply(&mut train.occupancy_probes, a.occupancy_probes);
+        apply(&mut train.occupancy_opacity, a.occupancy_opacity);
         train.grad_scaling = a.grad_scaling;
         if let Some(s) = a.steps {
             train.steps = s;
@@ -371,6 +406,17 @@ pub fn train_loop(
         cfg.train.rays,
         cfg.train.samples
     );
+    if let Some(occ) = trainer.occupancy() {
+        let g = occ.config();
+        eprintln!(
+            "skipping empty space: occupancy grid {}^3 x {} cascade(s), a sweep every {} steps, {} probes per ray, from step {}",
+            g.res,
+            g.cascades,
+            cfg.train.occupancy_every,
+            cfg.train.occupancy_probes,
+            cfg.train.occupancy_warmup + 1
+        );
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let mut log = std::fs::OpenOptions::new()
         .create(true)
@@ -444,6 +490,12 @@ pub fn train_loop(
         (trainer.step() - start) as f64 * trainer.samples_per_step() as f64 / secs.max(1e-9),
         a.out.display()
     );
+    if let Some(f) = trainer.occupied_fraction()? {
+        eprintln!(
+            "occupancy grid: {:.1}% of cells occupied at the end",
+            100.0 * f
+        );
+    }
     Ok(())
 }
 
@@ -458,8 +510,10 @@ pub struct MarchArgs {
     pub march: String,
     /// Occupancy grid cells per axis, built from the field before rendering, so empty space is
     /// skipped (fused only; 0: no grid). Points outside the grid are always evaluated. Off by
-    /// default: a BaseNeRF trained on fern fills 99.9% of a 64^3 grid above the threshold, so
-    /// the grid costs its build (5 s) and saves nothing there (results/bench_render_lavapipe).
+    /// default: a BaseNeRF trained on fern fills 99.9% of a 64^3 grid above the threshold (a
+    /// density of 0.01; `train --occupancy-res` thresholds by opacity, and fern still fills
+    /// 96-97% of its grid), so the grid costs its build (5 s) and saves nothing there
+    /// (results/bench_render_lavapipe).
     #[arg(long, default_value_t = MarchArgs::default().occupancy_res)]
     pub occupancy_res: u32,
     /// Jittered density evaluations per occupancy cell; the largest counts.

@@ -138,6 +138,32 @@ fn points() -> Vec<Point> {
             apply: |c| steps(c, 2.0),
         },
         Point {
+            name: "occ32",
+            knob: "occupancy resolution",
+            apply: |c| c.train.occupancy_res = 32,
+        },
+        Point {
+            name: "occ64",
+            knob: "occupancy resolution",
+            apply: |c| c.train.occupancy_res = 64,
+        },
+        Point {
+            name: "occ64x2",
+            knob: "occupancy cascades",
+            apply: |c| {
+                c.train.occupancy_res = 64;
+                c.train.occupancy_cascades = 2;
+            },
+        },
+        Point {
+            name: "occ64s16",
+            knob: "occupancy + samples",
+            apply: |c| {
+                c.train.occupancy_res = 64;
+                c.train.samples = 16;
+            },
+        },
+        Point {
             name: "f16",
             knob: "precision",
             apply: |c| c.model.precision = "f16".into(),
@@ -377,7 +403,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         }
         (p.apply)(&mut cfg);
         eprintln!(
-            "[{}] {}: L{} F{} T2^{} N..{} {} | {} rays x {} samples, {} steps",
+            "[{}] {}: L{} F{} T2^{} N..{} {} | {} rays x {} samples, {} steps, occupancy {}",
             p.name,
             p.knob,
             cfg.model.levels,
@@ -387,7 +413,14 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
             cfg.model.precision,
             cfg.train.rays,
             cfg.train.samples,
-            cfg.train.steps
+            cfg.train.steps,
+            match cfg.train.occupancy_res {
+                0 => "off".to_string(),
+                r => match cfg.train.occupancy_cascades {
+                    0 => format!("{r}^3, cascades from the bounds"),
+                    c => format!("{r}^3 x {c} cascades"),
+                },
+            }
         );
         let row = match run_point(ctx, &prims, &cfg, &loaded, &tests, &lpips) {
             Ok((train_s, sps, ps, ss, lp, mib)) => Row {
@@ -506,6 +539,12 @@ fn run_point(
     }
     let train_s = t.elapsed().as_secs_f64();
     let sps = cfg.train.steps as f64 * trainer.samples_per_step() as f64 / train_s;
+    if let Some(f) = trainer.occupied_fraction()? {
+        eprintln!(
+            "  training occupancy grid: {:.1}% of cells occupied at the end",
+            100.0 * f
+        );
+    }
     let (mut p, mut q, mut l) = (0.0, 0.0, 0.0);
     for (cam, truth, w, h) in tests {
         let (rgb, _, _) = trainer.nerf().render_with(
@@ -534,12 +573,12 @@ fn run_point(
 fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
     let front = pareto(rows);
     let mut csv = String::from(
-        "point,knob,levels,features,log2_table,max_res,rays,samples,steps,precision,train_s,samples_per_s,psnr,ssim,lpips_alex,device_mib,pareto,failed\n",
+        "point,knob,levels,features,log2_table,max_res,rays,samples,steps,precision,occupancy_res,occupancy_cascades,train_s,samples_per_s,psnr,ssim,lpips_alex,device_mib,pareto,failed\n",
     );
     for (i, r) in rows.iter().enumerate() {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{},{},{},{},{:.2},{:.4e},{:.4},{:.5},{:.5},{:.1},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{:.2},{:.4e},{:.4},{:.5},{:.5},{:.1},{},{}",
             r.name,
             r.knob,
             r.cfg.model.levels,
@@ -550,6 +589,8 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
             r.cfg.train.samples,
             r.cfg.train.steps,
             r.cfg.model.precision,
+            r.cfg.train.occupancy_res,
+            r.cfg.train.occupancy_cascades,
             r.train_s,
             r.samples_per_s,
             r.psnr,

@@ -36,11 +36,11 @@ impl RawBuffer {
         let info = ctx.info();
         let padded = bytes.max(1).div_ceil(BUFFER_ALIGN) * BUFFER_ALIGN;
         let storage = location == MemoryLocation::GpuOnly;
-        if storage && padded > info.max_storage_buffer_range {
+        if storage && padded > info.max_buffer_bytes {
             return Err(GpuError::BufferTooLarge {
                 name: name.into(),
                 bytes: padded,
-                limit: info.max_storage_buffer_range,
+                limit: info.max_buffer_bytes,
             });
         }
         let usage = if storage {
@@ -174,7 +174,7 @@ pub struct Binding<'a> {
     pub(crate) ctx: usize,
 }
 
-impl Binding<'_> {
+impl<'a> Binding<'a> {
     /// Bytes bound (the buffer's padded size, or a slice's range).
     pub fn bytes(&self) -> u64 {
         self.bytes
@@ -183,6 +183,24 @@ impl Binding<'_> {
     /// The buffer's name.
     pub fn name(&self) -> &str {
         self.name
+    }
+
+    /// Bytes `offset .. offset + bytes` of this binding as a binding of their own (rounded up
+    /// to 16 bytes). The offset must be a multiple of 256 bytes, the largest
+    /// `minStorageBufferOffsetAlignment` Vulkan allows, and the range must stay inside.
+    pub fn sub(&self, offset: u64, bytes: u64) -> Result<Binding<'a>> {
+        let bytes = bytes.max(1).div_ceil(16) * 16;
+        if !offset.is_multiple_of(256) || offset.saturating_add(bytes) > self.bytes {
+            return Err(GpuError::Usage(format!(
+                "range {offset}..+{bytes} of `{}` ({} bytes bound): the offset must be a multiple of 256 and the range inside",
+                self.name, self.bytes
+            )));
+        }
+        Ok(Binding {
+            offset: self.offset + offset,
+            bytes,
+            ..*self
+        })
     }
 
     /// Fails unless `count` elements of `elem_bytes` fit in the binding.

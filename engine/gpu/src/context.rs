@@ -50,6 +50,9 @@ pub struct ContextDesc {
     /// Device to use: an index into [`list_devices`] or a case-insensitive part of its name.
     /// `None` reads `EXTRANERF_DEVICE`, else picks discrete > integrated > virtual > CPU.
     pub device: Option<String>,
+    /// Treat storage bindings as limited to this many bytes when the device allows more
+    /// (`maxStorageBufferRange`), so large tables are split as on a smaller device.
+    pub max_binding_bytes: Option<u64>,
 }
 
 /// One heap of the device.
@@ -86,8 +89,11 @@ pub struct DeviceInfo {
     pub subgroup_size: u32,
     /// Compute shaders have subgroup basic + arithmetic + ballot operations.
     pub subgroup_arithmetic: bool,
-    /// `maxStorageBufferRange`.
+    /// `maxStorageBufferRange`: the most bytes one storage binding covers.
     pub max_storage_buffer_range: u64,
+    /// The largest buffer the engine creates (`maxMemoryAllocationSize`); buffers larger than
+    /// one binding are bound in ranges.
+    pub max_buffer_bytes: u64,
     /// `minStorageBufferOffsetAlignment`.
     pub min_storage_buffer_offset_alignment: u64,
     /// `maxUniformBufferRange`.
@@ -419,7 +425,12 @@ impl Context {
             .or_else(|| std::env::var("EXTRANERF_DEVICE").ok())
             .filter(|s| !s.trim().is_empty());
         let (index, physical) = select_device(instance_ref, requested.as_deref())?;
-        let (info, features) = probe_device(instance_ref, index, physical, api, validation)?;
+        let (mut info, features) = probe_device(instance_ref, index, physical, api, validation)?;
+        if let Some(limit) = desc.max_binding_bytes {
+            // A smaller binding limit than the device's: the split and ranged paths run on any
+            // device (tests, or reproducing a smaller device's behaviour).
+            info.max_storage_buffer_range = info.max_storage_buffer_range.min(limit.max(256));
+        }
 
         // Queue: the first family with compute.
         // SAFETY: valid physical device.
@@ -900,9 +911,11 @@ fn probe_device(
 ) -> Result<(DeviceInfo, Features)> {
     let mut driver = vk::PhysicalDeviceDriverProperties::default();
     let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
+    let mut maint3 = vk::PhysicalDeviceMaintenance3Properties::default();
     let mut props2 = vk::PhysicalDeviceProperties2::default()
         .push_next(&mut driver)
-        .push_next(&mut subgroup);
+        .push_next(&mut subgroup)
+        .push_next(&mut maint3);
     let mut f11 = vk::PhysicalDeviceVulkan11Features::default();
     let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
     let mut fatomic = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
@@ -972,6 +985,9 @@ fn probe_device(
             .contains(vk::ShaderStageFlags::COMPUTE)
             && subgroup.supported_operations.contains(ops),
         max_storage_buffer_range: p.limits.max_storage_buffer_range as u64,
+        max_buffer_bytes: maint3
+            .max_memory_allocation_size
+            .max(p.limits.max_storage_buffer_range as u64),
         min_storage_buffer_offset_alignment: p.limits.min_storage_buffer_offset_alignment,
         max_uniform_buffer_range: p.limits.max_uniform_buffer_range as u64,
         min_uniform_buffer_offset_alignment: p.limits.min_uniform_buffer_offset_alignment,

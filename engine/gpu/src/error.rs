@@ -49,10 +49,11 @@ pub enum GpuError {
         /// Its size.
         bytes: u64,
     },
-    /// A storage buffer larger than `maxStorageBufferRange` (lavapipe: 128 MiB).
+    /// A buffer larger than the device allocates (`maxMemoryAllocationSize`), or a storage
+    /// binding larger than `maxStorageBufferRange` (lavapipe: 128 MiB).
     #[error(
-        "buffer `{name}` needs {bytes} bytes but this device binds at most {limit} bytes per \
-         storage buffer (maxStorageBufferRange); split it into several buffers"
+        "buffer `{name}` needs {bytes} bytes but this device allows at most {limit} bytes there \
+         (maxMemoryAllocationSize for a buffer, maxStorageBufferRange for one binding); split it"
     )]
     BufferTooLarge {
         /// Name of the buffer.

@@ -260,6 +260,13 @@ impl<'a> Recorder<'a> {
         let info = &self.ctx.inner.info;
         for (b, d) in bindings.iter().zip(desc.bindings) {
             if d.uniform_bytes == 0 {
+                if b.bytes > info.max_storage_buffer_range {
+                    return Err(GpuError::BufferTooLarge {
+                        name: format!("{}` bound as `{}` of kernel `{}", b.name, d.name, desc.name),
+                        bytes: b.bytes,
+                        limit: info.max_storage_buffer_range,
+                    });
+                }
                 continue;
             }
             let align = info.min_uniform_buffer_offset_alignment.max(1);

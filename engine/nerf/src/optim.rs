@@ -93,6 +93,9 @@ pub struct Adam {
     n: u64,
     /// Bound as the decay block when there is no hash decay (never read then).
     no_block: Buffer<[u32; 4]>,
+    /// Floats per dispatch (a multiple of 64): buffers larger than one storage binding are
+    /// updated range by range.
+    chunk: u64,
 }
 
 impl Adam {
@@ -107,7 +110,15 @@ impl Adam {
             v: Buffer::from_slice(ctx, "adam second moment", &zeros)?,
             n,
             no_block: Buffer::from_slice(ctx, "adam no decay block", &[[0u32; 4]; 65])?,
+            chunk: (ctx.info().max_storage_buffer_range / 4 / 64 * 64).max(64),
         })
+    }
+
+    /// Updates at most `floats` parameters per dispatch (rounded down to a multiple of 64, at
+    /// least 64; the tests use it to run the ranged path on small buffers).
+    pub fn with_chunk(mut self, floats: u64) -> Adam {
+        self.chunk = self.chunk.min(floats / 64 * 64).max(64);
+        self
     }
 
     /// The settings.
@@ -165,7 +176,7 @@ impl Adam {
             decay_start: 0,
             decay_floats: 0,
             decay_levels: 0,
-            _pad0: 0,
+            offset: 0,
             _pad1: 0,
             _pad2: 0,
         };
@@ -192,14 +203,32 @@ impl Adam {
             p.decay_levels = d.levels;
             block = d.block;
         }
-        let b = k::adam::Bindings {
-            param: params,
-            grad: grads,
-            m1: self.m.binding(),
-            m2: self.v.binding(),
-            decay_block: block,
-        };
-        // 4 vec4s (16 parameters) per thread.
-        rec.dispatch(&self.kernel, b.into_array(), &p, self.n.div_ceil(16))
+        let mut first = 0;
+        while first < self.n {
+            let len = self.chunk.min(self.n - first);
+            let range = |b: Binding<'a>| -> Result<Binding<'a>> {
+                if first == 0 && len == self.n {
+                    Ok(b)
+                } else {
+                    b.sub(first * 4, len * 4)
+                }
+            };
+            let b = k::adam::Bindings {
+                param: range(params)?,
+                grad: range(grads)?,
+                m1: range(self.m.binding())?,
+                m2: range(self.v.binding())?,
+                decay_block: block,
+            };
+            let p = k::Params {
+                n: len as u32,
+                offset: first as u32,
+                ..p
+            };
+            // 4 vec4s (16 parameters) per thread.
+            rec.dispatch(&self.kernel, b.into_array(), &p, len.div_ceil(16))?;
+            first += len;
+        }
+        Ok(())
     }
 }

@@ -651,21 +651,73 @@ pub fn stratified(
     disparity: bool,
     seed: Option<u32>,
 ) -> Vec<[f64; 4]> {
-    let t_of = |s: f64| {
-        if disparity {
-            1.0 / ((1.0 - s) / near as f64 + s / far as f64)
-        } else {
-            near as f64 + s * (far as f64 - near as f64)
-        }
-    };
+    let t_of = |s: f64| t_at(s, near, far, disparity);
     (0..k)
         .map(|i| {
-            let u = seed.map_or(0.5, |sd| {
-                rand01(pcg_hash(sd ^ pcg_hash(r)).wrapping_add(i)) as f64
-            });
+            let u = stratum_jitter(r, i, seed);
             let (s0, s1) = (i as f64 / k as f64, (i + 1) as f64 / k as f64);
             let s = s0 + (s1 - s0) * u;
             [t_of(s), t_of(s1) - t_of(s0), s, 1.0 / k as f64]
+        })
+        .collect()
+}
+
+/// Distance at normalised position s (linear in t, or in disparity).
+fn t_at(s: f64, near: f32, far: f32, disparity: bool) -> f64 {
+    if disparity {
+        1.0 / ((1.0 - s) / near as f64 + s / far as f64)
+    } else {
+        near as f64 + s * (far as f64 - near as f64)
+    }
+}
+
+/// Position of sample i of ray r inside its stratum (0.5 without a seed).
+fn stratum_jitter(r: u32, i: u32, seed: Option<u32>) -> f64 {
+    seed.map_or(0.5, |sd| {
+        rand01(pcg_hash(sd ^ pcg_hash(r)).wrapping_add(i)) as f64
+    })
+}
+
+/// Occupancy-aware stratified samples (`stratified_occupied`): `occupied[j]` tells whether
+/// probe interval j of [0, 1] (in s) is occupied; the k strata tile the occupied intervals
+/// (all of them when none is). `[t, dt, s, ds]` per sample, dt the t-length of the stratum's
+/// occupied part.
+pub fn stratified_occupied(
+    r: u32,
+    near: f32,
+    far: f32,
+    k: u32,
+    disparity: bool,
+    seed: Option<u32>,
+    occupied: &[bool],
+) -> Vec<[f64; 4]> {
+    let m = occupied.len() as f64;
+    let mut runs: Vec<usize> = (0..occupied.len()).filter(|&j| occupied[j]).collect();
+    if runs.is_empty() {
+        runs = (0..occupied.len()).collect();
+    }
+    let count = runs.len();
+    let per = count as f64 / k as f64;
+    let t_of = |s: f64| t_at(s, near, far, disparity);
+    // s at occupied measure c (in probe intervals).
+    let s_at = |c: f64| {
+        let q = (c.floor() as usize).min(count - 1);
+        (runs[q] as f64 + c - q as f64) / m
+    };
+    (0..k)
+        .map(|i| {
+            let (c0, c1) = (i as f64 * per, (i + 1) as f64 * per);
+            let s = s_at(c0 + (c1 - c0) * stratum_jitter(r, i, seed));
+            let mut dt = 0.0;
+            let (q0, q1) = (c0.floor() as usize, (c1.ceil() as usize).min(count));
+            for (q, &run) in runs.iter().enumerate().take(q1).skip(q0) {
+                let (a, b) = (c0.max(q as f64), c1.min(q as f64 + 1.0));
+                if b > a {
+                    let j = run as f64;
+                    dt += t_of((j + b - q as f64) / m) - t_of((j + a - q as f64) / m);
+                }
+            }
+            [t_of(s), dt, s, per / m]
         })
         .collect()
 }

@@ -20,7 +20,7 @@ use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
 use crate::render::march::{MarchCuts, Marcher};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
 use crate::render::rays::{gpu_camera, GpuCamera, RayGen, RaySpace};
-use crate::render::sample::{SampleOutputs, Sampler, Spacing};
+use crate::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing, MAX_PROBES};
 
 /// Steps whose loss and MSE the device keeps between progress reads.
 pub const STAT_SLOTS: u32 = 64;
@@ -59,6 +59,44 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Background colour added with each ray's final transmittance.
     pub background: [f32; 3],
+    /// Occupancy grid cells per axis for skipping empty space while training (0: off; the
+    /// strata of each ray then cover only its occupied part, see [`SkipEmpty`]).
+    #[serde(default)]
+    pub occupancy_res: u32,
+    /// Cascades of that grid (0: from the model's bounds, `autoconfig::occupancy_cascades`).
+    #[serde(default)]
+    pub occupancy_cascades: u32,
+    /// Steps per sweep of the grid: each step refreshes 1/every of the cells (density EMA,
+    /// decay 0.95 per refresh) and the occupied bits are rebuilt after each sweep.
+    #[serde(default = "default_occupancy_every")]
+    pub occupancy_every: u32,
+    /// Steps that sample whole rays before the grid starts to decide (the EMA runs meanwhile).
+    #[serde(default = "default_occupancy_warmup")]
+    pub occupancy_warmup: u32,
+    /// Probe intervals per ray that test the grid (1 to 256).
+    #[serde(default = "default_occupancy_probes")]
+    pub occupancy_probes: u32,
+    /// A cell is empty when one sample there would be less opaque than this (Instant-NGP's
+    /// 0.01): the density threshold is this times the samples per unit of ray between near and
+    /// far, or the grid's mean density when that is lower.
+    #[serde(default = "default_occupancy_opacity")]
+    pub occupancy_opacity: f32,
+}
+
+fn default_occupancy_opacity() -> f32 {
+    0.01
+}
+
+fn default_occupancy_every() -> u32 {
+    16
+}
+
+fn default_occupancy_warmup() -> u32 {
+    256
+}
+
+fn default_occupancy_probes() -> u32 {
+    128
 }
 
 impl Default for TrainConfig {
@@ -78,6 +116,12 @@ impl Default for TrainConfig {
             decay_steps: 5000,
             seed: 0,
             background: [0.0; 3],
+            occupancy_res: 0,
+            occupancy_cascades: 0,
+            occupancy_every: default_occupancy_every(),
+            occupancy_warmup: default_occupancy_warmup(),
+            occupancy_probes: default_occupancy_probes(),
+            occupancy_opacity: default_occupancy_opacity(),
         }
     }
 }
@@ -129,6 +173,18 @@ impl TrainConfig {
             return Err(GpuError::Usage(format!(
                 "learning rates {} -> {} must be finite and positive",
                 self.lr_start, self.lr_end
+            )));
+        }
+        if self.occupancy_res > 0
+            && (self.occupancy_res > 512
+                || self.occupancy_cascades > 8
+                || self.occupancy_every == 0
+                || !(1..=MAX_PROBES).contains(&self.occupancy_probes)
+                || !(self.occupancy_opacity > 0.0 && self.occupancy_opacity < 1.0))
+        {
+            return Err(GpuError::Usage(format!(
+                "training occupancy grid: {} cells per axis (1-512), {} cascades (0-8), a sweep every {} steps (>= 1), {} probes per ray (1-{MAX_PROBES}), opacity threshold {} (between 0 and 1)",
+                self.occupancy_res, self.occupancy_cascades, self.occupancy_every, self.occupancy_probes, self.occupancy_opacity
             )));
         }
         if self.decay_steps == 0 {
@@ -426,6 +482,7 @@ impl Nerf {
         n_cameras: u32,
         n: u64,
         seed: Option<u32>,
+        skip: Option<&SkipEmpty<'a>>,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let space = self.space;
@@ -471,8 +528,17 @@ impl Nerf {
             ws.samples,
             spacing,
             seed,
+            skip,
         )?;
-        mark(prof, rec, "stratified samples")?;
+        mark(
+            prof,
+            rec,
+            if skip.is_some() {
+                "stratified samples (occupied space)"
+            } else {
+                "stratified samples"
+            },
+        )?;
         let ns = n * ws.samples as u64;
         self.field
             .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples, prof)?;
@@ -628,7 +694,7 @@ impl Nerf {
                         pixels: ws.pixels.binding(),
                     };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-                    self.record_forward(&mut rec, ws, cams.binding(), 1, n, None, &mut None)?;
+                    self.record_forward(&mut rec, ws, cams.binding(), 1, n, None, None, &mut None)?;
                     (ws.out_rgba.binding(), ws.out_depth.binding())
                 }
             };
@@ -675,6 +741,8 @@ pub struct Trainer {
     reduce: ReducePlan,
     stats: Buffer<f32>,
     step: u32,
+    /// The occupancy grid that training skips empty space with, when enabled.
+    occupancy: Option<Occupancy>,
 }
 
 impl Trainer {
@@ -701,7 +769,28 @@ impl Trainer {
         if let Some((m, v)) = moments {
             adam.load_moments(m, v)?;
         }
+        let model = nerf.field.config();
+        // Density whose one-sample opacity 1 - exp(-sigma dt) is about occupancy_opacity at the
+        // mean sample spacing.
+        let spacing = ((model.far - model.near) / cfg.samples as f32).max(f32::MIN_POSITIVE);
+        let threshold = -(1.0 - cfg.occupancy_opacity).ln() / spacing;
+        let occupancy = match cfg.occupancy_res {
+            0 => None,
+            res => Some(Occupancy::new(
+                ctx,
+                OccupancyConfig {
+                    res,
+                    cascades: match cfg.occupancy_cascades {
+                        0 => crate::autoconfig::occupancy_cascades(nerf.field.config()),
+                        c => c,
+                    },
+                    threshold,
+                    ..OccupancyConfig::default()
+                },
+            )?),
+        };
         Ok(Trainer {
+            occupancy,
             grads: Buffer::new(ctx, "field gradients", total)?,
             adam,
             loss: RayLoss::new(ctx)?,
@@ -745,6 +834,67 @@ impl Trainer {
         self.cfg.rays as u64 * self.cfg.samples as u64
     }
 
+    /// The occupancy grid of training, when enabled. It is not part of checkpoints: a resumed
+    /// run rebuilds it over its first sweep.
+    pub fn occupancy(&self) -> Option<&Occupancy> {
+        self.occupancy.as_ref()
+    }
+
+    /// The fraction of the training grid's cells marked occupied (`None` without a grid).
+    pub fn occupied_fraction(&self) -> Result<Option<f64>> {
+        let Some(occ) = &self.occupancy else {
+            return Ok(None);
+        };
+        let set: u64 = occ
+            .bits()
+            .read()?
+            .iter()
+            .map(|w| w.count_ones() as u64)
+            .sum();
+        Ok(Some(set as f64 / occ.config().cells() as f64))
+    }
+
+    /// Records step `step`'s share of the occupancy sweep: the density EMA of the next window
+    /// of cells and, when a sweep ends after the warm-up, the bits. Returns the sampling that
+    /// skips empty space from the warm-up on.
+    fn record_occupancy<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        prims: &'a Prims,
+        step: u32,
+        seed: u32,
+    ) -> Result<Option<SkipEmpty<'a>>> {
+        let Some(occ) = &self.occupancy else {
+            return Ok(None);
+        };
+        let nerf = &self.nerf;
+        let cells = occ.config().cells();
+        let every = self.cfg.occupancy_every as u64;
+        let per = cells.div_ceil(every);
+        let window = (step as u64 - 1) % every;
+        let first = window * per;
+        if first < cells {
+            nerf.marcher.update_occupancy(
+                rec,
+                &nerf.field,
+                nerf.sections(&nerf.params)?,
+                occ,
+                first,
+                per.min(cells - first),
+                seed,
+                occ.config().decay,
+            )?;
+        }
+        if window + 1 == every && step >= self.cfg.occupancy_warmup {
+            occ.record_bits(rec, prims)?;
+        }
+        Ok((step > self.cfg.occupancy_warmup).then(|| SkipEmpty {
+            grid: occ,
+            scene: *nerf.field.scene(),
+            probes: self.cfg.occupancy_probes,
+        }))
+    }
+
     /// Records training step `step` (1-based).
     fn record_step<'a>(
         &'a self,
@@ -775,6 +925,8 @@ impl Trainer {
         rec.dispatch(&self.batch, b.into_array(), &p, n)?;
         mark(prof, rec, "batch (pixels, targets)")?;
         let nerf = &self.nerf;
+        let skip = self.record_occupancy(rec, prims, step, seed)?;
+        mark(prof, rec, "occupancy update")?;
         nerf.record_forward(
             rec,
             ws,
@@ -782,6 +934,7 @@ impl Trainer {
             data.n_images,
             n,
             Some(seed),
+            skip.as_ref(),
             prof,
         )?;
         let samples = ws.samples(n);

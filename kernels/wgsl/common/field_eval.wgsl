@@ -1,8 +1,18 @@
 // The BaseNeRF field evaluated in registers by one thread (the fused kernels: render/march.wgsl,
 // render/visibility.wgsl). Textual include: the including file declares `params` with the
 // fields read here (features, levels, contraction, spacing, near, far, occ_res, occ_cascades)
-// and the bindings `level_info`, `table`, `density_shape`, `occ_bits` and the uniform `mlp`
-// block, and includes common/{hash_grid,mlp_block,contract,heads,occupancy}.wgsl before this.
+// and the bindings `level_info`, `table`, `table_hi` (a split table's second part, see
+// common/hash_grid.wgsl), `density_shape`, `occ_bits` and the uniform `mlp` block, and includes
+// common/{hash_grid,mlp_block,contract,heads,occupancy}.wgsl before this.
+
+// Entry e of the table part `hi` selects; a branch, so the other binding is never read out of
+// its range.
+fn table_at(hi: bool, e: u32) -> f32 {
+    if hi {
+        return table_hi[e];
+    }
+    return table[e];
+}
 
 // Hash-grid features of the contracted point x into a[0 .. levels * features]. A NaN point
 // has all-zero features, as in the standalone kernel.
@@ -17,12 +27,13 @@ fn encode(x: vec3<f32>, a: ptr<function, Act>) {
     for (var l = 0u; l < params.levels; l += 1u) {
         let lv = level_info[l];
         let cell = hg_cell(x, lv);
+        let hi = hg_part(lv) != 0u;
         if F == 2u {
             // The paper's setting: one hash per corner for both features.
             var acc = vec2<f32>(0.0);
             for (var k = 0u; k < 8u; k += 1u) {
                 let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * 2u;
-                acc += hg_weight(cell.frac, k) * vec2<f32>(table[e], table[e + 1u]);
+                acc += hg_weight(cell.frac, k) * vec2<f32>(table_at(hi, e), table_at(hi, e + 1u));
             }
             act_set(a, 2u * l, acc.x);
             act_set(a, 2u * l + 1u, acc.y);
@@ -32,7 +43,7 @@ fn encode(x: vec3<f32>, a: ptr<function, Act>) {
             var acc = 0.0;
             for (var k = 0u; k < 8u; k += 1u) {
                 let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
-                acc += hg_weight(cell.frac, k) * table[e + f];
+                acc += hg_weight(cell.frac, k) * table_at(hi, e + f);
             }
             act_set(a, l * F + f, acc);
         }

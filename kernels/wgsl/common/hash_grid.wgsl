@@ -4,17 +4,27 @@
 // flat table: dense indexing when (N_l + 1)^3 fits in the table, else the spatial hash
 // (x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod size (size = T, a power of two). Positions are clamped to [0, 1]^3.
 
+//
+// Tables larger than one storage binding (lavapipe: 128 MiB) are split at a level boundary into
+// two bindings, `table` and `table_hi`: a level in the second one has bit 1 of `dense` set and
+// its offset counts from the start of that binding. Unsplit tables bind the same range twice.
 struct HashLevel {
-    // Float offset of the level in the flat table, resolution N_l, table entries, 1 = dense.
+    // Float offset of the level in its binding, resolution N_l, table entries; bit 0 of flags:
+    // dense, bit 1: in the second binding.
     offset: u32,
     res: u32,
     size: u32,
     dense: u32,
 }
 
+// Which table binding holds a level (0: `table`, 1: `table_hi`).
+fn hg_part(lv: HashLevel) -> u32 {
+    return lv.dense >> 1u;
+}
+
 // The table entry of grid vertex c at a level.
 fn hg_index(c: vec3<u32>, lv: HashLevel) -> u32 {
-    if lv.dense != 0u {
+    if (lv.dense & 1u) != 0u {
         let s = lv.res + 1u;
         return c.x + s * (c.y + s * c.z);
     }

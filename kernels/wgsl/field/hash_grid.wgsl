@@ -18,8 +18,20 @@ var<immediate> params: Params;
 @group(0) @binding(3) var<storage, read_write> encoded: array<f32>;
 @group(0) @binding(4) var<storage, read> d_encoded: array<f32>;
 @group(0) @binding(5) var<storage, read_write> d_table: array<atomic<f32>>;
+// The second part of a split table (common/hash_grid.wgsl).
+@group(0) @binding(6) var<storage, read> table_hi: array<f32>;
+@group(0) @binding(7) var<storage, read_write> d_table_hi: array<atomic<f32>>;
 
 const MAX_F: u32 = 8u;
+
+// Entry e of the table part that holds a level (a branch, so the other binding is never read
+// out of its range).
+fn table_at(hi: bool, e: u32) -> f32 {
+    if hi {
+        return table_hi[e];
+    }
+    return table[e];
+}
 
 // encoded[i * L * F + l * F + f] = trilinear interpolation of level l's feature f at point i.
 @compute @workgroup_size(64)
@@ -42,11 +54,12 @@ fn encode_fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     if hg_valid(x) {
         let lv = level_info[l];
         let cell = hg_cell(x, lv);
+        let hi = hg_part(lv) != 0u;
         for (var k = 0u; k < 8u; k += 1u) {
             let w = hg_weight(cell.frac, k);
             let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
             for (var f = 0u; f < F; f += 1u) {
-                acc[f] += w * table[e + f];
+                acc[f] += w * table_at(hi, e + f);
             }
         }
     }
@@ -73,13 +86,18 @@ fn encode_bwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     }
     let lv = level_info[l];
     let cell = hg_cell(x, lv);
+    let hi = hg_part(lv) != 0u;
     for (var k = 0u; k < 8u; k += 1u) {
         let w = hg_weight(cell.frac, k);
         let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
         for (var f = 0u; f < F; f += 1u) {
             let g = w * d_encoded[t * F + f];
             if g != 0.0 {
-                atomicAdd(&d_table[e + f], g);
+                if hi {
+                    atomicAdd(&d_table_hi[e + f], g);
+                } else {
+                    atomicAdd(&d_table[e + f], g);
+                }
             }
         }
     }

@@ -10,13 +10,14 @@ enable f16;
 //!include common/dispatch.wgsl
 //!include common/hash_grid.wgsl
 
-// The same block as hash_grid.wgsl (features is always 2 here; n counts vec2 entries for
-// table_to_f16).
+// The block of hash_grid.wgsl (features is always 2 here; n counts vec2 entries for
+// table_to_f16), with the float offset of a split table's second part (0 when unsplit): the f16
+// copy is one binding, so levels in the second part add it back (common/hash_grid.wgsl).
 struct Params {
     n: u32,
     levels: u32,
     features: u32,
-    _pad: u32,
+    hi_base: u32,
 }
 var<immediate> params: Params;
 
@@ -59,7 +60,7 @@ fn encode_fwd_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
         if valid {
             let lv = level_info[l];
             let cell = hg_cell(x, lv);
-            let base = lv.offset / 2u;
+            let base = (lv.offset + hg_part(lv) * params.hi_base) / 2u;
             let f = cell.frac;
             let g = vec3<f32>(1.0) - f;
             let c = cell.corner;

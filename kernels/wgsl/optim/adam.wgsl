@@ -9,6 +9,9 @@
 // level bounds from a uniform block (`decay_block[l] = (first float of level l relative to the
 // table, size_l * F, _, _)`, `decay_levels` entries). That saves the separate gradient pass over
 // the table, which reads and writes as many bytes as this kernel.
+//
+// Buffers larger than one storage binding are updated in ranges: `offset` is the first float of
+// the bound range in the whole buffer (decay_start counts in the whole buffer too).
 //!include common/dispatch.wgsl
 
 struct Params {
@@ -27,7 +30,7 @@ struct Params {
     // 0: no hash decay.
     decay_floats: u32,
     decay_levels: u32,
-    _pad0: u32,
+    offset: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -86,17 +89,19 @@ fn adam(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         let p = param[i];
         var g = grad[i] * params.grad_scale;
         g = select(vec4<f32>(0.0), g, finite(g)) + params.weight_decay * p;
-        if params.decay_floats != 0u && base + 3u >= params.decay_start
-            && base < params.decay_start + params.decay_floats {
+        // The vec4's first float in the whole buffer.
+        let gb = base + params.offset;
+        if params.decay_floats != 0u && gb + 3u >= params.decay_start
+            && gb < params.decay_start + params.decay_floats {
             var c: vec4<f32>;
-            let inside = base >= params.decay_start;
-            let l = decay_level(select(0u, base - params.decay_start, inside));
+            let inside = gb >= params.decay_start;
+            let l = decay_level(select(0u, gb - params.decay_start, inside));
             // decay_block[l + 1].x is the next level's first float (or the table's end).
-            if inside && base + 3u - params.decay_start < decay_block[l + 1u].x {
+            if inside && gb + 3u - params.decay_start < decay_block[l + 1u].x {
                 // The whole vec4 lies in level l.
                 c = vec4<f32>(2.0 * params.decay_lambda / f32(decay_block[l].y));
             } else {
-                c = vec4<f32>(decay_coef(base), decay_coef(base + 1u), decay_coef(base + 2u), decay_coef(base + 3u));
+                c = vec4<f32>(decay_coef(gb), decay_coef(gb + 1u), decay_coef(gb + 2u), decay_coef(gb + 3u));
             }
             g += c * p;
         }

@@ -91,6 +91,8 @@ var<immediate> params: Params;
 // copied here from the parameter buffer before each pass. Every lane reads the same entry; a
 // uniform block lets lavapipe load it without the per-lane branches of a storage buffer.
 @group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
+// The second part of a split hash table (common/hash_grid.wgsl).
+@group(0) @binding(13) var<storage, read> table_hi: array<f32>;
 
 @compute @workgroup_size(64)
 fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,

@@ -3,8 +3,16 @@
 // jittered within their strata by a hash of (seed, ray, sample) unless jitter is off. Writes
 // the sample positions, (t, dt) for compositing and (s, ds) in [0, 1] for the distortion loss,
 // and each ray's (first sample, count).
+//
+// `stratified_occupied` skips empty space: it probes `probes` equal intervals of s along the
+// ray against the occupancy grid (one test at each interval's centre) and spreads the same
+// per-ray count of strata over the occupied intervals only, as if the empty ones were cut out
+// of [0, 1]. A ray with no occupied interval samples all of it. With every interval occupied it
+// gives `stratified`'s samples. dt is the length in t of a stratum's occupied part; ds is its
+// share of s (the strata of one ray then tile the occupied part of s).
 //!include common/dispatch.wgsl
 //!include common/rng.wgsl
+//!include common/occupancy.wgsl
 
 struct Params {
     n_rays: u32,
@@ -13,9 +21,12 @@ struct Params {
     spacing: u32,
     jitter: u32,
     seed: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // stratified_occupied: the grid, the probe intervals per ray (at most MAX_PROBES), and the
+    // scene box (u = (p - centre.xyz) * centre.w).
+    occ_res: u32,
+    occ_cascades: u32,
+    probes: u32,
+    centre: vec4<f32>,
 }
 var<immediate> params: Params;
 
@@ -27,6 +38,9 @@ var<immediate> params: Params;
 @group(0) @binding(4) var<storage, read_write> t_dt: array<vec2<f32>>;
 @group(0) @binding(5) var<storage, read_write> s_ds: array<vec2<f32>>;
 @group(0) @binding(6) var<storage, read_write> rays: array<vec2<u32>>;
+@group(0) @binding(7) var<storage, read> occ_bits: array<u32>;
+
+const MAX_PROBES: u32 = 256u;
 
 // Distance at normalised position s in [0, 1].
 fn t_of(s: f32, near: f32, far: f32) -> f32 {
@@ -51,22 +65,112 @@ fn stratified(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     rays[r] = vec2<u32>(first, k);
     let inv_k = 1.0 / f32(k);
     for (var i = 0u; i < k; i += 1u) {
-        var u = 0.5;
-        if params.jitter != 0u {
-            u = rand01(pcg_hash(params.seed ^ pcg_hash(r)) + i);
-        }
         // Stratum edges and the jittered point inside it.
         let s0 = f32(i) * inv_k;
         let s1 = f32(i + 1u) * inv_k;
-        let s = mix(s0, s1, u);
-        let t = t_of(s, nf.x, nf.y);
+        let s = mix(s0, s1, jitter(r, i));
         let dt = t_of(s1, nf.x, nf.y) - t_of(s0, nf.x, nf.y);
-        let p = o + t * d;
-        let idx = first + i;
-        positions[3u * idx] = p.x;
-        positions[3u * idx + 1u] = p.y;
-        positions[3u * idx + 2u] = p.z;
-        t_dt[idx] = vec2<f32>(t, dt);
-        s_ds[idx] = vec2<f32>(s, inv_k);
+        write_sample(first + i, o, d, t_of(s, nf.x, nf.y), dt, s, inv_k);
+    }
+}
+
+// The position of sample i of ray r inside its stratum, in [0, 1).
+fn jitter(r: u32, i: u32) -> f32 {
+    if params.jitter != 0u {
+        return rand01(pcg_hash(params.seed ^ pcg_hash(r)) + i);
+    }
+    return 0.5;
+}
+
+fn write_sample(idx: u32, o: vec3<f32>, d: vec3<f32>, t: f32, dt: f32, s: f32, ds: f32) {
+    let p = o + t * d;
+    positions[3u * idx] = p.x;
+    positions[3u * idx + 1u] = p.y;
+    positions[3u * idx + 2u] = p.z;
+    t_dt[idx] = vec2<f32>(t, dt);
+    s_ds[idx] = vec2<f32>(s, ds);
+}
+
+// Whether probe interval j's centre lies in an occupied cell (points outside the grid count as
+// occupied, as in the march).
+fn probe_occupied(j: u32, o: vec3<f32>, d: vec3<f32>, nf: vec2<f32>) -> bool {
+    let s = (f32(j) + 0.5) / f32(params.probes);
+    let u = (o + t_of(s, nf.x, nf.y) * d - params.centre.xyz) * params.centre.w;
+    let cell = occ_cell(u, OccGrid(params.occ_res, params.occ_cascades));
+    return cell == OCC_NONE || ((occ_bits[cell / 32u] >> (cell % 32u)) & 1u) != 0u;
+}
+
+// The probe interval of occupied rank q (0-based) in the ray's bit mask.
+fn probe_of_rank(mask: ptr<function, array<u32, 8>>, q: u32) -> u32 {
+    var left = q;
+    for (var w = 0u; w < 8u; w += 1u) {
+        let c = countOneBits((*mask)[w]);
+        if left < c {
+            var bits = (*mask)[w];
+            for (var b = 0u; b < left; b += 1u) {
+                // Clear the lowest set bit.
+                bits &= bits - 1u;
+            }
+            return 32u * w + firstTrailingBit(bits);
+        }
+        left -= c;
+    }
+    return MAX_PROBES - 1u;
+}
+
+// s at occupied measure c (in probe intervals, 0 <= c <= count) for the mask's occupied
+// intervals.
+fn s_at(mask: ptr<function, array<u32, 8>>, c: f32, count: u32) -> f32 {
+    let q = min(u32(floor(c)), count - 1u);
+    return (f32(probe_of_rank(mask, q)) + (c - f32(q))) / f32(params.probes);
+}
+
+@compute @workgroup_size(64)
+fn stratified_occupied(@builtin(workgroup_id) wid: vec3<u32>,
+                       @builtin(num_workgroups) nwg: vec3<u32>,
+                       @builtin(local_invocation_index) lid: u32) {
+    let r = linear_group(wid, nwg) * 64u + lid;
+    if r >= params.n_rays {
+        return;
+    }
+    let k = params.per_ray;
+    let m = params.probes;
+    let nf = near_far[r];
+    let o = origins[r].xyz;
+    let d = directions[r].xyz;
+    let first = r * k;
+    rays[r] = vec2<u32>(first, k);
+    var mask: array<u32, 8>;
+    var count = 0u;
+    for (var j = 0u; j < m; j += 1u) {
+        if probe_occupied(j, o, d, nf) {
+            mask[j / 32u] |= 1u << (j % 32u);
+            count += 1u;
+        }
+    }
+    if count == 0u {
+        for (var j = 0u; j < m; j += 1u) {
+            mask[j / 32u] |= 1u << (j % 32u);
+        }
+        count = m;
+    }
+    let per = f32(count) / f32(k);
+    let pm = 1.0 / f32(m);
+    for (var i = 0u; i < k; i += 1u) {
+        let c0 = f32(i) * per;
+        let c1 = f32(i + 1u) * per;
+        let s = s_at(&mask, mix(c0, c1, jitter(r, i)), count);
+        // The stratum's occupied pieces, one per probe interval it touches.
+        var dt = 0.0;
+        let q1 = min(u32(ceil(c1)), count);
+        for (var q = u32(floor(c0)); q < q1; q += 1u) {
+            let a = max(c0, f32(q));
+            let b = min(c1, f32(q + 1u));
+            if b > a {
+                let j = f32(probe_of_rank(&mask, q));
+                dt += t_of((j + b - f32(q)) * pm, nf.x, nf.y) - t_of((j + a - f32(q)) * pm, nf.x, nf.y);
+            }
+        }
+        write_sample(first + i, o, d, t_of(s, nf.x, nf.y), dt, s, per * pm);
     }
 }

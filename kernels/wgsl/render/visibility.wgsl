@@ -117,6 +117,8 @@ var<immediate> params: Params;
 @group(0) @binding(9) var<uniform> mlp: array<vec4<f32>, 4096>;
 // Transmittance volumes, camera-major, then row, column, stratum boundary (vol_depth + 1).
 @group(0) @binding(10) var<storage, read_write> tvol: array<f32>;
+// The second part of a split hash table (common/hash_grid.wgsl).
+@group(0) @binding(11) var<storage, read> table_hi: array<f32>;
 
 // Fraction of a soft edge at signed distance `inside` (positive inside) for edge width `soft`.
 fn edge(inside: f32, soft: f32) -> f32 {

@@ -128,6 +128,54 @@ pub struct HashGrid {
     decay: Kernel,
     /// The f16 forward path, when enabled ([`HashGrid::with_f16`]).
     half: Option<Half>,
+    /// Where a table larger than one storage binding is cut in two.
+    split: Option<Split>,
+}
+
+/// A table bound as two ranges (common/hash_grid.wgsl): levels `level..` live in the second,
+/// which starts at float `hi_base` (a multiple of 128, so both ranges start 256-byte aligned and
+/// the f16 copy's second range does too); the first range covers floats `..lo_floats`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Split {
+    /// First level of the second range.
+    pub level: u32,
+    /// Floats of the first range.
+    pub lo_floats: u64,
+    /// Float offset of the second range.
+    pub hi_base: u64,
+}
+
+/// Where to cut a table of levels `layout` (floats per level `features`) so that each range
+/// fits `limit` bytes: `Ok(None)` when the whole table fits, an error when two ranges do not.
+pub fn split_table(layout: &[HashLevel], features: u32, limit: u64) -> Result<Option<Split>> {
+    let end = |l: &HashLevel| l.offset as u64 + l.size as u64 * features as u64;
+    let total = layout.last().map_or(0, end);
+    if total * 4 <= limit {
+        return Ok(None);
+    }
+    // The first level whose end does not fit the first range starts the second.
+    let level = layout
+        .iter()
+        .position(|l| end(l) * 4 > limit)
+        .unwrap_or(layout.len());
+    let too_large = || GpuError::BufferTooLarge {
+        name: "hash grid table (split in two ranges)".into(),
+        bytes: total * 4,
+        limit: 2 * limit,
+    };
+    if level == 0 {
+        return Err(too_large());
+    }
+    let lo_floats = layout[level].offset as u64;
+    let hi_base = lo_floats / 128 * 128;
+    if (total - hi_base) * 4 > limit {
+        return Err(too_large());
+    }
+    Ok(Some(Split {
+        level: level as u32,
+        lo_floats,
+        hi_base,
+    }))
 }
 
 /// The f16 forward path: the kernels and the f16 copy of the table.
@@ -145,18 +193,41 @@ enum Kernels {
 }
 
 impl HashGrid {
-    /// Builds the kernels and uploads the level layout.
+    /// Builds the kernels and uploads the level layout. A table larger than one storage
+    /// binding (`maxStorageBufferRange`) is bound as two ranges; larger than two, it is an
+    /// error.
     pub fn new(ctx: &Context, config: HashGridConfig) -> Result<HashGrid> {
+        Self::with_binding_limit(ctx, config, ctx.info().max_storage_buffer_range)
+    }
+
+    /// [`HashGrid::new`] as if one binding held at most `limit` bytes (the tests split small
+    /// tables with it).
+    pub fn with_binding_limit(
+        ctx: &Context,
+        config: HashGridConfig,
+        limit: u64,
+    ) -> Result<HashGrid> {
         config.validate()?;
         let count = config.param_count();
-        if count * 4 > ctx.info().max_storage_buffer_range {
-            return Err(GpuError::BufferTooLarge {
-                name: "hash grid table".into(),
-                bytes: count * 4,
-                limit: ctx.info().max_storage_buffer_range,
-            });
-        }
         let layout = config.level_layout();
+        let split = split_table(
+            &layout,
+            config.features,
+            limit.min(ctx.info().max_storage_buffer_range),
+        )?;
+        // The device's layout: second-range levels count from hi_base and carry flag bit 1.
+        let device_layout: Vec<HashLevel> = layout
+            .iter()
+            .enumerate()
+            .map(|(l, lv)| match split {
+                Some(sp) if l as u32 >= sp.level => HashLevel {
+                    offset: lv.offset - sp.hi_base as u32,
+                    dense: lv.dense | 2,
+                    ..*lv
+                },
+                _ => *lv,
+            })
+            .collect();
         let mut block: Vec<[u32; 4]> = layout
             .iter()
             .map(|l| [l.offset, l.size * config.features, 0, 0])
@@ -165,7 +236,7 @@ impl HashGrid {
         block.resize(65, [count as u32, 1, 0, 0]);
         Ok(HashGrid {
             config,
-            levels: Buffer::from_slice(ctx, "hash grid levels", &layout)?,
+            levels: Buffer::from_slice(ctx, "hash grid levels", &device_layout)?,
             level_block: Buffer::from_slice(ctx, "hash grid level block", &block)?,
             kernels: if config.features == 2 {
                 Kernels::F2 {
@@ -180,7 +251,28 @@ impl HashGrid {
             },
             decay: Kernel::new(ctx, &kdecay::hash_decay::DESC)?,
             half: None,
+            split,
         })
+    }
+
+    /// Where the table is cut into two bindings (`None`: one binding).
+    pub fn split(&self) -> Option<Split> {
+        self.split
+    }
+
+    /// The two table bindings the kernels take (`table`, `table_hi`): the ranges of a split
+    /// table, or the whole table twice.
+    pub fn parts<'a>(&self, table: Binding<'a>) -> Result<(Binding<'a>, Binding<'a>)> {
+        match self.split {
+            None => Ok((table, table)),
+            Some(sp) => {
+                let total = self.config.param_count();
+                Ok((
+                    table.sub(0, sp.lo_floats * 4)?,
+                    table.sub(sp.hi_base * 4, (total - sp.hi_base) * 4)?,
+                ))
+            }
+        }
     }
 
     /// Switches the forward pass to f16 table reads (`field/hash_grid_f16.wgsl`): each
@@ -194,6 +286,13 @@ impl HashGrid {
             )));
         }
         let n = self.config.param_count() as usize;
+        if n as u64 * 2 > ctx.info().max_storage_buffer_range {
+            return Err(GpuError::BufferTooLarge {
+                name: "hash grid f16 table".into(),
+                bytes: n as u64 * 2,
+                limit: ctx.info().max_storage_buffer_range,
+            });
+        }
         self.half = Some(Half {
             convert: Kernel::new(ctx, &k16::table_to_f16::DESC)?,
             fwd: Kernel::new(ctx, &k16::encode_fwd_f16::DESC)?,
@@ -222,6 +321,11 @@ impl HashGrid {
         let n = self.config.param_count();
         table.check_fits(n, 4, "hash grid table")?;
         d_table.check_fits(n, 4, "hash grid gradient")?;
+        if self.split.is_some() {
+            return Err(GpuError::Usage(
+                "the standalone hash-decay kernel needs the table in one binding; training folds hash decay into Adam, which handles split tables".into(),
+            ));
+        }
         if !(lambda >= 0.0 && lambda.is_finite()) {
             return Err(GpuError::Usage(format!(
                 "hash decay weight {lambda} must be >= 0"
@@ -322,19 +426,41 @@ impl HashGrid {
     ) -> Result<()> {
         self.check(&positions, &table, &encoded, n)?;
         let (kernel, threads, p) = self.pick(n, true)?;
+        let (lo, hi) = self.parts(table)?;
         if let Some(h) = &self.half {
-            let pairs = self.config.param_count() / 2;
+            let total = self.config.param_count();
+            let hi_base = self.split.map_or(0, |sp| sp.hi_base);
+            let half = h.table.binding();
+            // The f32 ranges convert one at a time into the one f16 copy.
+            // (f32 range, f16 range, feature pairs).
+            let ranges = match self.split {
+                None => vec![(table, half, total / 2)],
+                Some(sp) => vec![
+                    (lo, half.sub(0, sp.lo_floats * 2)?, sp.lo_floats / 2),
+                    (
+                        hi,
+                        half.sub(hi_base * 2, (total - hi_base) * 2)?,
+                        (total - hi_base) / 2,
+                    ),
+                ],
+            };
             let pc = k16::Params {
-                n: pairs as u32,
+                n: 0,
                 levels: p.levels,
                 features: p.features,
-                _pad: 0,
+                hi_base: hi_base as u32,
             };
-            let b = k16::table_to_f16::Bindings {
-                table,
-                half_out: h.table.binding(),
-            };
-            rec.dispatch(&h.convert, b.into_array(), &pc, pairs)?;
+            for (part, out, pairs) in ranges {
+                let b = k16::table_to_f16::Bindings {
+                    table: part,
+                    half_out: out,
+                };
+                let pc = k16::Params {
+                    n: pairs as u32,
+                    ..pc
+                };
+                rec.dispatch(&h.convert, b.into_array(), &pc, pairs)?;
+            }
             let pf = k16::Params { n: p.n, ..pc };
             let b = k16::encode_fwd_f16::Bindings {
                 positions,
@@ -347,7 +473,8 @@ impl HashGrid {
         let b = k::encode_fwd::Bindings {
             positions,
             level_info: self.levels.binding(),
-            table,
+            table: lo,
+            table_hi: hi,
             encoded,
         };
         rec.dispatch(kernel, b.into_array(), &p, threads)
@@ -365,11 +492,13 @@ impl HashGrid {
     ) -> Result<()> {
         self.check(&positions, &d_table, &d_encoded, n)?;
         let (kernel, threads, p) = self.pick(n, false)?;
+        let (lo, hi) = self.parts(d_table)?;
         let b = k::encode_bwd::Bindings {
             positions,
             level_info: self.levels.binding(),
             d_encoded,
-            d_table,
+            d_table: lo,
+            d_table_hi: hi,
         };
         rec.dispatch(kernel, b.into_array(), &p, threads)
     }

@@ -194,11 +194,13 @@ impl Marcher {
             None => self.no_bits.binding(),
         };
         p.color_base = self.record_mlp_block(rec, field, &params)?;
+        let (table, table_hi) = field.grid().parts(params[0])?;
         let b = k::march_render::Bindings {
             cameras,
             pixels,
             level_info: field.grid().levels().binding(),
-            table: params[0],
+            table,
+            table_hi,
             density_shape: field.density().shape().binding(),
             color_shape: field.color().shape().binding(),
             occ_bits,
@@ -244,9 +246,11 @@ impl Marcher {
         p.seed = seed;
         p.decay = decay;
         p.color_base = self.record_mlp_block(rec, field, &params)?;
+        let (table, table_hi) = field.grid().parts(params[0])?;
         let b = k::march_occupancy::Bindings {
             level_info: field.grid().levels().binding(),
-            table: params[0],
+            table,
+            table_hi,
             density_shape: field.density().shape().binding(),
             occ_grid: occupancy.grid().binding(),
             mlp: self.mlp_block.binding(),

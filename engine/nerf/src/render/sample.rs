@@ -3,6 +3,24 @@
 use extranerf_gpu::kernels::render::sample as k;
 use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
 
+use crate::field::encodings::SceneBox;
+use crate::render::occupancy::Occupancy;
+
+/// Most probe intervals per ray of occupancy-aware sampling.
+pub const MAX_PROBES: u32 = 256;
+
+/// Occupancy-aware sampling: the strata of each ray are spread over the probe intervals whose
+/// centres lie in occupied cells (`render/sample.wgsl`, `stratified_occupied`).
+#[derive(Clone, Copy, Debug)]
+pub struct SkipEmpty<'a> {
+    /// The grid (its bitfield is read).
+    pub grid: &'a Occupancy,
+    /// The scene box that maps sample positions to the grid.
+    pub scene: SceneBox,
+    /// Probe intervals per ray, 1 to [`MAX_PROBES`].
+    pub probes: u32,
+}
+
 /// How samples are spaced between near and far.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Spacing {
@@ -29,6 +47,7 @@ pub struct SampleOutputs<'a> {
 #[derive(Debug)]
 pub struct Sampler {
     kernel: Kernel,
+    occupied: Kernel,
 }
 
 impl Sampler {
@@ -36,6 +55,7 @@ impl Sampler {
     pub fn new(ctx: &Context) -> Result<Sampler> {
         Ok(Sampler {
             kernel: Kernel::new(ctx, &k::stratified::DESC)?,
+            occupied: Kernel::new(ctx, &k::stratified_occupied::DESC)?,
         })
     }
 
@@ -54,6 +74,7 @@ impl Sampler {
         per_ray: u32,
         spacing: Spacing,
         seed: Option<u32>,
+        skip: Option<&SkipEmpty<'a>>,
     ) -> Result<()> {
         let total = n_rays * per_ray as u64;
         if per_ray == 0 || total > u32::MAX as u64 {
@@ -68,16 +89,42 @@ impl Sampler {
         out.t_dt.check_fits(2 * total, 4, "t_dt")?;
         out.s_ds.check_fits(2 * total, 4, "s_ds")?;
         out.rays.check_fits(2 * n_rays, 4, "ray spans")?;
-        let p = k::Params {
+        let mut p = k::Params {
             n_rays: n_rays as u32,
             per_ray,
             spacing: spacing as u32,
             jitter: u32::from(seed.is_some()),
             seed: seed.unwrap_or(0),
-            _pad0: 0,
-            _pad1: 0,
-            _pad2: 0,
+            occ_res: 0,
+            occ_cascades: 0,
+            probes: 0,
+            centre: [0.0; 4],
         };
+        if let Some(skip) = skip {
+            if !(1..=MAX_PROBES).contains(&skip.probes) {
+                return Err(GpuError::Usage(format!(
+                    "{} occupancy probes per ray: use 1 to {MAX_PROBES}",
+                    skip.probes
+                )));
+            }
+            let g = skip.grid.config();
+            let c = skip.scene.center;
+            p.occ_res = g.res;
+            p.occ_cascades = g.cascades;
+            p.probes = skip.probes;
+            p.centre = [c[0], c[1], c[2], 1.0 / skip.scene.radius];
+            let b = k::stratified_occupied::Bindings {
+                origins,
+                directions,
+                near_far,
+                positions: out.positions,
+                t_dt: out.t_dt,
+                s_ds: out.s_ds,
+                rays: out.rays,
+                occ_bits: skip.grid.bits().binding(),
+            };
+            return rec.dispatch(&self.occupied, b.into_array(), &p, n_rays);
+        }
         let b = k::stratified::Bindings {
             origins,
             directions,

@@ -363,8 +363,8 @@ impl Visibility {
 
     /// The kernel parameters for `density` (everything but the counts), after recording the
     /// copy of the density MLP into the uniform block; and the density's bindings:
-    /// (level_info, table, density_shape, occ_bits, shapes).
-    #[allow(clippy::type_complexity)] // five named bindings, destructured at the call
+    /// (level_info, table, table_hi, density_shape, occ_bits, shapes).
+    #[allow(clippy::type_complexity)] // six named bindings, destructured at the call
     fn density_setup<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
@@ -372,6 +372,7 @@ impl Visibility {
     ) -> Result<(
         k::Params,
         (
+            Binding<'a>,
             Binding<'a>,
             Binding<'a>,
             Binding<'a>,
@@ -452,9 +453,11 @@ impl Visibility {
                     }
                     None => self.no_bits.binding(),
                 };
+                let (table, table_hi) = field.grid().parts(params[0])?;
                 (
                     field.grid().levels().binding(),
-                    params[0],
+                    table,
+                    table_hi,
                     field.density().shape().binding(),
                     bits,
                     self.no_shapes.binding(),
@@ -472,6 +475,7 @@ impl Visibility {
                 // read for this source.
                 (
                     self.no_bits.binding(),
+                    self.no_shapes.binding(),
                     self.no_shapes.binding(),
                     self.no_bits.binding(),
                     self.no_bits.binding(),
@@ -499,7 +503,7 @@ impl Visibility {
             )));
         }
         train.check_fits(n_train as u64 * CAMERA_WORDS, 4, "volume training cameras")?;
-        let (mut p, (level_info, table, density_shape, occ_bits, shapes)) =
+        let (mut p, (level_info, table, table_hi, density_shape, occ_bits, shapes)) =
             self.density_setup(rec, density)?;
         let [w, h, d] = volume.size;
         let rays = n_train as u64 * w as u64 * h as u64;
@@ -512,6 +516,7 @@ impl Visibility {
             train_cams: train,
             level_info,
             table,
+            table_hi,
             density_shape,
             occ_bits,
             shapes,
@@ -556,7 +561,7 @@ impl Visibility {
             4,
             "visibility training cameras",
         )?;
-        let (mut p, (level_info, table, density_shape, occ_bits, shapes)) =
+        let (mut p, (level_info, table, table_hi, density_shape, occ_bits, shapes)) =
             self.density_setup(rec, density)?;
         p.n = count_u32(n, "visibility pixels")?;
         p.samples = cfg.samples;
@@ -587,6 +592,7 @@ impl Visibility {
             train_cams: train,
             level_info,
             table,
+            table_hi,
             density_shape,
             occ_bits,
             shapes,
