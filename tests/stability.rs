@@ -7,7 +7,8 @@
 //! contraction in field.rs; axis-parallel rays in render.rs, march.rs, train.rs and
 //! visibility.rs; all-black and all-white images in train.rs; gradients of 1e30 and 1e-30 in
 //! optim.rs; opaque and empty fields in march.rs and visibility.rs; the f16 table's overflow,
-//! underflow and NaN in field.rs. Training with the f16 table and with the occupancy grid is
+//! underflow and NaN, and the f16 MLP record under output gradients scaled by 1e-9 and 1e6, in
+//! field.rs. Training with the f16 table and with the occupancy grid is
 //! checked here.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
