@@ -64,6 +64,7 @@ fn unknown_device_is_a_clear_error() {
         validation: Validation::Off,
         device: Some("no-such-gpu-xyz".into()),
         max_binding_bytes: None,
+        share_with_wgpu: false,
     })
     .unwrap_err();
     match &err {
@@ -80,6 +81,7 @@ fn unknown_device_is_a_clear_error() {
         validation: Validation::Off,
         device: Some("99".into()),
         max_binding_bytes: None,
+        share_with_wgpu: false,
     })
     .unwrap_err();
     assert!(matches!(err, GpuError::DeviceNotFound { .. }), "{err}");
@@ -94,6 +96,7 @@ fn device_chosen_by_index_and_name() {
         validation: Validation::Off,
         device: Some("0".into()),
         max_binding_bytes: None,
+        share_with_wgpu: false,
     })
     .unwrap();
     assert_eq!(by_index.info().name, first.name);
@@ -102,6 +105,7 @@ fn device_chosen_by_index_and_name() {
         validation: Validation::Off,
         device: Some(part),
         max_binding_bytes: None,
+        share_with_wgpu: false,
     })
     .unwrap();
     assert!(by_name
@@ -385,6 +389,7 @@ fn resources_of_another_context_are_refused() {
         validation: Validation::Off,
         device: None,
         max_binding_bytes: None,
+        share_with_wgpu: false,
     })
     .unwrap();
     let foreign = Buffer::<u32>::new(&other, "foreign", 16).unwrap();

@@ -23,6 +23,7 @@ pub fn desc() -> ContextDesc {
         validation: Validation::from_env(Validation::IfAvailable),
         device: None,
         max_binding_bytes: None,
+        share_with_wgpu: false,
     }
 }
 

@@ -109,6 +109,7 @@ fn context(cli: &Cli) -> anyhow::Result<Context> {
         validation,
         device: cli.device.clone(),
         max_binding_bytes: None,
+        share_with_wgpu: false,
     })
     .context("creating the Vulkan device")
 }

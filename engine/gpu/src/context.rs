@@ -53,6 +53,11 @@ pub struct ContextDesc {
     /// Treat storage bindings as limited to this many bytes when the device allows more
     /// (`maxStorageBufferRange`), so large tables are split as on a smaller device.
     pub max_binding_bytes: Option<u64>,
+    /// Create the device so that wgpu adopts it ([`Context::wgpu`]; needs the `wgpu` feature).
+    /// It enables what wgpu-hal asks for, robust buffer access included, and is never
+    /// destroyed before the process exits, since wgpu users such as burn keep it in global
+    /// registries.
+    pub share_with_wgpu: bool,
 }
 
 /// One heap of the device.
@@ -181,6 +186,10 @@ pub(crate) struct Inner {
     allocator: Mutex<Option<Allocator>>,
     garbage: Mutex<Vec<(u64, Garbage)>>,
     pub(crate) info: DeviceInfo,
+    /// Created for wgpu to adopt: the device and instance outlive the context.
+    shared: bool,
+    #[cfg(feature = "wgpu")]
+    wgpu: Option<crate::wgpu_share::WgpuHandles>,
 }
 
 /// The engine's Vulkan device: cheap to clone, shared by every resource made from it.
@@ -374,11 +383,25 @@ impl Context {
         } else {
             vec![]
         };
-        let ext_ptrs: Vec<*const std::ffi::c_char> = if has_debug_utils {
-            vec![ash::ext::debug_utils::NAME.as_ptr()]
+        let mut instance_exts: Vec<&'static CStr> = if has_debug_utils {
+            vec![ash::ext::debug_utils::NAME]
         } else {
             vec![]
         };
+        if desc.share_with_wgpu {
+            #[cfg(feature = "wgpu")]
+            for e in crate::wgpu_share::instance_extensions(&entry, api)? {
+                if !instance_exts.contains(&e) {
+                    instance_exts.push(e);
+                }
+            }
+            #[cfg(not(feature = "wgpu"))]
+            return Err(GpuError::Usage(
+                "sharing the device with wgpu needs extranerf-gpu's `wgpu` feature".into(),
+            ));
+        }
+        let ext_ptrs: Vec<*const std::ffi::c_char> =
+            instance_exts.iter().map(|e| e.as_ptr()).collect();
         let log = Arc::<ValidationLog>::default();
         let mut messenger_ci = vk::DebugUtilsMessengerCreateInfoEXT::default()
             .message_severity(
@@ -460,6 +483,22 @@ impl Context {
         if features.atomic_float {
             ext_names.push(ash::ext::shader_atomic_float::NAME.as_ptr());
         }
+        #[cfg(feature = "wgpu")]
+        let mut share = if desc.share_with_wgpu {
+            let sh = crate::wgpu_share::Share::new(
+                &entry,
+                instance_ref,
+                api,
+                instance_exts.clone(),
+                physical,
+                info.shader_float16 && info.storage_buffer_16bit,
+                features.atomic_float,
+            )?;
+            ext_names = sh.extensions.iter().map(|e| e.as_ptr()).collect();
+            Some(sh)
+        } else {
+            None
+        };
         let priorities = [1.0f32];
         let queue_ci = [vk::DeviceQueueCreateInfo::default()
             .queue_family_index(family)
@@ -475,11 +514,22 @@ impl Context {
             .shader_buffer_float32_atomics(true);
         let mut dci = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_ci)
-            .enabled_extension_names(&ext_names)
-            .push_next(&mut f11)
-            .push_next(&mut f12);
-        if features.atomic_float {
-            dci = dci.push_next(&mut fatomic);
+            .enabled_extension_names(&ext_names);
+        #[cfg(feature = "wgpu")]
+        let shared = share.is_some();
+        #[cfg(not(feature = "wgpu"))]
+        let shared = false;
+        if shared {
+            // wgpu-hal's feature chain covers the engine's needs (see wgpu_share).
+            #[cfg(feature = "wgpu")]
+            if let Some(sh) = share.as_mut() {
+                dci = sh.chain.add_to_device_create(dci);
+            }
+        } else {
+            dci = dci.push_next(&mut f11).push_next(&mut f12);
+            if features.atomic_float {
+                dci = dci.push_next(&mut fatomic);
+            }
         }
         // SAFETY: all pointers in `dci` refer to locals alive across the call; features enabled
         // were reported as supported by `probe_device`.
@@ -531,6 +581,22 @@ impl Context {
             }
         };
         let (timeline, allocator) = created?;
+        #[cfg(feature = "wgpu")]
+        let wgpu = match share {
+            Some(sh) => match sh.adopt(&device, family) {
+                Ok(h) => Some(h),
+                Err(e) => {
+                    // SAFETY: nothing else uses the device yet.
+                    unsafe {
+                        drop(allocator);
+                        device.destroy_semaphore(timeline, None);
+                        device.destroy_device(None);
+                    }
+                    return Err(e);
+                }
+            },
+            None => None,
+        };
         let (instance, debug_instance, messenger) = guard.take();
         let inner = Inner {
             _entry: entry,
@@ -548,6 +614,9 @@ impl Context {
             allocator: Mutex::new(Some(allocator)),
             garbage: Mutex::new(Vec::new()),
             info,
+            shared,
+            #[cfg(feature = "wgpu")]
+            wgpu,
         };
         let ctx = Context {
             inner: Arc::new(inner),
@@ -555,6 +624,18 @@ impl Context {
         ctx.name(timeline, "extranerf timeline");
         ctx.name(queue, "extranerf compute queue");
         Ok(ctx)
+    }
+
+    /// The raw VkDevice handle as an integer (to check that another API drives the same
+    /// device).
+    pub fn raw_device(&self) -> u64 {
+        vk::Handle::as_raw(self.inner.device.handle())
+    }
+
+    /// The device as wgpu objects, when created with [`ContextDesc::share_with_wgpu`].
+    #[cfg(feature = "wgpu")]
+    pub fn wgpu(&self) -> Option<&crate::wgpu_share::WgpuHandles> {
+        self.inner.wgpu.as_ref()
     }
 
     /// What the engine knows about its device.
@@ -774,6 +855,12 @@ impl Drop for Inner {
                 drop(a.take());
             }
             self.device.destroy_semaphore(self.timeline, None);
+            if self.shared {
+                // wgpu users (burn's global runtime) may still hold objects on this device:
+                // leave the device, instance, messenger and its log to the process exit.
+                std::mem::forget(self.log.clone());
+                return;
+            }
             self.device.destroy_device(None);
             if let Some(dbg) = &self.debug_instance {
                 if self.messenger != vk::DebugUtilsMessengerEXT::null() {

@@ -18,6 +18,8 @@ mod context;
 mod error;
 mod kernel;
 mod recorder;
+#[cfg(feature = "wgpu")]
+mod wgpu_share;
 
 pub use buffer::{Binding, Buffer, BUFFER_ALIGN};
 pub use context::{
@@ -28,3 +30,7 @@ pub use error::{count_u32, GpuError, Result};
 pub use extranerf_kernels as kernels;
 pub use kernel::Kernel;
 pub use recorder::{fold_groups, GpuTimer, Recorder, Ticket};
+#[cfg(feature = "wgpu")]
+pub use wgpu_share::{SharedBuffer, WgpuHandles};
+#[cfg(feature = "wgpu")]
+pub use {wgpu, wgpu_hal, wgpu_types};
