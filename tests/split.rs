@@ -6,13 +6,11 @@
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
 use extranerf_gpu::{Context, ContextDesc};
-use extranerf_nerf::demo::write_demo_scene;
 use extranerf_nerf::model::{init_params, ModelConfig};
 use extranerf_nerf::render::march::MarchCuts;
-use extranerf_nerf::run::{training_views, SceneSpec};
 use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer, View};
 use extranerf_prims::Prims;
-use extranerf_tests::{assert_no_validation_messages, desc, scratch_dir};
+use extranerf_tests::{assert_no_validation_messages, demo_training_views, desc};
 
 const LIMIT: u64 = 600 << 10;
 
@@ -34,18 +32,7 @@ fn model() -> ModelConfig {
 }
 
 fn views() -> Vec<View> {
-    let dir = scratch_dir("split-tables");
-    write_demo_scene(&dir, 32, 24).unwrap();
-    let spec = SceneSpec {
-        dir,
-        split: "extrapolation".into(),
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-    };
-    let loaded = spec.load().unwrap();
-    training_views(&spec, &loaded, &model()).unwrap()
+    demo_training_views("split-tables", &model())
 }
 
 /// Trains 30 steps on `ctx`; returns the per-window MSEs, the parameters and a fused render.

@@ -13,15 +13,13 @@
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
-use extranerf_nerf::demo::write_demo_scene;
 use extranerf_nerf::model::{init_params, ModelConfig};
 use extranerf_nerf::mvs::{Mvs, MvsConfig};
 use extranerf_nerf::render::visibility::{
     AnalyticField, Density, Shape, Visibility, VisibilityConfig,
 };
-use extranerf_nerf::run::{training_views, SceneSpec};
 use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, View};
-use extranerf_tests::{assert_no_validation_messages, engine, scratch_dir};
+use extranerf_tests::{assert_no_validation_messages, demo_training_views, engine};
 
 fn tiny() -> ModelConfig {
     ModelConfig {
@@ -40,18 +38,7 @@ fn tiny() -> ModelConfig {
 }
 
 fn demo_views(name: &str) -> Vec<View> {
-    let dir = scratch_dir(name);
-    write_demo_scene(&dir, 32, 24).unwrap();
-    let spec = SceneSpec {
-        dir,
-        split: "extrapolation".into(),
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-    };
-    let loaded = spec.load().unwrap();
-    training_views(&spec, &loaded, &tiny()).unwrap()
+    demo_training_views(name, &tiny())
 }
 
 /// Trains `steps` steps and returns (first window MSE, last window MSE, parameters).

@@ -94,3 +94,28 @@ pub fn scratch_dir(name: &str) -> PathBuf {
     std::fs::create_dir_all(&d).unwrap_or_else(|e| panic!("creating {}: {e}", d.display()));
     d
 }
+
+/// The training views (extrapolation split, full resolution) of the procedural demo scene at
+/// 32x24, written into a fresh scratch folder `name`, for `model`'s ray space.
+pub fn demo_training_views(
+    name: &str,
+    model: &extranerf_nerf::model::ModelConfig,
+) -> Vec<extranerf_nerf::trainer::View> {
+    use extranerf_nerf::run::{training_views, SceneSpec};
+    let dir = scratch_dir(name);
+    extranerf_nerf::demo::write_demo_scene(&dir, 32, 24)
+        .unwrap_or_else(|e| panic!("writing the demo scene: {e}"));
+    let spec = SceneSpec {
+        dir,
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec
+        .load()
+        .unwrap_or_else(|e| panic!("loading the demo scene: {e}"));
+    training_views(&spec, &loaded, model)
+        .unwrap_or_else(|e| panic!("the demo scene's training views: {e}"))
+}
