@@ -617,10 +617,53 @@ fn occupancy_grid_matches_reference() {
     assert_no_validation_messages(&e.ctx);
 }
 
+/// Rays (origins, directions, near/far) on the device and room for `per_ray` samples each:
+/// the sampler tests' operands.
+struct SampleBuffers {
+    o: Buffer<f32>,
+    d: Buffer<f32>,
+    nf: Buffer<f32>,
+    pos: Buffer<f32>,
+    tdt: Buffer<f32>,
+    sds: Buffer<f32>,
+    rays: Buffer<u32>,
+}
+
+impl SampleBuffers {
+    fn new(
+        ctx: &extranerf_gpu::Context,
+        o: &[[f32; 4]],
+        d: &[[f32; 4]],
+        nf: &[[f32; 2]],
+        per_ray: u32,
+    ) -> SampleBuffers {
+        let n = o.len();
+        let total = n * per_ray as usize;
+        SampleBuffers {
+            o: Buffer::from_slice(ctx, "o", o.as_flattened()).unwrap(),
+            d: Buffer::from_slice(ctx, "d", d.as_flattened()).unwrap(),
+            nf: Buffer::from_slice(ctx, "near_far", nf.as_flattened()).unwrap(),
+            pos: Buffer::new(ctx, "positions", 3 * total).unwrap(),
+            tdt: Buffer::new(ctx, "t_dt", 2 * total).unwrap(),
+            sds: Buffer::new(ctx, "s_ds", 2 * total).unwrap(),
+            rays: Buffer::new(ctx, "rays", 2 * n).unwrap(),
+        }
+    }
+
+    fn outputs(&self) -> extranerf_nerf::render::sample::SampleOutputs<'_> {
+        extranerf_nerf::render::sample::SampleOutputs {
+            positions: self.pos.binding(),
+            t_dt: self.tdt.binding(),
+            s_ds: self.sds.binding(),
+            rays: self.rays.binding(),
+        }
+    }
+}
+
 #[test]
 fn stratified_samples_match_reference() {
     use extranerf_nerf::reference::stratified;
-    use extranerf_nerf::render::sample::{SampleOutputs, Sampler, Spacing};
+    use extranerf_nerf::render::sample::{Sampler, Spacing};
     let e = engine();
     let sampler = Sampler::new(&e.ctx).unwrap();
     let mut rng = Rng::new(81);
@@ -651,40 +694,20 @@ fn stratified_samples_match_reference() {
             [a, a * rng.uniform(1.5, 1000.0)]
         })
         .collect();
-    let f4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<f32>>();
-    let (ob, db) = (
-        Buffer::from_slice(&e.ctx, "o", &f4(&o)).unwrap(),
-        Buffer::from_slice(&e.ctx, "d", &f4(&d)).unwrap(),
-    );
-    let nfb = Buffer::from_slice(
-        &e.ctx,
-        "near_far",
-        &nf.iter().flatten().copied().collect::<Vec<f32>>(),
-    )
-    .unwrap();
-    let total = n * k as usize;
-    let pos = Buffer::<f32>::new(&e.ctx, "positions", 3 * total).unwrap();
-    let tdt = Buffer::<f32>::new(&e.ctx, "t_dt", 2 * total).unwrap();
-    let sds = Buffer::<f32>::new(&e.ctx, "s_ds", 2 * total).unwrap();
-    let rays = Buffer::<u32>::new(&e.ctx, "rays", 2 * n).unwrap();
+    let b = SampleBuffers::new(&e.ctx, &o, &d, &nf, k);
     for (spacing, seed) in [
         (Spacing::Linear, None),
         (Spacing::Linear, Some(5u32)),
         (Spacing::Disparity, Some(9u32)),
     ] {
-        let out = SampleOutputs {
-            positions: pos.binding(),
-            t_dt: tdt.binding(),
-            s_ds: sds.binding(),
-            rays: rays.binding(),
-        };
+        let out = b.outputs();
         let mut rec = e.ctx.recorder("sample").unwrap();
         sampler
             .record(
                 &mut rec,
-                ob.binding(),
-                db.binding(),
-                nfb.binding(),
+                b.o.binding(),
+                b.d.binding(),
+                b.nf.binding(),
                 &out,
                 n as u64,
                 k,
@@ -695,10 +718,10 @@ fn stratified_samples_match_reference() {
             .unwrap();
         e.ctx.run(rec).unwrap();
         let (p, t, s, r) = (
-            pos.read().unwrap(),
-            tdt.read().unwrap(),
-            sds.read().unwrap(),
-            rays.read().unwrap(),
+            b.pos.read().unwrap(),
+            b.tdt.read().unwrap(),
+            b.sds.read().unwrap(),
+            b.rays.read().unwrap(),
         );
         for ray in 0..n {
             assert_eq!((r[2 * ray], r[2 * ray + 1]), (ray as u32 * k, k));
@@ -760,7 +783,7 @@ fn occupied_samples_match_reference() {
     use extranerf_nerf::field::encodings::{Contraction, SceneBox};
     use extranerf_nerf::reference::{occ_cell, stratified, stratified_occupied};
     use extranerf_nerf::render::occupancy::{Occupancy, OccupancyConfig};
-    use extranerf_nerf::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing};
+    use extranerf_nerf::render::sample::{Sampler, SkipEmpty, Spacing};
     let e = engine();
     let sampler = Sampler::new(&e.ctx).unwrap();
     let cfg = OccupancyConfig {
@@ -790,22 +813,7 @@ fn occupied_samples_match_reference() {
             [a, a + rng.uniform(0.5, 2.0)]
         })
         .collect();
-    let f4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<f32>>();
-    let (ob, db) = (
-        Buffer::from_slice(&e.ctx, "o", &f4(&o)).unwrap(),
-        Buffer::from_slice(&e.ctx, "d", &f4(&d)).unwrap(),
-    );
-    let nfb = Buffer::from_slice(
-        &e.ctx,
-        "near_far",
-        &nf.iter().flatten().copied().collect::<Vec<f32>>(),
-    )
-    .unwrap();
-    let total = n * k as usize;
-    let pos = Buffer::<f32>::new(&e.ctx, "positions", 3 * total).unwrap();
-    let tdt = Buffer::<f32>::new(&e.ctx, "t_dt", 2 * total).unwrap();
-    let sds = Buffer::<f32>::new(&e.ctx, "s_ds", 2 * total).unwrap();
-    let rays = Buffer::<u32>::new(&e.ctx, "rays", 2 * n).unwrap();
+    let b = SampleBuffers::new(&e.ctx, &o, &d, &nf, k);
     let words = (cfg.cells() as usize).div_ceil(32);
     let random: Vec<u32> = (0..words).map(|_| rng.next_u32()).collect();
     let (mut checked, mut plain_rays) = (0, 0);
@@ -821,12 +829,7 @@ fn occupied_samples_match_reference() {
             (Spacing::Disparity, Some(9u32)),
         ] {
             let disparity = spacing == Spacing::Disparity;
-            let out = SampleOutputs {
-                positions: pos.binding(),
-                t_dt: tdt.binding(),
-                s_ds: sds.binding(),
-                rays: rays.binding(),
-            };
+            let out = b.outputs();
             let skip = SkipEmpty {
                 grid: &occ,
                 scene: SceneBox {
@@ -840,9 +843,9 @@ fn occupied_samples_match_reference() {
             sampler
                 .record(
                     &mut rec,
-                    ob.binding(),
-                    db.binding(),
-                    nfb.binding(),
+                    b.o.binding(),
+                    b.d.binding(),
+                    b.nf.binding(),
                     &out,
                     n as u64,
                     k,
@@ -852,7 +855,7 @@ fn occupied_samples_match_reference() {
                 )
                 .unwrap();
             e.ctx.run(rec).unwrap();
-            let (t, s) = (tdt.read().unwrap(), sds.read().unwrap());
+            let (t, s) = (b.tdt.read().unwrap(), b.sds.read().unwrap());
             'rays: for ray in 0..n {
                 let (near, far) = (nf[ray][0], nf[ray][1]);
                 let mut occupied = Vec::new();
@@ -925,12 +928,7 @@ fn occupied_samples_match_reference() {
         "{plain_rays} of {checked} rays were all or nothing"
     );
     // Probe counts outside 1..=256 are refused.
-    let out = SampleOutputs {
-        positions: pos.binding(),
-        t_dt: tdt.binding(),
-        s_ds: sds.binding(),
-        rays: rays.binding(),
-    };
+    let out = b.outputs();
     let bad = SkipEmpty {
         grid: &occ,
         scene: SceneBox {
@@ -944,9 +942,9 @@ fn occupied_samples_match_reference() {
     let err = sampler
         .record(
             &mut rec,
-            ob.binding(),
-            db.binding(),
-            nfb.binding(),
+            b.o.binding(),
+            b.d.binding(),
+            b.nf.binding(),
             &out,
             n as u64,
             k,
