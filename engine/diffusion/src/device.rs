@@ -82,3 +82,56 @@ impl TensorBuffer {
         self.shared.binding()
     }
 }
+
+/// Where the diffusion model runs (`--diffusion-backend`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// The engine's Vulkan device, unless that device is itself a CPU implementation (Mesa
+    /// lavapipe), where burn's CPU backend measured several times faster (`bench diffusion`).
+    Auto,
+    /// burn's wgpu backend on the engine's own VkDevice (the product path).
+    Device,
+    /// burn's CPU backend (flex).
+    Cpu,
+}
+
+impl Backend {
+    /// Parses `auto`, `device` or `cpu`.
+    pub fn parse(s: &str) -> Option<Backend> {
+        match s {
+            "auto" => Some(Backend::Auto),
+            "device" => Some(Backend::Device),
+            "cpu" => Some(Backend::Cpu),
+            _ => None,
+        }
+    }
+
+    /// What `Auto` resolves to on a device of this Vulkan type ("CPU" for lavapipe).
+    pub fn resolve(self, device_type: &str) -> Backend {
+        match self {
+            Backend::Auto if device_type == "CPU" => Backend::Cpu,
+            Backend::Auto => Backend::Device,
+            b => b,
+        }
+    }
+
+    /// The backend's name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Auto => "auto",
+            Backend::Device => "device (burn wgpu on the engine's VkDevice)",
+            Backend::Cpu => "cpu (burn flex)",
+        }
+    }
+}
+
+/// The burn device for a resolved backend: the engine's shared device for `Device` (the
+/// context must be created with `share_with_wgpu`), burn's CPU backend for `Cpu`.
+pub fn diffusion_device(ctx: &Context, backend: Backend) -> Result<(Backend, Device), DeviceError> {
+    let b = backend.resolve(&ctx.info().device_type);
+    let d = match b {
+        Backend::Cpu => Device::flex(),
+        _ => burn_device(ctx)?,
+    };
+    Ok((b, d))
+}

@@ -1,0 +1,1117 @@
+//! `extranerf diffusion ...` and `extranerf bench diffusion`: the inpainting models (issue 5).
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use burn::module::Module;
+use burn::tensor::{Device, Tensor};
+use clap::{Args, Subcommand};
+use extranerf_diffusion::config::{UNetConfig, VaeConfig, CROSS_ATTN_DOWN, CROSS_ATTN_UP, DOWN, UP};
+use extranerf_diffusion::device::{diffusion_device, Backend};
+use extranerf_diffusion::fill;
+use extranerf_diffusion::inpaint::{seeded_noise, Codec, SampleSettings, SplitMix};
+use extranerf_diffusion::lora::{self, LoraConfig};
+use extranerf_diffusion::pipeline::Pipeline;
+use extranerf_diffusion::scheduler::{BetaSchedule, Prediction, SchedulerConfig};
+use extranerf_diffusion::text::LearnedTokens;
+use extranerf_diffusion::train::{self, Augment, Progress, TrainImage, TrainSettings, Trainable};
+use extranerf_diffusion::unet::UNet2DConditionModel;
+use extranerf_gpu::Context;
+use extranerf_nerf::data::load_image;
+use extranerf_nerf::metrics::lpips::{Lpips, LpipsNet};
+use extranerf_nerf::mvs::downscale_rgb;
+use extranerf_nerf::run::{write_png, SceneSpec};
+
+use crate::bench::write_json;
+
+/// `--diffusion-backend`.
+#[derive(Args, Debug, Clone)]
+pub struct BackendArgs {
+    /// Where the diffusion model runs: `device` (burn's wgpu backend on the engine's own
+    /// VkDevice), `cpu` (burn's CPU backend), or `auto` (the device unless it is itself a CPU
+    /// implementation such as lavapipe, where the CPU backend measured faster; see `bench
+    /// diffusion`).
+    #[arg(long = "diffusion-backend", default_value = "auto", value_parser = ["auto", "device", "cpu"])]
+    pub backend: String,
+}
+
+impl BackendArgs {
+    fn device(&self, ctx: &Context) -> anyhow::Result<(Backend, Device)> {
+        let b = Backend::parse(&self.backend).context("--diffusion-backend")?;
+        let (b, d) = diffusion_device(ctx, b).context("starting burn on the engine's device")?;
+        eprintln!("diffusion backend: {}", b.name());
+        Ok((b, d))
+    }
+}
+
+/// `extranerf diffusion <command>`.
+#[derive(Subcommand, Debug)]
+pub enum DiffusionCommand {
+    /// Train a scene prior from scratch: a small pixel-space inpainting diffusion model
+    /// (diffusers UNet2DConditionModel layout, learned conditioning tokens) on the scene's
+    /// training views with crops, flips, colour jitter and random masks, holding out regions
+    /// of every view; then score its inpainting of those held-out regions (PSNR and LPIPS
+    /// inside the hole) against the mean-colour, harmonic and edge-aware diffusion fills.
+    Prior(PriorArgs),
+    /// Inpaint an image where a mask is white, with a model folder (and optional LoRA).
+    Inpaint(InpaintArgs),
+    /// DreamBooth-style LoRA fine-tuning of a model folder on a scene's training views with
+    /// their pseudo-disocclusion masks (`extranerf visibility --training-masks`) plus random
+    /// masks; writes the adapters apart from the model.
+    Finetune(FinetuneArgs),
+    /// Write a randomly initialised model folder in diffusers' layout (tests, benchmarks, and
+    /// the starting point of `finetune` when no pretrained weights exist).
+    Init(InitArgs),
+}
+
+/// `extranerf diffusion prior`.
+#[derive(Args, Debug)]
+pub struct PriorArgs {
+    /// Scene folder (LLFF or transforms.json).
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Output folder: model/, loss.csv, loss.svg, prior_eval.json, eval/*.png.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Which views train the prior: the training views of this split.
+    #[arg(long, default_value = "extrapolation")]
+    pub split: String,
+    /// LLFF image folder factor (images_N).
+    #[arg(long, default_value_t = 8)]
+    pub factor: u32,
+    /// Further box downscaling of the views before training.
+    #[arg(long, default_value_t = 2)]
+    pub downscale: u32,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = 1500)]
+    pub steps: usize,
+    /// Crops per step.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Crop side (a multiple of 2^(levels - 1)).
+    #[arg(long, default_value_t = 48)]
+    pub crop: usize,
+    /// Channels per U-Net level (the last level has self- and cross-attention).
+    #[arg(long, value_delimiter = ',', default_value = "32,64,96")]
+    pub channels: Vec<usize>,
+    /// AdamW learning rate.
+    #[arg(long, default_value_t = 2e-3)]
+    pub lr: f64,
+    /// Held-out regions per view (never trained on; scored afterwards).
+    #[arg(long, default_value_t = 2)]
+    pub holes: usize,
+    /// Held-out region side in pixels (at the downscaled resolution).
+    #[arg(long, default_value_t = 16)]
+    pub hole_size: usize,
+    /// DDIM steps of the inpainting (from pure noise).
+    #[arg(long, default_value_t = 25)]
+    pub eval_steps: usize,
+    /// Seed (holes, crops, noise).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// LPIPS weights folder (AlexNet: alex.safetensors).
+    #[arg(long, default_value = "../shared/models/lpips")]
+    pub lpips: PathBuf,
+    #[command(flatten)]
+    pub backend: BackendArgs,
+}
+
+/// `extranerf diffusion inpaint`.
+#[derive(Args, Debug)]
+pub struct InpaintArgs {
+    /// Model folder (model_index.json, unet/, text_encoder/, scheduler/, optional vae/).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// LoRA adapter folder (adapter_config.json + pytorch_lora_weights.safetensors).
+    #[arg(long)]
+    pub lora: Option<PathBuf>,
+    /// Image (PNG/JPEG).
+    #[arg(long)]
+    pub image: PathBuf,
+    /// Mask image: white (> 0.5) = fill.
+    #[arg(long)]
+    pub mask: PathBuf,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Noise strength of the starting point in (0, 1] (1 = from pure noise).
+    #[arg(long, default_value_t = 1.0)]
+    pub strength: f64,
+    /// DDIM steps.
+    #[arg(long, default_value_t = 25)]
+    pub steps: usize,
+    /// Classifier-free guidance scale (1 = off).
+    #[arg(long, default_value_t = 1.0)]
+    pub guidance: f64,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub backend: BackendArgs,
+}
+
+/// `extranerf diffusion finetune`.
+#[derive(Args, Debug)]
+pub struct FinetuneArgs {
+    /// Model folder to adapt.
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Scene folder.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Folder of pseudo-disocclusion masks `<image stem>_mask.png` (white = disoccluded), as
+    /// written by `extranerf visibility --training-masks`; without it only random masks.
+    #[arg(long)]
+    pub masks: Option<PathBuf>,
+    /// Output folder for the adapters, loss.csv and loss.svg.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Views of this split's training set.
+    #[arg(long, default_value = "extrapolation")]
+    pub split: String,
+    /// LLFF image folder factor.
+    #[arg(long, default_value_t = 8)]
+    pub factor: u32,
+    /// Further downscaling.
+    #[arg(long, default_value_t = 2)]
+    pub downscale: u32,
+    /// LoRA rank (NeRFiller: 4).
+    #[arg(long, default_value_t = 4)]
+    pub rank: usize,
+    /// LoRA alpha (the update is scaled by alpha / rank).
+    #[arg(long, default_value_t = 4.0)]
+    pub alpha: f64,
+    /// Also adapt the ResNet convolutions (conv1, conv2), not only attention q/k/v/out.
+    #[arg(long)]
+    pub convs: bool,
+    /// Steps (ExtraNeRF: 500; NeRFiller: 1000).
+    #[arg(long, default_value_t = 500)]
+    pub steps: usize,
+    /// Crops per step.
+    #[arg(long, default_value_t = 4)]
+    pub batch: usize,
+    /// Crop side in pixels.
+    #[arg(long, default_value_t = 48)]
+    pub crop: usize,
+    /// U-Net LoRA learning rate (NeRFiller: 1e-3; ExtraNeRF's full U-Net: 5e-6).
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Learning rate of the conditioning tokens (the identifier; ExtraNeRF's text LoRA: 4e-5).
+    #[arg(long, default_value_t = 1e-3)]
+    pub token_lr: f64,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub backend: BackendArgs,
+}
+
+/// `extranerf diffusion init`.
+#[derive(Args, Debug)]
+pub struct InitArgs {
+    /// `tiny` (latent inpainting U-Net 32/64 with a tiny VAE), `pixel` (a pixel-space
+    /// inpainting U-Net), or `sd15-inpainting` (SD-1.5 inpainting shapes: 860M parameters,
+    /// 3.4 GB).
+    #[arg(long, default_value = "tiny", value_parser = ["tiny", "pixel", "sd15-inpainting"])]
+    pub config: String,
+    /// Output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seed of the initialisation.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// `extranerf bench diffusion`.
+#[derive(Args, Debug)]
+pub struct BenchDiffusionArgs {
+    /// Backends to measure (`device` pays burn's shader compilation first, reported apart).
+    #[arg(long, value_delimiter = ',', default_value = "cpu,device")]
+    pub backends: Vec<String>,
+    /// Timed iterations per row (after one warm-up iteration).
+    #[arg(long, default_value_t = 3)]
+    pub iters: usize,
+    /// Also write the rows as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Only the tiny configuration (fast).
+    #[arg(long)]
+    pub tiny_only: bool,
+}
+
+pub fn run(ctx: &Context, cmd: &DiffusionCommand) -> anyhow::Result<()> {
+    match cmd {
+        DiffusionCommand::Prior(a) => prior(ctx, a),
+        DiffusionCommand::Inpaint(a) => inpaint(ctx, a),
+        DiffusionCommand::Finetune(a) => finetune(ctx, a),
+        DiffusionCommand::Init(a) => init(a),
+    }
+}
+
+/// The pixel-space prior's U-Net: DownBlock2D levels, attention (self and cross) on the last
+/// level and in the middle block, 7 inputs (noisy RGB, mask, masked RGB), 3 outputs.
+pub fn prior_unet_config(channels: &[usize], token_dim: usize) -> anyhow::Result<UNetConfig> {
+    let n = channels.len();
+    if n < 2 {
+        bail!("--channels needs at least two levels, got {channels:?}");
+    }
+    let mut down = vec![DOWN.to_string(); n];
+    down[n - 1] = CROSS_ATTN_DOWN.into();
+    let mut up = vec![UP.to_string(); n];
+    up[0] = CROSS_ATTN_UP.into();
+    let c = UNetConfig {
+        sample_size: 48,
+        in_channels: 7,
+        out_channels: 3,
+        down_block_types: down,
+        up_block_types: up,
+        block_out_channels: channels.to_vec(),
+        layers_per_block: extranerf_diffusion::config::PerBlock::One(1),
+        norm_num_groups: 8,
+        cross_attention_dim: token_dim,
+        attention_head_dim: extranerf_diffusion::config::PerBlock::One(4),
+        ..UNetConfig::default()
+    };
+    c.validate().map_err(|e| anyhow::anyhow!("--channels {channels:?}: {e}"))?;
+    Ok(c)
+}
+
+/// The prior's noise process: cosine betas with v-prediction (stable at every noise level for
+/// a small pixel model).
+pub fn prior_scheduler() -> SchedulerConfig {
+    SchedulerConfig {
+        beta_schedule: BetaSchedule::SquaredCosCapV2,
+        prediction_type: Prediction::V,
+        ..SchedulerConfig::default()
+    }
+}
+
+struct View {
+    name: String,
+    width: usize,
+    height: usize,
+    rgb: Vec<f32>,
+}
+
+fn load_views(scene: &Path, split: &str, factor: u32, downscale: u32) -> anyhow::Result<Vec<View>> {
+    let spec = SceneSpec {
+        dir: scene.to_path_buf(),
+        split: split.to_string(),
+        fewshot_views: 3,
+        factor,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec
+        .load()
+        .with_context(|| format!("loading the scene {}", scene.display()))?;
+    let mut views = Vec::new();
+    for &i in &loaded.split.train {
+        let cam = &loaded.scene.cameras[i];
+        let img = load_image(&cam.image)?;
+        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, downscale)
+            .with_context(|| format!("downscaling {}", cam.image.display()))?;
+        let name = cam
+            .image
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| format!("view{i}"));
+        views.push(View {
+            name,
+            width: w as usize,
+            height: h as usize,
+            rgb,
+        });
+    }
+    if views.is_empty() {
+        bail!("the {split} split of {} has no training views", scene.display());
+    }
+    Ok(views)
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Hole {
+    view: usize,
+    x: usize,
+    y: usize,
+    w: usize,
+    h: usize,
+}
+
+fn progress_printer(label: &'static str) -> impl FnMut(&Progress) {
+    move |p: &Progress| {
+        let rate = p.step as f64 / p.elapsed.max(1e-9);
+        let eta = (p.steps - p.step) as f64 / rate.max(1e-9);
+        eprintln!(
+            "{label} step {:>5}/{}  loss {:.5}  {:.2} it/s  {:.0} s elapsed  ETA {:.0} s",
+            p.step, p.steps, p.loss, rate, p.elapsed, eta
+        );
+    }
+}
+
+fn write_curve(out: &Path, curve: &[(usize, f64)], title: &str) -> anyhow::Result<()> {
+    let mut csv = String::from("step,loss\n");
+    for (s, l) in curve {
+        let _ = writeln!(csv, "{s},{l}");
+    }
+    extranerf_diffusion::write_atomic(&out.join("loss.csv"), csv.as_bytes())?;
+    let (w, h, m) = (640.0, 360.0, 60.0);
+    let smax = curve.last().map_or(1, |c| c.0).max(1) as f64;
+    let logs: Vec<f64> = curve.iter().map(|c| c.1.max(1e-12).log10()).collect();
+    let lo = logs.iter().cloned().fold(f64::INFINITY, f64::min);
+    let hi = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let (lo, hi) = if lo.is_finite() && hi > lo {
+        (lo, hi)
+    } else {
+        (lo - 1.0, lo + 1.0)
+    };
+    let x = |s: f64| m + s / smax * (w - 2.0 * m);
+    let y = |l: f64| h - m - (l - lo) / (hi - lo) * (h - 2.0 * m);
+    let pts: Vec<String> = curve
+        .iter()
+        .zip(&logs)
+        .map(|((s, _), l)| format!("{:.1},{:.1}", x(*s as f64), y(*l)))
+        .collect();
+    let svg = format!(
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">
+<rect width="{w}" height="{h}" fill="white"/>
+<text x="{}" y="22" text-anchor="middle" font-size="14">{title}</text>
+<line x1="{m}" y1="{}" x2="{}" y2="{}" stroke="black"/><line x1="{m}" y1="{m}" x2="{m}" y2="{}" stroke="black"/>
+<text x="{}" y="{}" text-anchor="middle">step (0 .. {smax})</text>
+<text x="{}" y="{}" text-anchor="end">{:.3}</text><text x="{}" y="{}" text-anchor="end">{:.3}</text>
+<text x="16" y="{}" transform="rotate(-90 16 {})" text-anchor="middle">loss (log scale)</text>
+<polyline points="{}" fill="none" stroke="royalblue" stroke-width="1.5"/>
+</svg>
+"#,
+        w / 2.0,
+        h - m,
+        w - m,
+        h - m,
+        h - m,
+        w / 2.0,
+        h - 20.0,
+        m - 4.0,
+        y(hi) + 4.0,
+        10f64.powf(hi),
+        m - 4.0,
+        y(lo) + 4.0,
+        10f64.powf(lo),
+        h / 2.0,
+        h / 2.0,
+        pts.join(" ")
+    );
+    extranerf_diffusion::write_atomic(&out.join("loss.svg"), svg.as_bytes())?;
+    Ok(())
+}
+
+/// Channel-major `[3, h, w]` from `[h, w, 3]`.
+fn to_chw(rgb: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let mut out = vec![0f32; rgb.len()];
+    for i in 0..w * h {
+        for c in 0..3 {
+            out[c * w * h + i] = rgb[3 * i + c];
+        }
+    }
+    out
+}
+
+fn to_hwc(chw: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let mut out = vec![0f32; chw.len()];
+    for i in 0..w * h {
+        for c in 0..3 {
+            out[3 * i + c] = chw[c * w * h + i];
+        }
+    }
+    out
+}
+
+fn crop(rgb: &[f32], w: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(cw * ch * 3);
+    for y in y0..y0 + ch {
+        out.extend_from_slice(&rgb[3 * (y * w + x0)..3 * (y * w + x0 + cw)]);
+    }
+    out
+}
+
+fn mse_in(a: &[f32], b: &[f32], mask: &[f32]) -> f64 {
+    let mut s = 0f64;
+    let mut n = 0usize;
+    for (i, m) in mask.iter().enumerate() {
+        if *m > 0.5 {
+            for c in 0..3 {
+                s += ((a[3 * i + c] - b[3 * i + c]) as f64).powi(2);
+            }
+            n += 3;
+        }
+    }
+    s / n.max(1) as f64
+}
+
+fn psnr(mse: f64) -> f64 {
+    -10.0 * mse.max(1e-12).log10()
+}
+
+/// `extranerf diffusion prior`.
+fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let (backend, dev) = a.backend.device(ctx)?;
+    let views = load_views(&a.scene, &a.split, a.factor, a.downscale)?;
+    std::fs::create_dir_all(a.out.join("eval"))
+        .with_context(|| format!("creating {}", a.out.display()))?;
+    let cfg = prior_unet_config(&a.channels, 64)?;
+    let multiple = cfg.size_multiple();
+    let window = (a.hole_size * 3).max(32).div_ceil(multiple) * multiple;
+    for v in &views {
+        if v.width < window.max(a.crop) || v.height < window.max(a.crop) {
+            bail!(
+                "view {} is {}x{}: smaller than the {}-pixel crop or {window}-pixel evaluation window (lower --downscale, --crop or --hole-size)",
+                v.name, v.width, v.height, a.crop
+            );
+        }
+    }
+    if a.crop % multiple != 0 {
+        bail!("--crop {} must be a multiple of {multiple} for {} levels", a.crop, a.channels.len());
+    }
+    // Held-out regions: never trained on, scored at the end.
+    let mut rng = SplitMix(a.seed ^ 0x5eed);
+    let mut holes = Vec::new();
+    let mut images = Vec::new();
+    for (vi, v) in views.iter().enumerate() {
+        let mut known = vec![1f32; v.width * v.height];
+        for _ in 0..a.holes {
+            let w = (a.hole_size as f64 * (0.75 + rng.unit() * 0.5)) as usize;
+            let h = (a.hole_size as f64 * (0.75 + rng.unit() * 0.5)) as usize;
+            let (w, h) = (w.clamp(2, window - 4), h.clamp(2, window - 4));
+            let x = 2 + rng.below(v.width - w - 4);
+            let y = 2 + rng.below(v.height - h - 4);
+            for yy in y..y + h {
+                for xx in x..x + w {
+                    known[yy * v.width + xx] = 0.0;
+                }
+            }
+            holes.push(Hole { view: vi, x, y, w, h });
+        }
+        images.push(TrainImage {
+            width: v.width,
+            height: v.height,
+            rgb: v.rgb.clone(),
+            known,
+            masks: Vec::new(),
+        });
+    }
+    let ad = dev.clone().autodiff();
+    ad.seed(a.seed);
+    let pipe = Pipeline::new(cfg.clone(), None, prior_scheduler(), 4, &ad)?;
+    let params = pipe.model.unet.num_params();
+    let flops = 2 * pipe.model.unet.macs(a.crop, a.crop, 4);
+    eprintln!(
+        "scene prior (trained here from scratch; no pretrained weights): pixel-space U-Net {:?}, {params} parameters, {:.2} GFLOP per {}x{} forward; {} views {}x{}, {} held-out regions",
+        a.channels,
+        flops as f64 / 1e9,
+        a.crop,
+        a.crop,
+        views.len(),
+        views[0].width,
+        views[0].height,
+        holes.len()
+    );
+    let model = Trainable {
+        unet: pipe.model.unet,
+        tokens: pipe.model.tokens,
+    };
+    let aug = Augment {
+        crop: a.crop,
+        ..Augment::default()
+    };
+    let settings = TrainSettings {
+        steps: a.steps,
+        batch: a.batch,
+        lr: a.lr,
+        token_lr: a.lr,
+        seed: a.seed,
+        ..TrainSettings::default()
+    };
+    let schedule = pipe.model.schedule.clone();
+    let t_train = Instant::now();
+    let (model, curve) = train::train(
+        model,
+        &pipe.model.codec,
+        &schedule,
+        &images,
+        &aug,
+        &settings,
+        &ad,
+        &mut progress_printer("prior"),
+    )?;
+    let train_s = t_train.elapsed().as_secs_f64();
+    write_curve(&a.out, &curve, "scene prior: diffusion loss")?;
+    let model = model.valid();
+    let trained = Pipeline {
+        model: extranerf_diffusion::inpaint::InpaintModel {
+            unet: model.unet,
+            tokens: model.tokens,
+            codec: Codec::Pixels(Default::default()),
+            schedule,
+        },
+        unet_config: cfg,
+        vae_config: None,
+        scheduler_config: prior_scheduler(),
+        notes: vec!["trained from scratch on the scene's views".into()],
+    };
+    trained.save(&a.out.join("model"))?;
+    eprintln!("saved {}", a.out.join("model").display());
+
+    // Score the held-out regions: every method sees the same window around the hole.
+    let lpips = Lpips::load(&a.lpips.join("alex.safetensors"), LpipsNet::Alex)
+        .with_context(|| format!("LPIPS weights in {}", a.lpips.display()))?;
+    let n = holes.len();
+    let mut win_gt = Vec::new();
+    let mut win_mask = Vec::new();
+    let mut origins = Vec::new();
+    for h in &holes {
+        let v = &views[h.view];
+        let cx = (h.x + h.w / 2).saturating_sub(window / 2).min(v.width - window);
+        let cy = (h.y + h.h / 2).saturating_sub(window / 2).min(v.height - window);
+        origins.push((cx, cy));
+        win_gt.push(crop(&v.rgb, v.width, cx, cy, window, window));
+        // The window's unknown pixels: this hole and any other held-out region inside it.
+        let known = &images[h.view].known;
+        let mut m = vec![0f32; window * window];
+        for y in 0..window {
+            for x in 0..window {
+                if known[(cy + y) * v.width + cx + x] < 0.5 {
+                    m[y * window + x] = 1.0;
+                }
+            }
+        }
+        win_mask.push(m);
+    }
+    let t_inpaint = Instant::now();
+    let mut batch_img = Vec::with_capacity(n * 3 * window * window);
+    let mut batch_mask = Vec::with_capacity(n * window * window);
+    for i in 0..n {
+        let mut masked = win_gt[i].clone();
+        for (p, m) in win_mask[i].iter().enumerate() {
+            if *m > 0.5 {
+                masked[3 * p..3 * p + 3].copy_from_slice(&[0.5; 3]);
+            }
+        }
+        batch_img.extend(to_chw(&masked, window, window));
+        batch_mask.extend_from_slice(&win_mask[i]);
+    }
+    let img_t = Tensor::<1>::from_floats(batch_img.as_slice(), &dev).reshape([n, 3, window, window]);
+    let mask_t = Tensor::<1>::from_floats(batch_mask.as_slice(), &dev).reshape([n, 1, window, window]);
+    let noise = seeded_noise([n, 3, window, window], a.seed ^ 0xe7a1, &dev);
+    let out = trained.model.inpaint(
+        img_t,
+        mask_t,
+        noise,
+        &SampleSettings {
+            strength: 1.0,
+            steps: a.eval_steps,
+            guidance: 1.0,
+            keep_known: true,
+        },
+    )?;
+    let prior_out: Vec<f32> = out
+        .image
+        .into_data()
+        .try_to_vec_as::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading the inpainted windows: {e:?}"))?;
+    let inpaint_s = t_inpaint.elapsed().as_secs_f64();
+    let methods = ["mean colour", "harmonic fill", "edge-aware fill", "scene prior"];
+    let mut psnrs = vec![Vec::new(); 4];
+    let mut lps = vec![Vec::new(); 4];
+    let mut per_hole = Vec::new();
+    for i in 0..n {
+        let ws = window * window * 3;
+        let prior_i = to_hwc(&prior_out[i * ws..(i + 1) * ws], window, window);
+        let masked = &win_gt[i];
+        let results = [
+            fill::mean_fill(masked, &win_mask[i], window, window)?,
+            fill::harmonic_fill(masked, &win_mask[i], window, window, 4000, 1e-5)?,
+            fill::edge_aware_fill(masked, &win_mask[i], window, window, 100, 0.05)?,
+            prior_i,
+        ];
+        let mut row = serde_json::Map::new();
+        let h = holes[i];
+        row.insert("view".into(), views[h.view].name.clone().into());
+        row.insert("hole".into(), serde_json::json!([h.x, h.y, h.w, h.h]));
+        let mut strip = win_gt[i].clone();
+        let mut masked_vis = win_gt[i].clone();
+        for (p, m) in win_mask[i].iter().enumerate() {
+            if *m > 0.5 {
+                masked_vis[3 * p..3 * p + 3].copy_from_slice(&[1.0, 0.0, 1.0]);
+            }
+        }
+        strip.extend(masked_vis);
+        for (k, r) in results.iter().enumerate() {
+            let p = psnr(mse_in(r, &win_gt[i], &win_mask[i]));
+            let l = lpips.distance(r, &win_gt[i], window as u32, window as u32)?;
+            psnrs[k].push(p);
+            lps[k].push(l);
+            row.insert(
+                methods[k].into(),
+                serde_json::json!({"psnr_in_mask": p, "lpips_window": l}),
+            );
+            strip.extend_from_slice(r);
+        }
+        // Strip of windows side by side: gt | masked | mean | harmonic | edge | prior.
+        let cols = 6;
+        let mut side = vec![0f32; window * window * 3 * cols];
+        for c in 0..cols {
+            for y in 0..window {
+                for x in 0..window {
+                    let src = c * window * window * 3 + 3 * (y * window + x);
+                    let dst = 3 * (y * window * cols + c * window + x);
+                    side[dst..dst + 3].copy_from_slice(&strip[src..src + 3]);
+                }
+            }
+        }
+        write_png(
+            &a.out.join("eval").join(format!("{}_hole{i}.png", views[h.view].name)),
+            (window * cols) as u32,
+            window as u32,
+            &side,
+        )?;
+        per_hole.push(serde_json::Value::Object(row));
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    println!(
+        "held-out inpainting, {n} regions of about {0}x{0} px in {window}x{window} windows ({} views at {}x{}):",
+        a.hole_size,
+        views.len(),
+        views[0].width,
+        views[0].height
+    );
+    println!("{:<16} {:>14} {:>14}", "method", "PSNR in mask", "LPIPS (alex)");
+    let mut summary = serde_json::Map::new();
+    for k in 0..4 {
+        println!(
+            "{:<16} {:>11.2} dB {:>14.4}",
+            methods[k],
+            mean(&psnrs[k]),
+            mean(&lps[k])
+        );
+        summary.insert(
+            methods[k].into(),
+            serde_json::json!({"psnr_in_mask": mean(&psnrs[k]), "lpips_window": mean(&lps[k])}),
+        );
+    }
+    let report = serde_json::json!({
+        "scene": a.scene,
+        "model": "scene prior trained from scratch here (no pretrained weights): pixel-space inpainting U-Net, diffusers layout",
+        "backend": backend.name(),
+        "channels": a.channels,
+        "parameters": params,
+        "gflop_per_crop_forward": flops as f64 / 1e9,
+        "steps": a.steps,
+        "batch": a.batch,
+        "crop": a.crop,
+        "lr": a.lr,
+        "views": views.len(),
+        "view_size": [views[0].width, views[0].height],
+        "factor": a.factor,
+        "downscale": a.downscale,
+        "holes": n,
+        "hole_size": a.hole_size,
+        "window": window,
+        "eval_ddim_steps": a.eval_steps,
+        "train_seconds": train_s,
+        "train_it_per_s": a.steps as f64 / train_s,
+        "inpaint_seconds": inpaint_s,
+        "final_loss": curve.last().map(|c| c.1),
+        "mean": summary,
+        "per_hole": per_hole,
+        "wall_seconds": started.elapsed().as_secs_f64(),
+    });
+    write_json(&a.out.join("prior_eval.json"), &report)?;
+    println!("wrote {}", a.out.join("prior_eval.json").display());
+    Ok(())
+}
+
+fn read_rgb(path: &Path) -> anyhow::Result<(usize, usize, Vec<f32>)> {
+    let img = load_image(path)?;
+    Ok((img.width as usize, img.height as usize, img.rgb))
+}
+
+/// `extranerf diffusion inpaint`.
+fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
+    let (_, dev) = a.backend.device(ctx)?;
+    let mut pipe = Pipeline::load(&a.model, &dev)?;
+    if let Some(dir) = &a.lora {
+        let (_, unet) = lora::load(dir, pipe.model.unet, &dev)?;
+        pipe.model.unet = unet;
+        pipe.notes.push(format!("LoRA adapters from {}", dir.display()));
+    }
+    for n in &pipe.notes {
+        eprintln!("model: {n}");
+    }
+    let (w, h, rgb) = read_rgb(&a.image)?;
+    let (mw, mh, mrgb) = read_rgb(&a.mask)?;
+    if (mw, mh) != (w, h) {
+        bail!(
+            "{} is {mw}x{mh} but {} is {w}x{h}",
+            a.mask.display(),
+            a.image.display()
+        );
+    }
+    let m = pipe.model.size_multiple();
+    if w % m != 0 || h % m != 0 {
+        bail!(
+            "{}: {w}x{h} is not a multiple of {m} on both sides, which this model needs",
+            a.image.display()
+        );
+    }
+    let mask: Vec<f32> = mrgb
+        .chunks(3)
+        .map(|p| if (p[0] + p[1] + p[2]) / 3.0 > 0.5 { 1.0 } else { 0.0 })
+        .collect();
+    let img_t = Tensor::<1>::from_floats(to_chw(&rgb, w, h).as_slice(), &dev).reshape([1, 3, h, w]);
+    let mask_t = Tensor::<1>::from_floats(mask.as_slice(), &dev).reshape([1, 1, h, w]);
+    let c = pipe.model.codec.channels();
+    let f = pipe.model.codec.factor();
+    let noise = seeded_noise([1, c, h / f, w / f], a.seed, &dev);
+    let t = Instant::now();
+    let out = pipe.model.inpaint(
+        img_t,
+        mask_t,
+        noise,
+        &SampleSettings {
+            strength: a.strength,
+            steps: a.steps,
+            guidance: a.guidance,
+            keep_known: true,
+        },
+    )?;
+    let chw: Vec<f32> = out
+        .image
+        .into_data()
+        .try_to_vec_as::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading the result: {e:?}"))?;
+    write_png(&a.out, w as u32, h as u32, &to_hwc(&chw, w, h))?;
+    println!(
+        "wrote {} ({} DDIM steps from t = {} (noise level {:.3}) in {:.1} s)",
+        a.out.display(),
+        a.steps,
+        out.t_start,
+        out.noise_level,
+        t.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// `extranerf diffusion finetune`.
+fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
+    let (_, dev) = a.backend.device(ctx)?;
+    let ad = dev.clone().autodiff();
+    ad.seed(a.seed);
+    let pipe = Pipeline::load(&a.model, &ad)?;
+    for n in &pipe.notes {
+        eprintln!("model: {n}");
+    }
+    let views = load_views(&a.scene, &a.split, a.factor, a.downscale)?;
+    let mut images = Vec::new();
+    let mut with_masks = 0;
+    for v in &views {
+        let mut im = TrainImage::new(v.width, v.height, v.rgb.clone());
+        if let Some(dir) = &a.masks {
+            let p = dir.join(format!("{}_mask.png", v.name));
+            if p.is_file() {
+                let (mw, mh, m) = read_rgb(&p)?;
+                if (mw, mh) != (v.width, v.height) {
+                    bail!(
+                        "{} is {mw}x{mh}; the view is {}x{} (match --factor and --downscale to the masks)",
+                        p.display(),
+                        v.width,
+                        v.height
+                    );
+                }
+                im.masks
+                    .push(m.chunks(3).map(|p| if p[0] > 0.5 { 1.0 } else { 0.0 }).collect());
+                with_masks += 1;
+            } else {
+                eprintln!("no pseudo mask {} for {}: random masks only", p.display(), v.name);
+            }
+        }
+        images.push(im);
+    }
+    eprintln!(
+        "fine-tuning on {} views ({with_masks} with pseudo-disocclusion masks), LoRA rank {}",
+        views.len(),
+        a.rank
+    );
+    let mut cfg = LoraConfig::attention(a.rank, a.alpha);
+    if a.convs {
+        cfg.target_modules.push("conv1".into());
+        cfg.target_modules.push("conv2".into());
+    }
+    let unet = lora::apply(pipe.model.unet, &cfg, &ad)?;
+    let (lp, _) = lora::params_by_kind(&unet);
+    eprintln!("{} adapter tensors; base frozen", lp.len());
+    let schedule = pipe.model.schedule.clone();
+    let codec = pipe.model.codec.no_grad();
+    let (model, curve) = train::train(
+        Trainable {
+            unet,
+            tokens: pipe.model.tokens,
+        },
+        &codec,
+        &schedule,
+        &images,
+        &Augment {
+            crop: a.crop,
+            ..Augment::default()
+        },
+        &TrainSettings {
+            steps: a.steps,
+            batch: a.batch,
+            lr: a.lr,
+            token_lr: a.token_lr,
+            seed: a.seed,
+            ..TrainSettings::default()
+        },
+        &ad,
+        &mut progress_printer("finetune"),
+    )?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    lora::save(&a.out, &model.unet, &cfg)?;
+    if a.token_lr > 0.0 {
+        model.tokens.save(&a.out.join("text_encoder"))?;
+    }
+    write_curve(&a.out, &curve, "LoRA fine-tuning: diffusion loss")?;
+    println!(
+        "wrote {} (adapters), loss.csv, loss.svg; final loss {:.5}",
+        a.out.display(),
+        curve.last().map_or(f64::NAN, |c| c.1)
+    );
+    Ok(())
+}
+
+/// `extranerf diffusion init`.
+fn init(a: &InitArgs) -> anyhow::Result<()> {
+    let dev = Device::flex();
+    dev.seed(a.seed);
+    let pipe = match a.config.as_str() {
+        "tiny" => Pipeline::new(
+            UNetConfig::tiny_inpainting(),
+            Some(VaeConfig::tiny()),
+            SchedulerConfig::default(),
+            4,
+            &dev,
+        )?,
+        "pixel" => Pipeline::new(
+            prior_unet_config(&[32, 64, 96], 64)?,
+            None,
+            prior_scheduler(),
+            4,
+            &dev,
+        )?,
+        _ => Pipeline::new(
+            UNetConfig::sd15_inpainting(),
+            Some(VaeConfig::default()),
+            SchedulerConfig::default(),
+            8,
+            &dev,
+        )?,
+    };
+    pipe.save(&a.out)?;
+    println!(
+        "wrote {} ({}; U-Net {} parameters, randomly initialised, seed {})",
+        a.out.display(),
+        a.config,
+        pipe.model.unet.num_params(),
+        a.seed
+    );
+    Ok(())
+}
+
+struct BenchRow {
+    config: &'static str,
+    backend: &'static str,
+    what: &'static str,
+    warmup_s: f64,
+    it_s: f64,
+    gflop: f64,
+}
+
+fn time_it(iters: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<(f64, f64)> {
+    let t = Instant::now();
+    f()?;
+    let warm = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    for _ in 0..iters {
+        f()?;
+    }
+    Ok((warm, t.elapsed().as_secs_f64() / iters.max(1) as f64))
+}
+
+/// `extranerf bench diffusion`.
+pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
+    let medium = UNetConfig {
+        sample_size: 32,
+        block_out_channels: vec![64, 128, 256],
+        down_block_types: vec![CROSS_ATTN_DOWN.into(), CROSS_ATTN_DOWN.into(), DOWN.into()],
+        up_block_types: vec![UP.into(), CROSS_ATTN_UP.into(), CROSS_ATTN_UP.into()],
+        layers_per_block: extranerf_diffusion::config::PerBlock::One(2),
+        cross_attention_dim: 128,
+        attention_head_dim: extranerf_diffusion::config::PerBlock::One(4),
+        norm_num_groups: 32,
+        ..UNetConfig::tiny_inpainting()
+    };
+    let mut configs: Vec<(&'static str, UNetConfig, usize)> =
+        vec![("tiny 32/64 @16x16", UNetConfig::tiny_inpainting(), 16)];
+    if !a.tiny_only {
+        configs.push(("medium 64/128/256 @32x32", medium, 32));
+    }
+    let mut rows = Vec::new();
+    for b in &a.backends {
+        let backend = match b.as_str() {
+            "cpu" => Backend::Cpu,
+            "device" => Backend::Device,
+            o => bail!("--backends: {o:?} is not cpu or device"),
+        };
+        let (_, dev) = diffusion_device(ctx, backend)?;
+        let bname: &'static str = if backend == Backend::Cpu { "cpu (flex)" } else { "device (wgpu)" };
+        for (name, cfg, side) in &configs {
+            dev.seed(1);
+            let unet = UNet2DConditionModel::new(cfg, &dev)?;
+            let (n, s) = (2usize, 8usize);
+            let macs = unet.macs(*side, *side, s) as f64 * n as f64;
+            let x = seeded_noise([n, 9, *side, *side], 1, &dev);
+            let ctx_t = seeded_noise([n, s, cfg.cross_attention_dim, 1], 2, &dev)
+                .reshape([n, s, cfg.cross_attention_dim]);
+            let (warm, t) = time_it(a.iters, || {
+                let y = unet.forward(x.clone(), &[500.0, 20.0], &ctx_t);
+                let _ = y.sum().into_scalar::<f32>();
+                Ok(())
+            })?;
+            rows.push(BenchRow {
+                config: name,
+                backend: bname,
+                what: "forward (batch 2)",
+                warmup_s: warm,
+                it_s: t,
+                gflop: 2.0 * macs / 1e9,
+            });
+            let ad = dev.clone().autodiff();
+            ad.seed(1);
+            let unet_ad = UNet2DConditionModel::new(cfg, &ad)?;
+            let xa = seeded_noise([n, 9, *side, *side], 1, &ad);
+            let ca = seeded_noise([n, s, cfg.cross_attention_dim, 1], 2, &ad)
+                .reshape([n, s, cfg.cross_attention_dim]);
+            let (warm, t) = time_it(a.iters, || {
+                let y = unet_ad.forward(xa.clone(), &[500.0, 20.0], &ca);
+                let g = y.powi_scalar(2).mean().backward();
+                let w = unet_ad.conv_in.weight.val().grad(&g);
+                if let Some(w) = w {
+                    let _ = w.sum().into_scalar::<f32>();
+                }
+                Ok(())
+            })?;
+            rows.push(BenchRow {
+                config: name,
+                backend: bname,
+                what: "forward+backward",
+                warmup_s: warm,
+                it_s: t,
+                gflop: 3.0 * 2.0 * macs / 1e9,
+            });
+            // One LoRA fine-tuning step (rank 4 on attention; base frozen): forward, backward
+            // and AdamW on the adapters.
+            let lunet = lora::apply(UNet2DConditionModel::new(cfg, &ad)?, &LoraConfig::attention(4, 4.0), &ad)?;
+            let mut model = Some(Trainable {
+                unet: lunet,
+                tokens: LearnedTokens::new(s, cfg.cross_attention_dim, &ad),
+            });
+            let sched = extranerf_diffusion::scheduler::Schedule::new(&SchedulerConfig::default())
+                .map_err(anyhow::Error::msg)?;
+            // A small VAE with SD's factor 8, so the latents are side x side.
+            let vae = extranerf_diffusion::vae::AutoencoderKL::new(
+                &VaeConfig {
+                    block_out_channels: vec![16, 16, 16, 16],
+                    ..VaeConfig::tiny()
+                },
+                &ad,
+            )?
+            .no_grad();
+            let codec = Codec::Vae(vae);
+            let px = side * 8;
+            let images = vec![TrainImage::new(
+                px,
+                px,
+                (0..3 * px * px).map(|i| (i % 11) as f32 / 11.0).collect(),
+            )];
+            let aug = Augment {
+                crop: px,
+                ..Augment::default()
+            };
+            let settings = TrainSettings {
+                steps: 1,
+                batch: n,
+                log_every: 1,
+                ..TrainSettings::default()
+            };
+            let (warm, t) = time_it(a.iters, || {
+                let m = model.take().context("model")?;
+                let (m, _) = train::train(m, &codec, &sched, &images, &aug, &settings, &ad, &mut |_| {})?;
+                model = Some(m);
+                Ok(())
+            })?;
+            rows.push(BenchRow {
+                config: name,
+                backend: bname,
+                what: "LoRA step (VAE encode + fwd/bwd + AdamW)",
+                warmup_s: warm,
+                it_s: t,
+                gflop: f64::NAN,
+            });
+        }
+    }
+    let sd = UNet2DConditionModel::new(&UNetConfig::sd15_inpainting(), &Device::flex())?;
+    let sd_flops = 2.0 * sd.macs(64, 64, 77) as f64;
+    println!(
+        "{:<26} {:<14} {:<42} {:>10} {:>10} {:>9} {:>9}",
+        "config", "backend", "what", "warm-up s", "s/it", "it/s", "GFLOP/s"
+    );
+    let mut json = Vec::new();
+    for r in &rows {
+        println!(
+            "{:<26} {:<14} {:<42} {:>10.2} {:>10.4} {:>9.2} {:>9.2}",
+            r.config,
+            r.backend,
+            r.what,
+            r.warmup_s,
+            r.it_s,
+            1.0 / r.it_s,
+            r.gflop / r.it_s
+        );
+        json.push(serde_json::json!({
+            "config": r.config, "backend": r.backend, "what": r.what,
+            "warmup_s": r.warmup_s, "s_per_it": r.it_s, "it_per_s": 1.0 / r.it_s,
+            "gflop_per_it": if r.gflop.is_finite() { Some(r.gflop) } else { None },
+            "gflop_per_s": if r.gflop.is_finite() { Some(r.gflop / r.it_s) } else { None },
+        }));
+    }
+    println!(
+        "SD-1.5 inpainting U-Net ({} parameters) at 64x64 latents, 77 tokens: {:.1} GFLOP per forward, {:.1} GFLOP per training step (3x), {:.0} GFLOP per 10-step DDIM visit with guidance (2x batch)",
+        sd.num_params(),
+        sd_flops / 1e9,
+        3.0 * sd_flops / 1e9,
+        20.0 * sd_flops / 1e9
+    );
+    if let Some(p) = &a.json {
+        write_json(
+            p,
+            &serde_json::json!({
+                "device": ctx.info().name,
+                "rows": json,
+                "sd15_inpainting_64x64": {"parameters": sd.num_params(), "gflop_forward": sd_flops / 1e9},
+            }),
+        )?;
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}

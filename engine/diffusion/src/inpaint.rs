@@ -1,0 +1,303 @@
+//! The inpainting pipeline: an image (a NeRF render) and a mask of what to fill, noised to a
+//! strength and denoised in k DDIM steps by the inpainting U-Net, whose input is the noisy
+//! latent, the mask and the masked image's latent (diffusers' inpainting layout).
+//!
+//! The image reaches the U-Net through a VAE (latent diffusion, as Stable Diffusion
+//! inpainting) or directly (pixel-space diffusion, for the small scene priors trained here);
+//! in both cases the U-Net's input has `2 * latent + 1` channels.
+
+use burn::module::Module;
+use burn::tensor::module::{interpolate, max_pool2d};
+use burn::tensor::ops::{InterpolateMode, InterpolateOptions, MaxPoolOptions};
+use burn::tensor::{Device, Tensor};
+
+use crate::scheduler::{ddim_timesteps, guide, Schedule};
+use crate::text::LearnedTokens;
+use crate::unet::UNet2DConditionModel;
+use crate::vae::AutoencoderKL;
+use crate::{DiffusionError, Result};
+
+/// How images become the diffusion variable.
+#[derive(Module, Debug)]
+pub enum Codec {
+    /// Latent diffusion through an autoencoder.
+    Vae(AutoencoderKL),
+    /// Pixel-space diffusion: the variable is the image in [-1, 1].
+    Pixels(PixelCodec),
+}
+
+/// The identity codec of pixel-space models (3 channels, factor 1).
+#[derive(Module, Debug, Default)]
+pub struct PixelCodec;
+
+impl Codec {
+    /// Channels of the diffusion variable.
+    pub fn channels(&self) -> usize {
+        match self {
+            Codec::Vae(v) => v.latent_channels(),
+            Codec::Pixels(_) => 3,
+        }
+    }
+
+    /// Spatial factor image -> variable.
+    pub fn factor(&self) -> usize {
+        match self {
+            Codec::Vae(v) => v.factor(),
+            Codec::Pixels(_) => 1,
+        }
+    }
+
+    /// Image in [-1, 1] -> variable (the VAE's posterior mean, scaled).
+    pub fn encode(&self, x: Tensor<4>) -> Tensor<4> {
+        match self {
+            Codec::Vae(v) => v.encode(x, false),
+            Codec::Pixels(_) => x,
+        }
+    }
+
+    /// Variable -> image in about [-1, 1].
+    pub fn decode(&self, z: Tensor<4>) -> Tensor<4> {
+        match self {
+            Codec::Vae(v) => v.decode(z),
+            Codec::Pixels(_) => z,
+        }
+    }
+
+    /// A hole mask `[n, 1, H, W]` at the variable's resolution: nearest for a VAE (as the SD
+    /// inpainting pipeline, which the pretrained model saw), unchanged for pixels.
+    pub fn mask(&self, mask: Tensor<4>) -> Tensor<4> {
+        match self {
+            Codec::Vae(v) => {
+                let [_, _, h, w] = mask.dims();
+                let f = v.factor();
+                interpolate(
+                    mask,
+                    InterpolateOptions::new(InterpolateMode::Nearest)
+                        .with_output_size([h / f, w / f]),
+                )
+            }
+            Codec::Pixels(_) => mask,
+        }
+    }
+
+    /// Like [`Codec::mask`] but a variable cell is a hole when any of its pixels is (used for
+    /// loss validity, where leaking an unknown pixel is worse than losing a known one).
+    pub fn mask_any(&self, mask: Tensor<4>) -> Tensor<4> {
+        match self {
+            Codec::Vae(v) => {
+                let f = v.factor();
+                max_pool2d(mask, MaxPoolOptions::new([f, f]).with_stride([f, f]))
+            }
+            Codec::Pixels(_) => mask,
+        }
+    }
+}
+
+/// The U-Net's input: `[noisy (c), mask (1), masked-image variable (c)]` on channels.
+pub fn unet_input(noisy: Tensor<4>, mask: Tensor<4>, masked: Tensor<4>) -> Tensor<4> {
+    Tensor::cat(vec![noisy, mask, masked], 1)
+}
+
+/// An inpainting model: U-Net, codec, conditioning and noise schedule.
+#[derive(Debug)]
+pub struct InpaintModel {
+    /// The U-Net (`2 * codec.channels() + 1` inputs).
+    pub unet: UNet2DConditionModel,
+    /// Image <-> diffusion variable.
+    pub codec: Codec,
+    /// Conditioning tokens.
+    pub tokens: LearnedTokens,
+    /// The noise process.
+    pub schedule: Schedule,
+}
+
+/// How to sample.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SampleSettings {
+    /// Noise strength of the starting point in (0, 1] (1 = start from pure noise).
+    pub strength: f64,
+    /// DDIM steps (ExtraNeRF: about 10 per visit).
+    pub steps: usize,
+    /// Classifier-free guidance scale (1 = off: no unconditional pass).
+    pub guidance: f64,
+    /// Keep the known pixels of the input in the output.
+    pub keep_known: bool,
+}
+
+impl Default for SampleSettings {
+    fn default() -> Self {
+        SampleSettings {
+            strength: 1.0,
+            steps: 10,
+            guidance: 1.0,
+            keep_known: true,
+        }
+    }
+}
+
+/// What a sampling run returns.
+#[derive(Debug)]
+pub struct Inpainted {
+    /// `[n, 3, H, W]` in [0, 1].
+    pub image: Tensor<4>,
+    /// The starting training timestep.
+    pub t_start: usize,
+    /// Its noise level sqrt(1 - alpha_bar) (for a w(t)-weighted NeRF loss).
+    pub noise_level: f64,
+}
+
+/// Standard-normal noise from a seed, generated on the host (identical on every backend) and
+/// uploaded once.
+pub fn seeded_noise(shape: [usize; 4], seed: u64, device: &Device) -> Tensor<4> {
+    let n: usize = shape.iter().product();
+    let mut rng = SplitMix(seed ^ 0x9e37_79b9_7f4a_7c15);
+    let mut v = Vec::with_capacity(n);
+    while v.len() < n {
+        // Box-Muller on two uniforms in (0, 1].
+        let u1 = ((rng.next() >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+        let u2 = (rng.next() >> 11) as f64 / (1u64 << 53) as f64;
+        let r = (-2.0 * u1.ln()).sqrt();
+        let a = 2.0 * std::f64::consts::PI * u2;
+        v.push((r * a.cos()) as f32);
+        if v.len() < n {
+            v.push((r * a.sin()) as f32);
+        }
+    }
+    Tensor::<1>::from_floats(v.as_slice(), device).reshape(shape)
+}
+
+/// SplitMix64: a small seeded generator for host-side noise, masks and crops.
+#[derive(Clone, Debug)]
+pub struct SplitMix(pub u64);
+
+impl SplitMix {
+    /// Next 64 random bits.
+    pub fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    pub fn unit(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Uniform integer in [0, n).
+    pub fn below(&mut self, n: usize) -> usize {
+        ((self.unit() * n as f64) as usize).min(n.saturating_sub(1))
+    }
+}
+
+impl InpaintModel {
+    /// Checks that the parts fit together.
+    pub fn validate(&self) -> Result<()> {
+        let c = self.codec.channels();
+        if self.unet.in_channels() != 2 * c + 1 || self.unet.out_channels() != c {
+            return Err(DiffusionError::Input(format!(
+                "the U-Net takes {} channels and gives {}, but an inpainting U-Net on a {c}-channel variable takes {} and gives {c}",
+                self.unet.in_channels(),
+                self.unet.out_channels(),
+                2 * c + 1
+            )));
+        }
+        let [_, d] = self.tokens.dims();
+        if d != self.unet.cross_attention_dim {
+            return Err(DiffusionError::Input(format!(
+                "conditioning tokens are {d} wide but the U-Net's cross_attention_dim is {}",
+                self.unet.cross_attention_dim
+            )));
+        }
+        Ok(())
+    }
+
+    /// The image side must be a multiple of this.
+    pub fn size_multiple(&self) -> usize {
+        self.codec.factor() * (1 << (self.unet.down_blocks.len() - 1))
+    }
+
+    /// Inpaints `image [n, 3, H, W]` (in [0, 1]) where `mask [n, 1, H, W]` is 1, starting from
+    /// the image noised to `s.strength` with `noise` (standard normal, the variable's shape;
+    /// see [`seeded_noise`]). Everything stays on the device; nothing is read back.
+    pub fn inpaint(
+        &self,
+        image: Tensor<4>,
+        mask: Tensor<4>,
+        noise: Tensor<4>,
+        s: &SampleSettings,
+    ) -> Result<Inpainted> {
+        self.validate()?;
+        let [n, c, h, w] = image.dims();
+        let m = self.size_multiple();
+        if c != 3 || h % m != 0 || w % m != 0 || mask.dims() != [n, 1, h, w] {
+            return Err(DiffusionError::Input(format!(
+                "inpaint: image {:?} and mask {:?}: want [n, 3, H, W] with H and W multiples of {m} and a [n, 1, H, W] mask",
+                image.dims(),
+                mask.dims()
+            )));
+        }
+        if !(s.strength > 0.0 && s.strength <= 1.0) || s.steps == 0 || !(s.guidance >= 1.0) {
+            return Err(DiffusionError::Input(format!(
+                "sampling: strength {} must be in (0, 1], steps {} > 0, guidance {} >= 1",
+                s.strength, s.steps, s.guidance
+            )));
+        }
+        let x = image.clone() * 2.0 - 1.0;
+        let keep = mask.clone().neg() + 1.0;
+        let z0 = self.codec.encode(x.clone());
+        let masked = self.codec.encode(x * keep.clone());
+        let mask_z = self.codec.mask(mask.clone());
+        if noise.dims() != z0.dims() {
+            return Err(DiffusionError::Input(format!(
+                "noise {:?} must have the variable's shape {:?}",
+                noise.dims(),
+                z0.dims()
+            )));
+        }
+        let steps = ddim_timesteps(&self.schedule, s.strength, s.steps);
+        let t_start = steps[0];
+        let mut z = self
+            .schedule
+            .add_noise(z0, noise, &vec![t_start; n]);
+        let cond = self.tokens.forward(n);
+        let guided = s.guidance > 1.0;
+        let device = image.device();
+        let (context, mask_in, masked_in) = if guided {
+            (
+                Tensor::cat(vec![cond, self.tokens.null(n, &device)], 0),
+                Tensor::cat(vec![mask_z.clone(), mask_z], 0),
+                Tensor::cat(vec![masked.clone(), masked], 0),
+            )
+        } else {
+            (cond, mask_z, masked)
+        };
+        for (i, &t) in steps.iter().enumerate() {
+            let zin = if guided {
+                Tensor::cat(vec![z.clone(), z.clone()], 0)
+            } else {
+                z.clone()
+            };
+            let inp = unet_input(zin, mask_in.clone(), masked_in.clone());
+            let ts = vec![t as f32; inp.dims()[0]];
+            let mut out = self.unet.forward(inp, &ts, &context);
+            if guided {
+                let mut halves = out.chunk(2, 0);
+                let u = halves.pop().unwrap_or_else(|| unreachable!("two halves"));
+                let c = halves.pop().unwrap_or_else(|| unreachable!("two halves"));
+                out = guide(c, u, s.guidance);
+            }
+            z = self.schedule.ddim_step(out, z, t, steps.get(i + 1).copied());
+        }
+        let mut result = ((self.codec.decode(z) + 1.0) * 0.5).clamp(0.0, 1.0);
+        if s.keep_known {
+            result = image * keep + result * mask;
+        }
+        Ok(Inpainted {
+            image: result,
+            t_start,
+            noise_level: self.schedule.noise_level(t_start),
+        })
+    }
+}

@@ -1,0 +1,273 @@
+//! Noise schedules: DDPM training noise (linear, scaled-linear and cosine betas; epsilon and v
+//! prediction) and DDIM sampling from an image noised to a strength, with optional
+//! classifier-free guidance. The coefficients are computed on the host in f64 and applied to
+//! device tensors per batch item, so a sampling loop never reads a tensor back.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use serde_json::{Map, Value};
+
+use burn::tensor::{Device, Tensor};
+
+use crate::DiffusionError;
+
+/// How betas grow over the training timesteps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BetaSchedule {
+    /// Linear from beta_start to beta_end.
+    Linear,
+    /// Linear in sqrt(beta) (Stable Diffusion).
+    ScaledLinear,
+    /// The cosine schedule of Nichol & Dhariwal, betas capped at 0.999.
+    #[serde(rename = "squaredcos_cap_v2")]
+    SquaredCosCapV2,
+}
+
+/// What the network predicts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Prediction {
+    /// The added noise.
+    Epsilon,
+    /// v = sqrt(a) eps - sqrt(1 - a) x0 (Salimans & Ho).
+    #[serde(rename = "v_prediction")]
+    V,
+}
+
+fn d_t() -> usize {
+    1000
+}
+fn d_bs() -> f64 {
+    0.00085
+}
+fn d_be() -> f64 {
+    0.012
+}
+fn d_sched() -> BetaSchedule {
+    BetaSchedule::ScaledLinear
+}
+fn d_pred() -> Prediction {
+    Prediction::Epsilon
+}
+
+/// diffusers' `scheduler_config.json` (DDPM/DDIM/PNDM fields that define the noise process).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SchedulerConfig {
+    /// Training timesteps.
+    #[serde(default = "d_t")]
+    pub num_train_timesteps: usize,
+    /// First beta.
+    #[serde(default = "d_bs")]
+    pub beta_start: f64,
+    /// Last beta.
+    #[serde(default = "d_be")]
+    pub beta_end: f64,
+    /// Beta schedule.
+    #[serde(default = "d_sched")]
+    pub beta_schedule: BetaSchedule,
+    /// What the model predicts.
+    #[serde(default = "d_pred")]
+    pub prediction_type: Prediction,
+    /// Sampler-specific keys (spacing, offsets, clipping): not used by this DDIM, which
+    /// defines its own spacing from a strength ([`ddim_timesteps`]).
+    #[serde(flatten)]
+    pub other: Map<String, Value>,
+}
+
+impl Default for SchedulerConfig {
+    /// Stable Diffusion's: 1000 steps, scaled-linear 0.00085..0.012, epsilon.
+    fn default() -> Self {
+        serde_json::from_str("{}").unwrap_or_else(|_| unreachable!("all fields have defaults"))
+    }
+}
+
+impl SchedulerConfig {
+    /// Parses `scheduler_config.json`; `trained_betas` must be null.
+    pub fn from_file(path: &Path) -> Result<SchedulerConfig, DiffusionError> {
+        let c: SchedulerConfig = crate::config::read_json(path)?;
+        if c.other.get("trained_betas").is_some_and(|v| !v.is_null()) {
+            return Err(DiffusionError::Config {
+                path: path.to_path_buf(),
+                problem: "trained_betas is not supported (use beta_schedule)".into(),
+            });
+        }
+        Schedule::new(&c).map_err(|problem| DiffusionError::Config {
+            path: path.to_path_buf(),
+            problem,
+        })?;
+        Ok(c)
+    }
+
+    /// Writes `scheduler_config.json`.
+    pub fn save(&self, path: &Path) -> Result<(), DiffusionError> {
+        crate::config::write_json(path, self)
+    }
+}
+
+/// The noise process: cumulative alphas per training timestep.
+#[derive(Clone, Debug)]
+pub struct Schedule {
+    alphas_cumprod: Vec<f64>,
+    prediction: Prediction,
+}
+
+impl Schedule {
+    /// The schedule of a config, or what is wrong with it.
+    pub fn new(c: &SchedulerConfig) -> Result<Schedule, String> {
+        let n = c.num_train_timesteps;
+        if n < 2 {
+            return Err(format!("num_train_timesteps = {n} must be at least 2"));
+        }
+        let betas: Vec<f64> = match c.beta_schedule {
+            BetaSchedule::Linear => (0..n)
+                .map(|i| c.beta_start + (c.beta_end - c.beta_start) * i as f64 / (n - 1) as f64)
+                .collect(),
+            BetaSchedule::ScaledLinear => {
+                let (a, b) = (c.beta_start.sqrt(), c.beta_end.sqrt());
+                (0..n)
+                    .map(|i| (a + (b - a) * i as f64 / (n - 1) as f64).powi(2))
+                    .collect()
+            }
+            BetaSchedule::SquaredCosCapV2 => {
+                let f = |t: f64| ((t + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2).cos().powi(2);
+                (0..n)
+                    .map(|i| {
+                        let (t1, t2) = (i as f64 / n as f64, (i + 1) as f64 / n as f64);
+                        (1.0 - f(t2) / f(t1)).min(0.999)
+                    })
+                    .collect()
+            }
+        };
+        if let Some(b) = betas.iter().find(|b| !(**b > 0.0 && **b < 1.0)) {
+            return Err(format!(
+                "betas must lie in (0, 1); beta_start = {}, beta_end = {} give {b}",
+                c.beta_start, c.beta_end
+            ));
+        }
+        let mut acc = 1.0;
+        let alphas_cumprod = betas
+            .iter()
+            .map(|b| {
+                acc *= 1.0 - b;
+                acc
+            })
+            .collect();
+        Ok(Schedule {
+            alphas_cumprod,
+            prediction: c.prediction_type,
+        })
+    }
+
+    /// Training timesteps.
+    pub fn len(&self) -> usize {
+        self.alphas_cumprod.len()
+    }
+
+    /// Never empty (at least 2 timesteps).
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// What the model predicts.
+    pub fn prediction(&self) -> Prediction {
+        self.prediction
+    }
+
+    /// Cumulative alpha at timestep t (1 for None: the clean image).
+    pub fn alpha_bar(&self, t: Option<usize>) -> f64 {
+        t.map_or(1.0, |t| self.alphas_cumprod[t.min(self.len() - 1)])
+    }
+
+    /// Noise standard deviation sqrt(1 - alpha_bar) at t: the noise level a NeRF loss weights
+    /// its diffusion targets by (w(t)).
+    pub fn noise_level(&self, t: usize) -> f64 {
+        (1.0 - self.alpha_bar(Some(t))).sqrt()
+    }
+
+    /// The training timestep whose noise level is closest to `strength` in (0, 1] of the
+    /// largest one (strength 1 = pure noise).
+    pub fn timestep_for_strength(&self, strength: f64) -> usize {
+        let s = strength.clamp(0.0, 1.0);
+        ((s * (self.len() - 1) as f64).round() as usize).min(self.len() - 1)
+    }
+
+    fn per_item(values: impl Iterator<Item = f64>, device: &Device) -> Tensor<4> {
+        let v: Vec<f32> = values.map(|x| x as f32).collect();
+        let n = v.len();
+        Tensor::<1>::from_floats(v.as_slice(), device).reshape([n, 1, 1, 1])
+    }
+
+    /// x_t = sqrt(a) x0 + sqrt(1 - a) eps, one timestep per batch item.
+    pub fn add_noise(&self, x0: Tensor<4>, noise: Tensor<4>, t: &[usize]) -> Tensor<4> {
+        let d = x0.device();
+        let a = Self::per_item(t.iter().map(|&t| self.alpha_bar(Some(t)).sqrt()), &d);
+        let b = Self::per_item(t.iter().map(|&t| (1.0 - self.alpha_bar(Some(t))).sqrt()), &d);
+        x0 * a + noise * b
+    }
+
+    /// The training target: the noise, or v = sqrt(a) eps - sqrt(1 - a) x0.
+    pub fn target(&self, x0: Tensor<4>, noise: Tensor<4>, t: &[usize]) -> Tensor<4> {
+        match self.prediction {
+            Prediction::Epsilon => noise,
+            Prediction::V => {
+                let d = x0.device();
+                let a = Self::per_item(t.iter().map(|&t| self.alpha_bar(Some(t)).sqrt()), &d);
+                let b =
+                    Self::per_item(t.iter().map(|&t| (1.0 - self.alpha_bar(Some(t))).sqrt()), &d);
+                noise * a - x0 * b
+            }
+        }
+    }
+
+    /// (predicted noise, predicted x0) from the model output at x_t (one shared timestep).
+    pub fn split(&self, out: Tensor<4>, x_t: Tensor<4>, t: usize) -> (Tensor<4>, Tensor<4>) {
+        let a = self.alpha_bar(Some(t));
+        let (sa, sb) = (a.sqrt(), (1.0 - a).sqrt());
+        match self.prediction {
+            Prediction::Epsilon => {
+                let x0 = (x_t - out.clone() * sb) / sa;
+                (out, x0)
+            }
+            Prediction::V => {
+                let x0 = x_t.clone() * sa - out.clone() * sb;
+                let eps = out * sa + x_t * sb;
+                (eps, x0)
+            }
+        }
+    }
+
+    /// One deterministic DDIM step (eta = 0) from t to `t_prev` (None = the clean image):
+    /// x_prev = sqrt(a_prev) x0 + sqrt(1 - a_prev) eps.
+    pub fn ddim_step(
+        &self,
+        out: Tensor<4>,
+        x_t: Tensor<4>,
+        t: usize,
+        t_prev: Option<usize>,
+    ) -> Tensor<4> {
+        let (eps, x0) = self.split(out, x_t, t);
+        let ap = self.alpha_bar(t_prev);
+        x0 * ap.sqrt() + eps * (1.0 - ap).sqrt()
+    }
+}
+
+/// The DDIM timesteps that start from an image noised to `strength` (the training timestep
+/// [`Schedule::timestep_for_strength`]) and reach the clean image in `steps` steps, evenly
+/// spaced and descending; the step after the last one is the clean image.
+pub fn ddim_timesteps(schedule: &Schedule, strength: f64, steps: usize) -> Vec<usize> {
+    let start = schedule.timestep_for_strength(strength);
+    let steps = steps.clamp(1, start + 1);
+    (0..steps)
+        .map(|i| {
+            let f = 1.0 - i as f64 / steps as f64;
+            (start as f64 * f).round() as usize
+        })
+        .collect()
+}
+
+/// Classifier-free guidance: uncond + g (cond - uncond).
+pub fn guide(cond: Tensor<4>, uncond: Tensor<4>, scale: f64) -> Tensor<4> {
+    uncond.clone() + (cond - uncond) * scale
+}

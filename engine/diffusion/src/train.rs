@@ -1,0 +1,446 @@
+//! Training the inpainting model: from scratch (the scene prior) or LoRA fine-tuning
+//! (DreamBooth-style, on the input views with their pseudo-disocclusion masks plus random
+//! masks).
+//!
+//! Every step draws a batch on the host (random crops, flips, colour jitter, random hole masks,
+//! the given masks), uploads it once, and runs forward, backward and AdamW on the device. The
+//! loss is the diffusion loss (noise or v) averaged over the cells whose pixels are all known:
+//! pixels marked unknown (held out, or outside a view) are always inside the hole the model is
+//! shown and never enter the loss, so a model never sees what it is later scored on.
+
+use burn::module::Module;
+use burn::optim::{AdamWConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Tensor};
+
+use crate::inpaint::{seeded_noise, unet_input, Codec, SplitMix};
+use crate::scheduler::Schedule;
+use crate::text::LearnedTokens;
+use crate::unet::UNet2DConditionModel;
+use crate::{DiffusionError, Result};
+
+/// A training image with what is known of it.
+#[derive(Clone, Debug)]
+pub struct TrainImage {
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// `[h, w, 3]` in [0, 1].
+    pub rgb: Vec<f32>,
+    /// `[h, w]`: 1 where the pixel may be seen and trained on, 0 where it is unknown.
+    pub known: Vec<f32>,
+    /// `[h, w]` hole masks to train with besides the random ones (pseudo-disocclusion masks):
+    /// 1 = hole.
+    pub masks: Vec<Vec<f32>>,
+}
+
+impl TrainImage {
+    /// An image that is entirely known, with no masks of its own.
+    pub fn new(width: usize, height: usize, rgb: Vec<f32>) -> TrainImage {
+        TrainImage {
+            width,
+            height,
+            known: vec![1.0; width * height],
+            rgb,
+            masks: Vec::new(),
+        }
+    }
+
+    fn check(&self, i: usize) -> Result<()> {
+        let n = self.width * self.height;
+        if self.rgb.len() != 3 * n
+            || self.known.len() != n
+            || self.masks.iter().any(|m| m.len() != n)
+        {
+            return Err(DiffusionError::Input(format!(
+                "training image {i}: {}x{} but {} colour values, {} known flags, masks of {:?}",
+                self.width,
+                self.height,
+                self.rgb.len(),
+                self.known.len(),
+                self.masks.iter().map(Vec::len).collect::<Vec<_>>()
+            )));
+        }
+        if let Some(v) = self.rgb.iter().find(|v| !v.is_finite()) {
+            return Err(DiffusionError::Input(format!(
+                "training image {i} has a non-finite value {v}"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Augmentation and masking of the training batches.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Augment {
+    /// Crop side in pixels (a multiple of the model's size multiple).
+    pub crop: usize,
+    /// Random horizontal flips.
+    pub flip: bool,
+    /// Colour jitter: brightness and contrast factors in 1 +- this, saturation too.
+    pub jitter: f64,
+    /// Probability that an image's own mask (when it has any) is the hole instead of a random
+    /// one.
+    pub own_mask_probability: f64,
+    /// Random holes: rectangles and strokes covering about this fraction of the crop at most.
+    pub max_hole_fraction: f64,
+}
+
+impl Default for Augment {
+    fn default() -> Self {
+        Augment {
+            crop: 64,
+            flip: true,
+            jitter: 0.1,
+            own_mask_probability: 0.5,
+            max_hole_fraction: 0.5,
+        }
+    }
+}
+
+/// What to train and how fast.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainSettings {
+    /// Optimiser steps.
+    pub steps: usize,
+    /// Crops per step.
+    pub batch: usize,
+    /// AdamW learning rate of the U-Net's trainable parameters (all of them from scratch, the
+    /// adapters when fine-tuning).
+    pub lr: f64,
+    /// Learning rate of the conditioning tokens.
+    pub token_lr: f64,
+    /// Linear warm-up steps.
+    pub warmup: usize,
+    /// Seed of crops, masks, timesteps and noise.
+    pub seed: u64,
+    /// Read the loss back every this many steps (each read waits for the device).
+    pub log_every: usize,
+    /// Gradient norm clip (0 = off).
+    pub clip: f64,
+}
+
+impl Default for TrainSettings {
+    fn default() -> Self {
+        TrainSettings {
+            steps: 1000,
+            batch: 8,
+            lr: 1e-3,
+            token_lr: 1e-3,
+            warmup: 50,
+            seed: 0,
+            log_every: 25,
+            clip: 1.0,
+        }
+    }
+}
+
+/// One progress report.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Progress {
+    /// Steps done.
+    pub step: usize,
+    /// Of.
+    pub steps: usize,
+    /// Mean loss over the steps since the last report.
+    pub loss: f64,
+    /// Seconds since the start.
+    pub elapsed: f64,
+}
+
+/// A batch in host memory.
+#[derive(Clone, Debug)]
+pub struct Batch {
+    /// Crops.
+    pub n: usize,
+    /// Side.
+    pub size: usize,
+    /// `[n, 3, s, s]` in [0, 1] (unknown pixels 0.5).
+    pub image: Vec<f32>,
+    /// `[n, 1, s, s]`: 1 = hole shown to the model (includes every unknown pixel).
+    pub hole: Vec<f32>,
+    /// `[n, 1, s, s]`: 1 = known (enters the loss).
+    pub known: Vec<f32>,
+}
+
+fn paint_rect(m: &mut [f32], s: usize, rng: &mut SplitMix, max_frac: f64) {
+    let side = |rng: &mut SplitMix| {
+        let f = 0.15 + rng.unit() * (max_frac.sqrt() - 0.15).max(0.0);
+        ((f * s as f64) as usize).clamp(1, s)
+    };
+    let (w, h) = (side(rng), side(rng));
+    let (x0, y0) = (rng.below(s - w + 1), rng.below(s - h + 1));
+    for y in y0..y0 + h {
+        for x in x0..x0 + w {
+            m[y * s + x] = 1.0;
+        }
+    }
+}
+
+fn paint_stroke(m: &mut [f32], s: usize, rng: &mut SplitMix) {
+    let mut x = rng.unit() * s as f64;
+    let mut y = rng.unit() * s as f64;
+    let r = 1.0 + rng.unit() * s as f64 / 12.0;
+    let mut angle = rng.unit() * std::f64::consts::TAU;
+    for _ in 0..(4 + rng.below(6)) {
+        angle += (rng.unit() - 0.5) * 2.0;
+        let len = (0.1 + rng.unit() * 0.3) * s as f64;
+        let steps = (len / (r * 0.5)).ceil() as usize;
+        for _ in 0..steps {
+            x = (x + angle.cos() * r * 0.5).clamp(0.0, s as f64 - 1.0);
+            y = (y + angle.sin() * r * 0.5).clamp(0.0, s as f64 - 1.0);
+            let (lo_y, hi_y) = ((y - r).max(0.0) as usize, ((y + r) as usize).min(s - 1));
+            let (lo_x, hi_x) = ((x - r).max(0.0) as usize, ((x + r) as usize).min(s - 1));
+            for py in lo_y..=hi_y {
+                for px in lo_x..=hi_x {
+                    let (dx, dy) = (px as f64 - x, py as f64 - y);
+                    if dx * dx + dy * dy <= r * r {
+                        m[py * s + px] = 1.0;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Random hole masks of side `s`: one to three rectangles or strokes, never the whole crop.
+pub fn random_hole(s: usize, rng: &mut SplitMix, max_frac: f64) -> Vec<f32> {
+    let mut m = vec![0.0f32; s * s];
+    for _ in 0..(1 + rng.below(3)) {
+        if rng.unit() < 0.5 {
+            paint_rect(&mut m, s, rng, max_frac);
+        } else {
+            paint_stroke(&mut m, s, rng);
+        }
+    }
+    let covered = m.iter().filter(|v| **v > 0.5).count();
+    if covered == s * s {
+        // Keep a known border so the model always has context.
+        for y in 0..s {
+            for x in 0..s {
+                if x < s / 8 || y < s / 8 {
+                    m[y * s + x] = 0.0;
+                }
+            }
+        }
+    }
+    m
+}
+
+/// Draws a batch of augmented crops with holes.
+pub fn draw_batch(
+    images: &[TrainImage],
+    aug: &Augment,
+    n: usize,
+    rng: &mut SplitMix,
+) -> Result<Batch> {
+    let s = aug.crop;
+    if images.is_empty() {
+        return Err(DiffusionError::Input("no training images".into()));
+    }
+    if let Some((i, im)) = images
+        .iter()
+        .enumerate()
+        .find(|(_, im)| im.width < s || im.height < s)
+    {
+        return Err(DiffusionError::Input(format!(
+            "training image {i} is {}x{}, smaller than the {s}-pixel crop",
+            im.width, im.height
+        )));
+    }
+    let mut image = vec![0.5f32; n * 3 * s * s];
+    let mut hole = vec![0.0f32; n * s * s];
+    let mut known = vec![0.0f32; n * s * s];
+    for b in 0..n {
+        let im = &images[rng.below(images.len())];
+        let (x0, y0) = (rng.below(im.width - s + 1), rng.below(im.height - s + 1));
+        let flip = aug.flip && rng.unit() < 0.5;
+        let j = aug.jitter;
+        let bright = 1.0 + (rng.unit() * 2.0 - 1.0) * j;
+        let contrast = 1.0 + (rng.unit() * 2.0 - 1.0) * j;
+        let sat = 1.0 + (rng.unit() * 2.0 - 1.0) * j;
+        let own = (!im.masks.is_empty() && rng.unit() < aug.own_mask_probability)
+            .then(|| &im.masks[rng.below(im.masks.len())]);
+        let random = random_hole(s, rng, aug.max_hole_fraction);
+        for y in 0..s {
+            for x in 0..s {
+                let sx = if flip { x0 + s - 1 - x } else { x0 + x };
+                let si = (y0 + y) * im.width + sx;
+                let di = y * s + x;
+                let k = im.known[si] >= 0.5;
+                let mut h = match own {
+                    Some(m) => m[si] >= 0.5,
+                    None => random[di] >= 0.5,
+                };
+                if !k {
+                    h = true;
+                }
+                hole[b * s * s + di] = if h { 1.0 } else { 0.0 };
+                known[b * s * s + di] = if k { 1.0 } else { 0.0 };
+                if k {
+                    let px: [f64; 3] = std::array::from_fn(|c| im.rgb[3 * si + c] as f64);
+                    let grey = (px[0] + px[1] + px[2]) / 3.0;
+                    for c in 0..3 {
+                        let v = grey + (px[c] - grey) * sat;
+                        let v = ((v - 0.5) * contrast + 0.5) * bright;
+                        image[b * 3 * s * s + c * s * s + di] = v.clamp(0.0, 1.0) as f32;
+                    }
+                }
+            }
+        }
+    }
+    Ok(Batch {
+        n,
+        size: s,
+        image,
+        hole,
+        known,
+    })
+}
+
+/// The model being trained: U-Net and conditioning tokens.
+#[derive(Module, Debug)]
+pub struct Trainable {
+    /// The U-Net.
+    pub unet: UNet2DConditionModel,
+    /// The tokens.
+    pub tokens: LearnedTokens,
+}
+
+/// The diffusion loss of one batch (on the device; nothing is read back).
+pub fn batch_loss(
+    model: &Trainable,
+    codec: &Codec,
+    schedule: &Schedule,
+    batch: &Batch,
+    rng: &mut SplitMix,
+    device: &Device,
+) -> Tensor<1> {
+    let (n, s) = (batch.n, batch.size);
+    let image = Tensor::<1>::from_floats(batch.image.as_slice(), device).reshape([n, 3, s, s]);
+    let hole = Tensor::<1>::from_floats(batch.hole.as_slice(), device).reshape([n, 1, s, s]);
+    let known = Tensor::<1>::from_floats(batch.known.as_slice(), device).reshape([n, 1, s, s]);
+    let x = image * 2.0 - 1.0;
+    // Unknown pixels are 0 in [-1, 1] (grey) and never enter the loss.
+    let x = x * known.clone();
+    let keep = hole.clone().neg() + 1.0;
+    let z0 = codec.encode(x.clone()).detach();
+    let masked = codec.encode(x * keep).detach();
+    let mask_z = codec.mask(hole);
+    let valid = codec.mask_any(known.neg() + 1.0).neg() + 1.0;
+    let t: Vec<usize> = (0..n).map(|_| rng.below(schedule.len())).collect();
+    let noise = seeded_noise(z0.dims(), rng.next(), device);
+    let zt = schedule.add_noise(z0.clone(), noise.clone(), &t);
+    let target = schedule.target(z0, noise, &t);
+    let ts: Vec<f32> = t.iter().map(|&t| t as f32).collect();
+    let context = model.tokens.forward(n);
+    let pred = model
+        .unet
+        .forward(unet_input(zt, mask_z, masked), &ts, &context);
+    let c = pred.dims()[1] as f64;
+    let err = (pred - target).powi_scalar(2) * valid.clone();
+    err.sum() / (valid.sum() * c + 1e-6)
+}
+
+/// Trains `model` (parameters on an autodiff device; frozen ones get no update) and returns it
+/// with the loss curve (step, mean loss per report). `on_progress` sees every report.
+pub fn train(
+    mut model: Trainable,
+    codec: &Codec,
+    schedule: &Schedule,
+    images: &[TrainImage],
+    aug: &Augment,
+    s: &TrainSettings,
+    device: &Device,
+    on_progress: &mut dyn FnMut(&Progress),
+) -> Result<(Trainable, Vec<(usize, f64)>)> {
+    if !device.is_autodiff() {
+        return Err(DiffusionError::Input(
+            "training needs an autodiff device (Device::autodiff)".into(),
+        ));
+    }
+    for (i, im) in images.iter().enumerate() {
+        im.check(i)?;
+    }
+    let m = codec.factor() * (1 << (model.unet.down_blocks.len() - 1));
+    if aug.crop == 0 || aug.crop % m != 0 {
+        return Err(DiffusionError::Input(format!(
+            "crop {} must be a positive multiple of {m} for this model",
+            aug.crop
+        )));
+    }
+    if s.steps == 0 || s.batch == 0 || !(s.lr > 0.0) || !(s.token_lr >= 0.0) {
+        return Err(DiffusionError::Input(format!(
+            "steps {} and batch {} must be > 0, lr {} > 0 and token lr {} >= 0",
+            s.steps, s.batch, s.lr, s.token_lr
+        )));
+    }
+    let adam = || {
+        let c = AdamWConfig::new()
+            .with_beta_2(0.999)
+            .with_epsilon(1e-8)
+            .with_weight_decay(0.0);
+        let c = if s.clip > 0.0 {
+            c.with_grad_clipping(Some(burn::grad_clipping::GradientClippingConfig::Norm(
+                s.clip as f32,
+            )))
+        } else {
+            c
+        };
+        c.init()
+    };
+    let mut opt_unet: ModuleOptimizer = adam();
+    let mut opt_tokens: ModuleOptimizer = adam();
+    let mut rng = SplitMix(s.seed);
+    let start = std::time::Instant::now();
+    let mut curve = Vec::new();
+    let mut pending: Option<Tensor<1>> = None;
+    let mut since = 0usize;
+    for step in 1..=s.steps {
+        let batch = draw_batch(images, aug, s.batch, &mut rng)?;
+        let loss = batch_loss(&model, codec, schedule, &batch, &mut rng, device);
+        let mut grads = loss.backward();
+        let warm = if s.warmup > 0 {
+            (step as f64 / s.warmup as f64).min(1.0)
+        } else {
+            1.0
+        };
+        let g_unet = GradientsParams::from_module(&mut grads, &model.unet);
+        let g_tokens = GradientsParams::from_module(&mut grads, &model.tokens);
+        let Trainable { unet, tokens } = model;
+        let unet = opt_unet.step(s.lr * warm, unet, g_unet);
+        let tokens = if s.token_lr > 0.0 {
+            opt_tokens.step(s.token_lr * warm, tokens, g_tokens)
+        } else {
+            tokens
+        };
+        model = Trainable { unet, tokens };
+        let l = loss.detach();
+        pending = Some(match pending {
+            Some(p) => p + l,
+            None => l,
+        });
+        since += 1;
+        if step % s.log_every.max(1) == 0 || step == s.steps {
+            let sum = pending
+                .take()
+                .map(|p| p.into_scalar::<f32>() as f64)
+                .unwrap_or(0.0);
+            let mean = sum / since as f64;
+            since = 0;
+            if !mean.is_finite() {
+                return Err(DiffusionError::Diverged(format!(
+                    "the diffusion loss became {mean} by step {step} (lower --lr or raise --clip)"
+                )));
+            }
+            curve.push((step, mean));
+            on_progress(&Progress {
+                step,
+                steps: s.steps,
+                loss: mean,
+                elapsed: start.elapsed().as_secs_f64(),
+            });
+        }
+    }
+    Ok((model, curve))
+}

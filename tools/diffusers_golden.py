@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""Reference outputs of diffusers' own UNet2DConditionModel and AutoencoderKL, for the test
+that checks extranerf's burn models against diffusers (tests/diffusion_golden.rs).
+
+Writes, under OUT (default tests/fixtures/diffusers_tiny):
+  unet_conv/   a tiny inpainting U-Net (1x1-conv projections, odd head layout) in diffusers'
+               save_pretrained layout: config.json + diffusion_pytorch_model.safetensors
+  unet_linear/ the same with use_linear_projection and per-block heads (SD 2 style)
+  vae/         a tiny AutoencoderKL
+  golden.safetensors  inputs and diffusers' outputs (f32)
+
+The models are random (seeded); nothing here comes from pretrained weights. Run it once with
+diffusers and torch installed (CPU is enough):
+
+  pip install --target /tmp/pyref torch==2.5.1 diffusers==0.31.0 safetensors
+  PYTHONPATH=/tmp/pyref python3 tools/diffusers_golden.py
+"""
+
+import sys
+from pathlib import Path
+
+import torch
+from diffusers import AutoencoderKL, UNet2DConditionModel
+from safetensors.torch import save_file
+
+
+def tiny_unet(linear: bool) -> UNet2DConditionModel:
+    return UNet2DConditionModel(
+        sample_size=8,
+        in_channels=9,
+        out_channels=4,
+        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+        block_out_channels=(8, 16),
+        layers_per_block=1,
+        norm_num_groups=4,
+        cross_attention_dim=12,
+        attention_head_dim=(2, 4) if linear else 2,
+        use_linear_projection=linear,
+    )
+
+
+def tiny_vae() -> AutoencoderKL:
+    return AutoencoderKL(
+        in_channels=3,
+        out_channels=3,
+        down_block_types=("DownEncoderBlock2D",) * 2,
+        up_block_types=("UpDecoderBlock2D",) * 2,
+        block_out_channels=(8, 16),
+        layers_per_block=1,
+        latent_channels=4,
+        norm_num_groups=4,
+    )
+
+
+def randomize(model: torch.nn.Module, gen: torch.Generator) -> None:
+    # Default inits leave zeros (biases, GroupNorm betas) that would hide layout errors.
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.2)
+
+
+def main() -> None:
+    out = Path(sys.argv[1] if len(sys.argv) > 1 else "tests/fixtures/diffusers_tiny")
+    out.mkdir(parents=True, exist_ok=True)
+    gen = torch.Generator().manual_seed(1234)
+    torch.manual_seed(1234)
+    golden = {}
+    # Odd spatial size: the up block must upsample to the skip's size.
+    sample = torch.randn(2, 9, 9, 13, generator=gen)
+    context = torch.randn(2, 3, 12, generator=gen)
+    timesteps = torch.tensor([10.0, 700.0])
+    golden["unet.sample"] = sample
+    golden["unet.context"] = context
+    golden["unet.timesteps"] = timesteps
+    for name, linear in (("unet_conv", False), ("unet_linear", True)):
+        unet = tiny_unet(linear).eval()
+        randomize(unet, gen)
+        unet.save_pretrained(out / name, safe_serialization=True)
+        with torch.no_grad():
+            golden[f"{name}.out"] = unet(sample, timesteps, context).sample
+    vae = tiny_vae().eval()
+    randomize(vae, gen)
+    vae.save_pretrained(out / "vae", safe_serialization=True)
+    image = torch.rand(1, 3, 12, 16, generator=gen) * 2 - 1
+    with torch.no_grad():
+        post = vae.encode(image).latent_dist
+        golden["vae.image"] = image
+        golden["vae.mean"] = post.mean
+        golden["vae.logvar"] = post.logvar
+        golden["vae.decoded"] = vae.decode(post.mean).sample
+    save_file({k: v.contiguous().float() for k, v in golden.items()}, out / "golden.safetensors")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
