@@ -23,10 +23,12 @@ use extranerf_diffusion::unet::UNet2DConditionModel;
 use extranerf_diffusion::vae::AutoencoderKL;
 use extranerf_diffusion::weights;
 use extranerf_nerf::safetensors::SafeTensors;
-use extranerf_tests::scratch_dir;
+use extranerf_tests::{
+    burn_values, diffusers_fixtures, diffusers_golden, golden_tensor, max_rel_err, scratch_dir,
+};
 
 fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/diffusers_tiny")
+    diffusers_fixtures()
 }
 
 fn cpu() -> Device {
@@ -34,27 +36,19 @@ fn cpu() -> Device {
 }
 
 fn golden() -> SafeTensors {
-    SafeTensors::read(&fixtures().join("golden.safetensors")).unwrap()
+    diffusers_golden()
 }
 
 fn tensor<const D: usize>(st: &SafeTensors, name: &str, dev: &Device) -> Tensor<D> {
-    let t = &st.tensors[name];
-    let shape: [usize; D] = t.shape.clone().try_into().unwrap();
-    Tensor::<1>::from_floats(t.data.as_slice(), dev).reshape(shape)
+    golden_tensor(st, name, dev)
 }
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_to_vec_as::<f32>().unwrap()
+    burn_values(t)
 }
 
-/// Largest |a - b| relative to the largest |b|.
 fn rel_err(a: &[f32], b: &[f32]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    let scale = b.iter().fold(0f64, |m, v| m.max(v.abs() as f64)).max(1e-12);
-    a.iter()
-        .zip(b)
-        .fold(0f64, |m, (x, y)| m.max((*x as f64 - *y as f64).abs()))
-        / scale
+    max_rel_err(a, b)
 }
 
 fn file_shapes(path: &Path) -> Vec<(String, Vec<usize>)> {

@@ -119,3 +119,51 @@ pub fn demo_training_views(
     training_views(&spec, &loaded, model)
         .unwrap_or_else(|e| panic!("the demo scene's training views: {e}"))
 }
+
+/// The diffusers reference fixtures (tiny random models saved by diffusers itself, inputs and
+/// diffusers' outputs), written by tools/diffusers_golden.py.
+pub fn diffusers_fixtures() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/diffusers_tiny")
+}
+
+/// diffusers' inputs and outputs for the fixture models.
+pub fn diffusers_golden() -> extranerf_nerf::safetensors::SafeTensors {
+    let p = diffusers_fixtures().join("golden.safetensors");
+    extranerf_nerf::safetensors::SafeTensors::read(&p)
+        .unwrap_or_else(|e| panic!("reading {}: {e}", p.display()))
+}
+
+/// A golden tensor on a burn device.
+pub fn golden_tensor<const D: usize>(
+    st: &extranerf_nerf::safetensors::SafeTensors,
+    name: &str,
+    dev: &burn::tensor::Device,
+) -> burn::tensor::Tensor<D> {
+    let t = st
+        .tensors
+        .get(name)
+        .unwrap_or_else(|| panic!("golden tensor {name} missing"));
+    let shape: [usize; D] = t
+        .shape
+        .clone()
+        .try_into()
+        .unwrap_or_else(|_| panic!("golden tensor {name} has rank {}", t.shape.len()));
+    burn::tensor::Tensor::<1>::from_floats(t.data.as_slice(), dev).reshape(shape)
+}
+
+/// A burn tensor's values on the host.
+pub fn burn_values<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
+    t.into_data()
+        .try_to_vec_as::<f32>()
+        .unwrap_or_else(|e| panic!("reading a tensor: {e:?}"))
+}
+
+/// Largest |a - b| relative to the largest |b|.
+pub fn max_rel_err(a: &[f32], b: &[f32]) -> f64 {
+    assert_eq!(a.len(), b.len(), "lengths differ");
+    let scale = b.iter().fold(0f64, |m, v| m.max(v.abs() as f64)).max(1e-12);
+    a.iter()
+        .zip(b)
+        .fold(0f64, |m, (x, y)| m.max((*x as f64 - *y as f64).abs()))
+        / scale
+}

@@ -680,11 +680,11 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     println!(
-        "held-out inpainting, {n} regions of about {0}x{0} px in {window}x{window} windows ({} views at {}x{}):",
-        a.hole_size,
+        "held-out inpainting, {n} regions of about {hs}x{hs} px in {window}x{window} windows ({} views at {}x{}):",
         views.len(),
         views[0].width,
-        views[0].height
+        views[0].height,
+        hs = a.hole_size,
     );
     println!("{:<16} {:>14} {:>14}", "method", "PSNR in mask", "LPIPS (alex)");
     let mut summary = serde_json::Map::new();
@@ -1031,7 +1031,9 @@ pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
             // A small VAE with SD's factor 8, so the latents are side x side.
             let vae = extranerf_diffusion::vae::AutoencoderKL::new(
                 &VaeConfig {
-                    block_out_channels: vec![16, 16, 16, 16],
+                    block_out_channels: vec![16; 4],
+                    down_block_types: vec!["DownEncoderBlock2D".into(); 4],
+                    up_block_types: vec!["UpDecoderBlock2D".into(); 4],
                     ..VaeConfig::tiny()
                 },
                 &ad,

@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 use extranerf_gpu::{Context, ContextDesc, Validation};
 
 mod bench;
+mod diffusion;
 mod mvs;
 mod nerf;
 mod tradeoff;
@@ -15,8 +16,8 @@ mod visibility;
 /// extranerf: a Vulkan-native ExtraNeRF engine (neural radiance fields viewed from outside the
 /// cameras that took them). This build trains the BaseNeRF field (hash grid + tiny MLPs) on
 /// posed photos, renders and evaluates it, runs a self-contained demo, and benchmarks the
-/// kernels and the training step, generates virtual cameras and computes multi-view visibility.
-/// The diffusion stages follow.
+/// kernels and the training step, generates virtual cameras and computes multi-view visibility,
+/// and runs the inpainting diffusion models (diffusers layout) on the same Vulkan device.
 #[derive(Parser, Debug)]
 #[command(name = "extranerf", version, propagate_version = true)]
 struct Cli {
@@ -67,6 +68,13 @@ enum Command {
     /// consistency, a confidence per pixel): depth maps for `train --depth-dir`, and their
     /// agreement with the COLMAP sparse points.
     Mvs(mvs::MvsArgs),
+    /// Inpainting diffusion models (diffusers UNet2DConditionModel / AutoencoderKL layout)
+    /// through burn on the engine's Vulkan device: train a scene prior from scratch, LoRA
+    /// fine-tuning, inpainting, and model folders.
+    Diffusion {
+        #[command(subcommand)]
+        what: diffusion::DiffusionCommand,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -97,9 +105,19 @@ enum BenchCommand {
     /// the held-out views (PSNR, SSIM, LPIPS), and writes CSV, JSON and an SVG plot with the
     /// Pareto frontier.
     Tradeoff(tradeoff::TradeoffArgs),
+    /// The diffusion U-Net: forward and forward+backward it/s at a tiny and a medium config,
+    /// the LoRA fine-tuning step, on burn's CPU backend and on the engine's Vulkan device
+    /// (warm-up with shader compilation reported apart), and the FLOPs of SD-1.5 inpainting
+    /// at 64x64 latents for scale.
+    Diffusion(diffusion::BenchDiffusionArgs),
 }
 
 fn context(cli: &Cli) -> anyhow::Result<Context> {
+    context_with(cli, false)
+}
+
+/// A context whose VkDevice burn's wgpu runtime can adopt (diffusion commands).
+fn context_with(cli: &Cli, share_with_wgpu: bool) -> anyhow::Result<Context> {
     let validation = if cli.validation {
         Validation::Required
     } else {
@@ -109,7 +127,7 @@ fn context(cli: &Cli) -> anyhow::Result<Context> {
         validation,
         device: cli.device.clone(),
         max_binding_bytes: None,
-        share_with_wgpu: false,
+        share_with_wgpu,
     })
     .context("creating the Vulkan device")
 }
@@ -150,6 +168,10 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Cameras(a) => nerf::cameras(a),
         Command::Visibility(a) => visibility::visibility(&context(cli)?, a),
         Command::Mvs(a) => mvs::mvs(&context(cli)?, a),
+        Command::Diffusion { what } => diffusion::run(&context_with(cli, true)?, what),
+        Command::Bench {
+            what: BenchCommand::Diffusion(args),
+        } => diffusion::bench(&context_with(cli, true)?, args),
         Command::Bench {
             what: BenchCommand::Visibility(args),
         } => visibility::bench_visibility(&context(cli)?, args),

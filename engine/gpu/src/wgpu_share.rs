@@ -40,14 +40,25 @@ impl WgpuHandles {
     }
 }
 
-/// The wgpu features the engine's kernels need, where the device has them.
+/// The wgpu features of the shared device: the engine's needs (subgroups, f16, float atomics)
+/// plus every feature cubecl reads off the *adapter* to choose its kernels' types (64-bit
+/// integers and floats, f16, f32 atomics) or its timers. cubecl requests all adapter
+/// features for devices it creates itself and emits, e.g., u64 in its convolutions where
+/// SHADER_INT64 is offered, so a device without them fails burn's shader validation. (All
+/// adapter features would also enable extensions the validation layer does not know.)
 fn wanted(available: wgpu_types::Features, f16: bool, atomic_float: bool) -> wgpu_types::Features {
-    let mut f = wgpu_types::Features::SUBGROUP;
+    use wgpu_types::Features as F;
+    let mut f = F::SUBGROUP
+        | F::SHADER_INT64
+        | F::SHADER_F64
+        | F::SHADER_F16
+        | F::SHADER_FLOAT32_ATOMIC
+        | F::TIMESTAMP_QUERY;
     if f16 {
-        f |= wgpu_types::Features::SHADER_F16;
+        f |= F::SHADER_F16;
     }
     if atomic_float {
-        f |= wgpu_types::Features::SHADER_FLOAT32_ATOMIC;
+        f |= F::SHADER_FLOAT32_ATOMIC;
     }
     f & available
 }
