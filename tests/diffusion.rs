@@ -129,6 +129,7 @@ fn fixture_model(dev: &Device) -> InpaintModel {
         codec: Codec::Vae(vae),
         tokens: LearnedTokens {
             tokens: Param::from_tensor(Tensor::<1>::from_floats(toks.as_slice(), dev).reshape([3, 12])),
+            null_context: None,
         },
         schedule: Schedule::new(&SchedulerConfig::default()).unwrap(),
     }

@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 use extranerf_diffusion::blocks::{timestep_embedding, Attention};
+use extranerf_diffusion::clip::{load_text_encoder, ClipTokenizer};
+use extranerf_diffusion::pipeline::Pipeline;
 use extranerf_diffusion::config::{UNetConfig, VaeConfig};
 use extranerf_diffusion::fill;
 use extranerf_diffusion::inpaint::{seeded_noise, Codec, InpaintModel, PixelCodec, SampleSettings};
@@ -852,4 +854,97 @@ fn fills_reproduce_simple_images() {
         mse(&harm)
     );
     assert!(fill::mean_fill(&holed, &mask[1..], w, h).is_err());
+}
+
+#[test]
+fn clip_tokenizer_and_text_encoder_match_transformers() {
+    let dev = cpu();
+    let g = golden();
+    let tok = ClipTokenizer::load(&fixtures().join("tokenizer")).unwrap();
+    let want: Vec<Vec<u32>> = g.tensors["clip.ids"]
+        .data
+        .chunks(12)
+        .map(|r| r.iter().map(|v| *v as u32).collect())
+        .collect();
+    let prompts = ["a photo of sks scene", "The  fern's leaves, 2024!"];
+    let ids: Vec<Vec<u32>> = prompts.iter().map(|p| tok.encode(p, 12).unwrap()).collect();
+    assert_eq!(ids, want, "token ids differ from transformers' CLIPTokenizer");
+    for sub in ["clip_quick", "clip_gelu"] {
+        let (_, clip) = load_text_encoder(&fixtures().join(sub), &dev).unwrap();
+        let out = values(clip.forward(&ids, &dev).unwrap());
+        let err = rel_err(&out, &g.tensors[&format!("{sub}.hidden")].data);
+        eprintln!("{sub}: max error {err:.2e} against transformers");
+        assert!(err < 1e-4, "{sub}: {err}");
+    }
+    // Bad input is an error.
+    let (_, clip) = load_text_encoder(&fixtures().join("clip_quick"), &dev).unwrap();
+    assert!(clip.forward(&[vec![1; 13]], &dev).is_err());
+    assert!(clip.forward(&[vec![9999; 4]], &dev).is_err());
+}
+
+#[test]
+fn stable_diffusion_style_folders_load_with_clip_conditioning() {
+    let dev = cpu();
+    let dir = scratch_dir("sd-folder");
+    let f = fixtures();
+    for (from, to) in [
+        ("unet_conv", "unet"),
+        ("vae", "vae"),
+        ("clip_quick", "text_encoder"),
+        ("tokenizer", "tokenizer"),
+    ] {
+        std::fs::create_dir_all(dir.join(to)).unwrap();
+        for e in std::fs::read_dir(f.join(from)).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), dir.join(to).join(e.file_name())).unwrap();
+        }
+    }
+    SchedulerConfig::default()
+        .save(&dir.join("scheduler/scheduler_config.json"))
+        .unwrap();
+    std::fs::write(
+        dir.join("model_index.json"),
+        r#"{"_class_name": "StableDiffusionInpaintPipeline", "_diffusers_version": "0.31.0"}"#,
+    )
+    .unwrap();
+    let p = Pipeline::load(&dir, &dev, "a photo of sks scene").unwrap();
+    assert!(p.notes.iter().any(|n| n.contains("CLIP")), "{:?}", p.notes);
+    assert_eq!(p.model.tokens.dims(), [12, 12]);
+    assert!(p.model.tokens.null_context.is_some());
+    let img = Tensor::<4>::ones([1, 3, 8, 8], &dev) * 0.4;
+    let mut mask = vec![0f32; 64];
+    mask[27] = 1.0;
+    let mask = Tensor::<1>::from_floats(mask.as_slice(), &dev).reshape([1, 1, 8, 8]);
+    let out = p
+        .model
+        .inpaint(
+            img,
+            mask,
+            seeded_noise([1, 4, 4, 4], 1, &dev),
+            &SampleSettings {
+                strength: 0.5,
+                steps: 2,
+                guidance: 3.0,
+                keep_known: true,
+            },
+        )
+        .unwrap();
+    assert!(values(out.image).iter().all(|v| v.is_finite()));
+    // This project's folder round-trips through save and load (tokens saved, configs kept).
+    let own = scratch_dir("own-folder");
+    p.save(&own).unwrap();
+    let back = Pipeline::load(&own, &dev, "ignored").unwrap();
+    assert_eq!(back.unet_config, p.unet_config);
+    assert_eq!(
+        values(back.model.tokens.tokens.val()),
+        values(p.model.tokens.tokens.val())
+    );
+    // A pipeline of another kind is refused by name.
+    std::fs::write(
+        dir.join("model_index.json"),
+        r#"{"_class_name": "StableDiffusionXLPipeline"}"#,
+    )
+    .unwrap();
+    let e = Pipeline::load(&dir, &dev, "").unwrap_err().to_string();
+    assert!(e.contains("StableDiffusionXLPipeline") && e.contains("model_index.json"), "{e}");
 }

@@ -7,7 +7,9 @@ Writes, under OUT (default tests/fixtures/diffusers_tiny):
                save_pretrained layout: config.json + diffusion_pytorch_model.safetensors
   unet_linear/ the same with use_linear_projection and per-block heads (SD 2 style)
   vae/         a tiny AutoencoderKL
-  golden.safetensors  inputs and diffusers' outputs (f32)
+  clip_quick/, clip_gelu/  tiny transformers CLIPTextModels (quick_gelu and gelu)
+  tokenizer/   a tiny CLIP BPE vocabulary (byte symbols plus merges learnt from a few words)
+  golden.safetensors  inputs and the reference outputs (f32; token ids as f32)
 
 The models are random (seeded); nothing here comes from pretrained weights. Run it once with
 diffusers and torch installed (CPU is enough):
@@ -19,8 +21,12 @@ diffusers and torch installed (CPU is enough):
 import sys
 from pathlib import Path
 
+import json
+from collections import Counter
+
 import torch
 from diffusers import AutoencoderKL, UNet2DConditionModel
+from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
 from safetensors.torch import save_file
 
 
@@ -51,6 +57,55 @@ def tiny_vae() -> AutoencoderKL:
         latent_channels=4,
         norm_num_groups=4,
     )
+
+
+PROMPTS = ["a photo of sks scene", "The  fern's leaves, 2024!"]
+CORPUS = "a photo of sks scene with the fern and its leaves photo scene fern fern's"
+
+
+def bytes_to_unicode():
+    bs = list(range(33, 127)) + list(range(161, 173)) + list(range(174, 256))
+    cs = bs[:]
+    n = 0
+    for b in range(256):
+        if b not in bs:
+            bs.append(b)
+            cs.append(256 + n)
+            n += 1
+    return dict(zip(bs, [chr(c) for c in cs]))
+
+
+def tiny_tokenizer(out: Path) -> CLIPTokenizer:
+    symbols = list(bytes_to_unicode().values())
+    vocab = symbols + [s + "</w>" for s in symbols]
+    words = [list(w[:-1]) + [w[-1] + "</w>"] for w in CORPUS.split()]
+    merges = []
+    for _ in range(40):
+        pairs = Counter(p for w in words for p in zip(w, w[1:]))
+        if not pairs:
+            break
+        (a, b), _ = pairs.most_common(1)[0]
+        merges.append(f"{a} {b}")
+        vocab.append(a + b)
+        merged = []
+        for w in words:
+            i, nw = 0, []
+            while i < len(w):
+                if i + 1 < len(w) and (w[i], w[i + 1]) == (a, b):
+                    nw.append(a + b)
+                    i += 2
+                else:
+                    nw.append(w[i])
+                    i += 1
+            merged.append(nw)
+        words = merged
+    vocab += ["<|startoftext|>", "<|endoftext|>"]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "vocab.json").write_text(json.dumps({t: i for i, t in enumerate(vocab)}))
+    (out / "merges.txt").write_text("#version: 0.2\n" + "\n".join(merges) + "\n")
+    tok = CLIPTokenizer(str(out / "vocab.json"), str(out / "merges.txt"))
+    tok.save_pretrained(out)
+    return tok
 
 
 def randomize(model: torch.nn.Module, gen: torch.Generator) -> None:
@@ -89,6 +144,27 @@ def main() -> None:
         golden["vae.mean"] = post.mean
         golden["vae.logvar"] = post.logvar
         golden["vae.decoded"] = vae.decode(post.mean).sample
+    tok = tiny_tokenizer(out / "tokenizer")
+    ids = tok(PROMPTS, padding="max_length", max_length=12, truncation=True, return_tensors="pt").input_ids
+    golden["clip.ids"] = ids.float()
+    for name, act in (("clip_quick", "quick_gelu"), ("clip_gelu", "gelu")):
+        cfg = CLIPTextConfig(
+            vocab_size=len(tok.get_vocab()),
+            hidden_size=12,
+            intermediate_size=32,
+            num_hidden_layers=2,
+            num_attention_heads=2,
+            max_position_embeddings=12,
+            hidden_act=act,
+            bos_token_id=tok.bos_token_id,
+            eos_token_id=tok.eos_token_id,
+            pad_token_id=tok.pad_token_id,
+        )
+        clip = CLIPTextModel(cfg).eval()
+        randomize(clip, gen)
+        clip.save_pretrained(out / name, safe_serialization=True)
+        with torch.no_grad():
+            golden[f"{name}.hidden"] = clip(ids).last_hidden_state
     save_file({k: v.contiguous().float() for k, v in golden.items()}, out / "golden.safetensors")
     print(f"wrote {out}")
 

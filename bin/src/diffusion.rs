@@ -148,6 +148,10 @@ pub struct InpaintArgs {
     /// Seed of the noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Prompt for Stable Diffusion folders with a CLIP text encoder (this project's models
+    /// carry learned tokens instead).
+    #[arg(long, default_value = "a photo of a scene")]
+    pub prompt: String,
     #[command(flatten)]
     pub backend: BackendArgs,
 }
@@ -204,6 +208,10 @@ pub struct FinetuneArgs {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Starting prompt of the identifier tokens, for Stable Diffusion folders with a CLIP text
+    /// encoder (DreamBooth's "a photo of sks scene").
+    #[arg(long, default_value = "a photo of sks scene")]
+    pub prompt: String,
     #[command(flatten)]
     pub backend: BackendArgs,
 }
@@ -740,7 +748,7 @@ fn read_rgb(path: &Path) -> anyhow::Result<(usize, usize, Vec<f32>)> {
 /// `extranerf diffusion inpaint`.
 fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
     let (_, dev) = a.backend.device(ctx)?;
-    let mut pipe = Pipeline::load(&a.model, &dev)?;
+    let mut pipe = Pipeline::load(&a.model, &dev, &a.prompt)?;
     if let Some(dir) = &a.lora {
         let (_, unet) = lora::load(dir, pipe.model.unet, &dev)?;
         pipe.model.unet = unet;
@@ -808,7 +816,7 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
     let (_, dev) = a.backend.device(ctx)?;
     let ad = dev.clone().autodiff();
     ad.seed(a.seed);
-    let pipe = Pipeline::load(&a.model, &ad)?;
+    let pipe = Pipeline::load(&a.model, &ad, &a.prompt)?;
     for n in &pipe.notes {
         eprintln!("model: {n}");
     }

@@ -6,7 +6,7 @@ use burn::nn::{GroupNorm, GroupNormConfig, LayerNorm, LayerNormConfig};
 use burn::tensor::activation::{gelu, silu};
 use burn::tensor::module::{attention, interpolate};
 use burn::tensor::ops::{AttentionModuleOptions, InterpolateMode, InterpolateOptions};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Bool, Device, Tensor};
 
 use crate::layers::{Conv2d, Linear};
 
@@ -205,21 +205,11 @@ impl Attention {
 
     /// `x [b, l, query_dim]`, context `[b, s, context_dim]` -> `[b, l, query_dim]`.
     pub fn forward(&self, x: Tensor<3>, context: Option<&Tensor<3>>) -> Tensor<3> {
-        let [b, l, _] = x.dims();
         let ctx = context.cloned().unwrap_or_else(|| x.clone());
-        let [_, s, _] = ctx.dims();
-        let h = self.heads;
-        let split = |t: Tensor<3>, n: usize| -> Tensor<4> {
-            let inner = t.dims()[2];
-            t.reshape([b, n, h, inner / h]).swap_dims(1, 2)
-        };
-        let q = split(self.to_q.forward(x), l);
-        let k = split(self.to_k.forward(ctx.clone()), s);
-        let v = split(self.to_v.forward(ctx), s);
-        let o = attention(q, k, v, None, None, AttentionModuleOptions::default());
-        let [_, _, _, dh] = o.dims();
-        let o = o.swap_dims(1, 2).reshape([b, l, h * dh]);
-        self.to_out[0].forward(o)
+        let q = self.to_q.forward(x);
+        let k = self.to_k.forward(ctx.clone());
+        let v = self.to_v.forward(ctx);
+        self.to_out[0].forward(multi_head_attention(q, k, v, self.heads, None))
     }
 
     /// The VAE's spatial form: `[n, c, h, w] -> [n, c, h, w]` with the residual added.
@@ -244,6 +234,31 @@ impl Attention {
             + self.to_out[0].macs(l)
             + 2 * (l as u64) * (s as u64) * inner
     }
+}
+
+/// softmax(q k^T / sqrt(d_head)) v per head: `q [b, l, heads * d_head]`, `k`, `v`
+/// `[b, s, heads * d_head]` -> `[b, l, heads * d_head]`; `mask [b, heads, l, s]` is true where
+/// a query must not see a key.
+pub fn multi_head_attention(
+    q: Tensor<3>,
+    k: Tensor<3>,
+    v: Tensor<3>,
+    heads: usize,
+    mask: Option<Tensor<4, Bool>>,
+) -> Tensor<3> {
+    let [b, l, inner] = q.dims();
+    let s = k.dims()[1];
+    let dh = inner / heads;
+    let split = |t: Tensor<3>, n: usize| -> Tensor<4> { t.reshape([b, n, heads, dh]).swap_dims(1, 2) };
+    let o = attention(
+        split(q, l),
+        split(k, s),
+        split(v, s),
+        mask,
+        None,
+        AttentionModuleOptions::default(),
+    );
+    o.swap_dims(1, 2).reshape([b, l, inner])
 }
 
 /// diffusers' GEGLU (`ff.net.0`): `proj` to twice the width, value * gelu(gate).

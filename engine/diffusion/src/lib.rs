@@ -16,6 +16,7 @@
 use std::path::{Path, PathBuf};
 
 pub mod blocks;
+pub mod clip;
 pub mod config;
 pub mod device;
 pub mod fill;

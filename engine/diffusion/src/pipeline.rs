@@ -84,8 +84,10 @@ impl Pipeline {
         })
     }
 
-    /// Loads a pipeline folder.
-    pub fn load(dir: &Path, device: &Device) -> Result<Pipeline> {
+    /// Loads a pipeline folder. `prompt` conditions a Stable Diffusion folder through its CLIP
+    /// text encoder (the embedding then becomes the learned tokens fine-tuning adapts; the empty
+    /// prompt is the guidance baseline); this project's folders carry their tokens.
+    pub fn load(dir: &Path, device: &Device, prompt: &str) -> Result<Pipeline> {
         let index_path = dir.join("model_index.json");
         let index: ModelIndex = crate::config::read_json(&index_path)?;
         let own = match index.class_name.as_str() {
@@ -131,9 +133,24 @@ impl Pipeline {
                 path: tokens_dir.join(crate::text::TOKENS_FILE),
                 problem: "missing: this pipeline is conditioned on learned tokens".into(),
             });
+        } else if tokens_dir.join("config.json").is_file() && dir.join("tokenizer").is_dir() {
+            let (_, clip) = crate::clip::load_text_encoder(&tokens_dir, device)?;
+            let tok = crate::clip::ClipTokenizer::load(&dir.join("tokenizer"))?;
+            let len = clip.max_len();
+            let ids = vec![tok.encode(prompt, len)?, tok.encode("", len)?];
+            let e = clip.forward(&ids, device)?;
+            let [_, l, d] = e.dims();
+            let mut rows = e.chunk(2, 0);
+            let empty = rows.pop().unwrap_or_else(|| unreachable!("two rows")).reshape([l, d]);
+            let cond = rows.pop().unwrap_or_else(|| unreachable!("two rows")).reshape([l, d]);
+            notes.push(format!(
+                "weights from {}; conditioning: CLIP embedding of {prompt:?} (adapted as learned tokens when fine-tuned)",
+                dir.display()
+            ));
+            LearnedTokens::from_embedding(cond.detach(), empty.detach())
         } else {
             notes.push(format!(
-                "U-Net and VAE from {}; no CLIP text encoder in this build: conditioning is 8 fresh learned tokens until fine-tuned",
+                "U-Net and VAE from {}; no text encoder in the folder: conditioning is 8 fresh learned tokens until fine-tuned",
                 dir.display()
             ));
             LearnedTokens::new(8, unet_config.cross_attention_dim, device)

@@ -18,6 +18,9 @@ use crate::{DiffusionError, Result};
 pub struct LearnedTokens {
     /// The embeddings.
     pub tokens: Param<Tensor<2>>,
+    /// The unconditional context for guidance (CLIP's empty-prompt embedding when the tokens
+    /// started from a prompt); zeros when None. A constant: not trained, not saved.
+    pub null_context: Option<Tensor<2>>,
 }
 
 /// `text_encoder/config.json` of a learned-token conditioning.
@@ -46,6 +49,16 @@ impl LearnedTokens {
                 std: 1.0,
             }
             .init([n, dim], device),
+            null_context: None,
+        }
+    }
+
+    /// Tokens initialised from a text embedding `[n, dim]` (a CLIP prompt), with the empty
+    /// prompt's embedding as the null context.
+    pub fn from_embedding(prompt: Tensor<2>, empty: Tensor<2>) -> LearnedTokens {
+        LearnedTokens {
+            tokens: Param::from_tensor(prompt),
+            null_context: Some(empty),
         }
     }
 
@@ -64,10 +77,13 @@ impl LearnedTokens {
             .expand([batch, n, d])
     }
 
-    /// The null context for guidance: zeros `[batch, n, dim]`.
+    /// The null context for guidance `[batch, n, dim]`: the empty prompt's embedding, or zeros.
     pub fn null(&self, batch: usize, device: &Device) -> Tensor<3> {
         let [n, d] = self.dims();
-        Tensor::zeros([batch, n, d], device)
+        match &self.null_context {
+            Some(t) => t.clone().unsqueeze::<3>().expand([batch, n, d]),
+            None => Tensor::zeros([batch, n, d], device),
+        }
     }
 
     /// Writes `dir/config.json` and `dir/learned_tokens.safetensors`.
