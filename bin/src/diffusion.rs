@@ -111,9 +111,10 @@ pub struct PriorArgs {
     /// Seed (holes, crops, noise).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// LPIPS weights folder (AlexNet: alex.safetensors).
-    #[arg(long, default_value = "../shared/models/lpips")]
-    pub lpips: PathBuf,
+    /// Folder with lpips_alex_v0.1.safetensors (default: $EXTRANERF_MODELS/lpips, else
+    /// ../shared/models/lpips).
+    #[arg(long)]
+    pub lpips: Option<PathBuf>,
     #[command(flatten)]
     pub backend: BackendArgs,
 }
@@ -165,8 +166,10 @@ pub struct FinetuneArgs {
     /// Scene folder.
     #[arg(long)]
     pub scene: PathBuf,
-    /// Folder of pseudo-disocclusion masks `<image stem>_mask.png` (white = disoccluded), as
-    /// written by `extranerf visibility --training-masks`; without it only random masks.
+    /// Folder of pseudo-disocclusion masks (white = disoccluded): `trainmask_NNN_mask.png` as
+    /// `extranerf visibility RUN --training-masks` writes them (NNN = the view's index in the
+    /// scene), or `<image stem>_mask.png`; resampled to the view's size. Without it, random
+    /// masks only.
     #[arg(long)]
     pub masks: Option<PathBuf>,
     /// Output folder for the adapters, loss.csv and loss.svg.
@@ -297,6 +300,8 @@ pub fn prior_scheduler() -> SchedulerConfig {
 }
 
 struct View {
+    /// Camera index in the scene.
+    index: usize,
     name: String,
     width: usize,
     height: usize,
@@ -327,6 +332,7 @@ fn load_views(scene: &Path, split: &str, factor: u32, downscale: u32) -> anyhow:
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| format!("view{i}"));
         views.push(View {
+            index: i,
             name,
             width: w as usize,
             height: h as usize,
@@ -572,8 +578,9 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     eprintln!("saved {}", a.out.join("model").display());
 
     // Score the held-out regions: every method sees the same window around the hole.
-    let lpips = Lpips::load(&a.lpips.join("alex.safetensors"), LpipsNet::Alex)
-        .with_context(|| format!("LPIPS weights in {}", a.lpips.display()))?;
+    let lpips_dir = a.lpips.clone().unwrap_or_else(crate::nerf::default_lpips_dir);
+    let lpips = Lpips::load(&lpips_dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex)
+        .with_context(|| format!("LPIPS weights in {}", lpips_dir.display()))?;
     let n = holes.len();
     let mut win_gt = Vec::new();
     let mut win_mask = Vec::new();
@@ -826,22 +833,32 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
     for v in &views {
         let mut im = TrainImage::new(v.width, v.height, v.rgb.clone());
         if let Some(dir) = &a.masks {
-            let p = dir.join(format!("{}_mask.png", v.name));
-            if p.is_file() {
-                let (mw, mh, m) = read_rgb(&p)?;
-                if (mw, mh) != (v.width, v.height) {
-                    bail!(
-                        "{} is {mw}x{mh}; the view is {}x{} (match --factor and --downscale to the masks)",
-                        p.display(),
-                        v.width,
-                        v.height
-                    );
+            let candidates = [
+                dir.join(format!("trainmask_{:03}_mask.png", v.index)),
+                dir.join(format!("{}_mask.png", v.name)),
+            ];
+            match candidates.iter().find(|p| p.is_file()) {
+                Some(p) => {
+                    let (mw, mh, m) = read_rgb(p)?;
+                    // Nearest resampling to the view (the visibility maps may be smaller).
+                    let mut mask = vec![0f32; v.width * v.height];
+                    for y in 0..v.height {
+                        for x in 0..v.width {
+                            let (sx, sy) = (x * mw / v.width, y * mh / v.height);
+                            if m[3 * (sy * mw + sx)] > 0.5 {
+                                mask[y * v.width + x] = 1.0;
+                            }
+                        }
+                    }
+                    im.masks.push(mask);
+                    with_masks += 1;
                 }
-                im.masks
-                    .push(m.chunks(3).map(|p| if p[0] > 0.5 { 1.0 } else { 0.0 }).collect());
-                with_masks += 1;
-            } else {
-                eprintln!("no pseudo mask {} for {}: random masks only", p.display(), v.name);
+                None => eprintln!(
+                    "no pseudo mask for {} ({} or {}): random masks only",
+                    v.name,
+                    candidates[0].display(),
+                    candidates[1].display()
+                ),
             }
         }
         images.push(im);

@@ -628,3 +628,154 @@ fn auto_config_budget_and_tradeoff_on_fern() {
     assert!(!ok && err.contains("nope"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+fn write_mask_png(path: &std::path::Path, w: u32, h: u32, hole: (u32, u32, u32, u32)) {
+    let (x0, y0, hw, hh) = hole;
+    let img = image::RgbImage::from_fn(w, h, |x, y| {
+        let on = x >= x0 && x < x0 + hw && y >= y0 && y < y0 + hh;
+        image::Rgb(if on { [255, 255, 255] } else { [0, 0, 0] })
+    });
+    img.save(path).unwrap();
+}
+
+/// The diffusion commands end to end on the demo scene at a tiny size: a scene prior trained
+/// and scored against the fills, inpainting with it, LoRA fine-tuning with a pseudo mask and
+/// inpainting with the adapters, a latent model from `init`, the bench, and clear errors.
+#[test]
+fn diffusion_prior_inpaint_finetune_init_and_bench() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-diffusion-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene = dir.join("scene");
+    extranerf_nerf::demo::write_demo_scene(&scene, 64, 48).unwrap();
+    let lpips = extranerf_tests::shared_data().join("../models/lpips");
+    let prior = dir.join("prior");
+    let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+    let common = ["--factor", "1", "--downscale", "1", "--diffusion-backend", "cpu"];
+    let mut args: Vec<String> = [
+        "diffusion", "prior", "--scene", &s(&scene), "--out", &s(&prior), "--steps", "6",
+        "--batch", "2", "--crop", "32", "--channels", "16,32", "--holes", "1", "--hole-size",
+        "8", "--eval-steps", "2", "--lpips", &s(&lpips),
+    ]
+    .iter()
+    .map(|v| v.to_string())
+    .collect();
+    args.extend(common.iter().map(|v| v.to_string()));
+    let argv: Vec<&str> = args.iter().map(String::as_str).collect();
+    let (ok, out, err) = extranerf(&argv);
+    assert!(ok, "{err}");
+    assert!(err.contains("trained here from scratch"), "{err}");
+    assert!(err.contains("prior step     6/6"), "{err}");
+    for m in ["mean colour", "harmonic fill", "edge-aware fill", "scene prior"] {
+        assert!(out.contains(m), "{m} missing:\n{out}");
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(prior.join("prior_eval.json")).unwrap()).unwrap();
+    assert_eq!(report["holes"], 6, "{report}");
+    for m in ["mean colour", "scene prior"] {
+        assert!(report["mean"][m]["psnr_in_mask"].as_f64().unwrap().is_finite());
+        assert!(report["mean"][m]["lpips_window"].as_f64().unwrap() >= 0.0);
+    }
+    let curve = std::fs::read_to_string(prior.join("loss.csv")).unwrap();
+    assert!(curve.starts_with("step,loss\n6,"), "{curve}");
+    assert!(prior.join("loss.svg").is_file());
+    assert!(prior.join("model/unet/diffusion_pytorch_model.safetensors").is_file());
+    assert_eq!(std::fs::read_dir(prior.join("eval")).unwrap().count(), 6);
+
+    // Inpainting with the prior keeps the known pixels.
+    let view = scene.join("images/view_00.png");
+    let mask = dir.join("mask.png");
+    write_mask_png(&mask, 64, 48, (20, 12, 16, 12));
+    let result = dir.join("inpainted.png");
+    let (ok, out, err) = extranerf(&[
+        "diffusion", "inpaint", "--model", &s(&prior.join("model")), "--image", &s(&view),
+        "--mask", &s(&mask), "--out", &s(&result), "--steps", "2", "--diffusion-backend", "cpu",
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.contains("DDIM steps"), "{out}");
+    let a = image::open(&view).unwrap().to_rgb8();
+    let b = image::open(&result).unwrap().to_rgb8();
+    assert_eq!(b.dimensions(), (64, 48));
+    for (x, y, p) in a.enumerate_pixels() {
+        let inside = (20..36).contains(&x) && (12..24).contains(&y);
+        if !inside {
+            let q = b.get_pixel(x, y);
+            for c in 0..3 {
+                assert!((p[c] as i32 - q[c] as i32).abs() <= 1, "({x}, {y}) changed");
+            }
+        }
+    }
+
+    // LoRA fine-tuning with a pseudo-disocclusion mask named as `visibility` writes them.
+    let masks = dir.join("masks");
+    std::fs::create_dir_all(&masks).unwrap();
+    write_mask_png(&masks.join("trainmask_000_mask.png"), 32, 24, (4, 4, 8, 8));
+    let tuned = dir.join("lora");
+    let mut args: Vec<String> = [
+        "diffusion", "finetune", "--model", &s(&prior.join("model")), "--scene", &s(&scene),
+        "--masks", &s(&masks), "--out", &s(&tuned), "--steps", "3", "--batch", "2", "--crop",
+        "32", "--rank", "2", "--convs",
+    ]
+    .iter()
+    .map(|v| v.to_string())
+    .collect();
+    args.extend(common.iter().map(|v| v.to_string()));
+    let argv: Vec<&str> = args.iter().map(String::as_str).collect();
+    let (ok, _, err) = extranerf(&argv);
+    assert!(ok, "{err}");
+    assert!(err.contains("1 with pseudo-disocclusion masks"), "{err}");
+    assert!(err.contains("finetune step     3/3"), "{err}");
+    for f in ["pytorch_lora_weights.safetensors", "adapter_config.json", "loss.csv", "loss.svg"] {
+        assert!(tuned.join(f).is_file(), "{f}");
+    }
+    let (ok, _, err) = extranerf(&[
+        "diffusion", "inpaint", "--model", &s(&prior.join("model")), "--lora", &s(&tuned),
+        "--image", &s(&view), "--mask", &s(&mask), "--out", &s(&dir.join("tuned.png")),
+        "--steps", "2", "--diffusion-backend", "cpu",
+    ]);
+    assert!(ok, "{err}");
+    assert!(err.contains("LoRA adapters from"), "{err}");
+
+    // A latent (VAE) model from init, with guidance.
+    let tiny = dir.join("tiny");
+    let (ok, out, err) = extranerf(&["diffusion", "init", "--config", "tiny", "--out", &s(&tiny)]);
+    assert!(ok && out.contains("randomly initialised"), "{err}");
+    let (ok, _, err) = extranerf(&[
+        "diffusion", "inpaint", "--model", &s(&tiny), "--image", &s(&view), "--mask", &s(&mask),
+        "--out", &s(&dir.join("tiny.png")), "--steps", "2", "--strength", "0.6", "--guidance",
+        "2.5", "--diffusion-backend", "cpu",
+    ]);
+    assert!(ok, "{err}");
+
+    // Clear errors.
+    let (ok, _, err) = extranerf(&[
+        "diffusion", "inpaint", "--model", &s(&dir.join("none")), "--image", &s(&view),
+        "--mask", &s(&mask), "--out", &s(&result),
+    ]);
+    assert!(!ok && err.contains("model_index.json"), "{err}");
+    let small = dir.join("small.png");
+    write_mask_png(&small, 32, 24, (0, 0, 4, 4));
+    let (ok, _, err) = extranerf(&[
+        "diffusion", "inpaint", "--model", &s(&prior.join("model")), "--image", &s(&view),
+        "--mask", &s(&small), "--out", &s(&result), "--diffusion-backend", "cpu",
+    ]);
+    assert!(!ok && err.contains("small.png") && err.contains("32x24"), "{err}");
+    let (ok, _, err) = extranerf(&[
+        "diffusion", "prior", "--scene", &s(&scene), "--out", &s(&dir.join("p2")), "--crop", "33",
+        "--channels", "16,32", "--factor", "1", "--downscale", "1", "--diffusion-backend", "cpu",
+    ]);
+    assert!(!ok && err.contains("--crop 33"), "{err}");
+    let (ok, _, err) = extranerf(&["diffusion", "init", "--config", "huge", "--out", "x"]);
+    assert!(!ok && err.contains("huge"), "{err}");
+
+    // The bench, CPU backend, tiny configuration.
+    let json = dir.join("bench.json");
+    let (ok, out, err) = extranerf(&[
+        "bench", "diffusion", "--backends", "cpu", "--tiny-only", "--iters", "1", "--json",
+        &s(&json),
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.contains("forward+backward") && out.contains("SD-1.5 inpainting"), "{out}");
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(j["rows"].as_array().unwrap().len(), 3);
+    let _ = std::fs::remove_dir_all(dir);
+}
