@@ -128,8 +128,10 @@ fn fixture_model(dev: &Device) -> InpaintModel {
         unet,
         codec: Codec::Vae(vae),
         tokens: LearnedTokens {
-            tokens: Param::from_tensor(Tensor::<1>::from_floats(toks.as_slice(), dev).reshape([3, 12])),
-            null_context: None,
+            tokens: Param::from_tensor(
+                Tensor::<1>::from_floats(toks.as_slice(), dev).reshape([3, 12]),
+            ),
+            null_tokens: None,
         },
         schedule: Schedule::new(&SchedulerConfig::default()).unwrap(),
     }
@@ -183,7 +185,13 @@ fn inpainting_runs_on_the_device_and_engine_kernels_read_the_result_in_place() {
     let plan = ReducePlan::new(&s.ctx).unwrap();
     let mut rec = s.ctx.recorder("sum inpainted").unwrap();
     s.prims
-        .reduce_sum(&mut rec, &plan, view.binding(), cpu_v.len() as u64, out.binding())
+        .reduce_sum(
+            &mut rec,
+            &plan,
+            view.binding(),
+            cpu_v.len() as u64,
+            out.binding(),
+        )
         .unwrap();
     s.ctx.run(rec).unwrap();
     let sum = out.read().unwrap()[0] as f64;
@@ -218,7 +226,7 @@ fn lora_fine_tuning_steps_on_the_device_train_only_the_adapters() {
         let codec = base.codec.no_grad();
         let mut rng = SplitMix(8);
         let batch = train::draw_batch(&images, &aug, 2, &mut rng).unwrap();
-        let loss = train::batch_loss(&model, &codec, &sched, &batch, &mut rng, &dev);
+        let loss = train::batch_loss(&model, &codec, &sched, &batch, 0.0, &mut rng, &dev);
         let grads = loss.backward();
         for (path, is_lora, has) in lora::gradients_reached(&model, &grads) {
             assert_eq!(is_lora, has, "{path}");

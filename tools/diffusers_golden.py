@@ -46,6 +46,27 @@ def tiny_unet(linear: bool) -> UNet2DConditionModel:
     )
 
 
+def tiny_unet_odd() -> UNet2DConditionModel:
+    # The paths the other two leave out: per-block layer lists, two transformer layers, no
+    # middle block, a frequency shift, a centred input, a three-level layout.
+    return UNet2DConditionModel(
+        sample_size=8,
+        in_channels=9,
+        out_channels=4,
+        center_input_sample=True,
+        freq_shift=1,
+        down_block_types=("DownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+        mid_block_type=None,
+        block_out_channels=(8, 16, 16),
+        layers_per_block=(1, 2, 1),
+        transformer_layers_per_block=(1, 2, 1),
+        norm_num_groups=4,
+        cross_attention_dim=12,
+        attention_head_dim=(2, 4, 2),
+    )
+
+
 def tiny_vae() -> AutoencoderKL:
     return AutoencoderKL(
         in_channels=3,
@@ -128,8 +149,12 @@ def main() -> None:
     golden["unet.sample"] = sample
     golden["unet.context"] = context
     golden["unet.timesteps"] = timesteps
-    for name, linear in (("unet_conv", False), ("unet_linear", True)):
-        unet = tiny_unet(linear).eval()
+    for name, make in (
+        ("unet_conv", lambda: tiny_unet(False)),
+        ("unet_linear", lambda: tiny_unet(True)),
+        ("unet_odd", tiny_unet_odd),
+    ):
+        unet = make().eval()
         randomize(unet, gen)
         unet.save_pretrained(out / name, safe_serialization=True)
         with torch.no_grad():
@@ -144,6 +169,18 @@ def main() -> None:
         golden["vae.mean"] = post.mean
         golden["vae.logvar"] = post.logvar
         golden["vae.decoded"] = vae.decode(post.mean).sample
+    # The same VAE as an older checkpoint: fp16 tensors and the deprecated attention names
+    # (query/key/value/proj_attn) that diffusers still converts on load.
+    old = out / "vae_old_fp16"
+    old.mkdir(parents=True, exist_ok=True)
+    (old / "config.json").write_text((out / "vae" / "config.json").read_text())
+    renamed = {}
+    for k, v in vae.state_dict().items():
+        for new, dep in ((".to_q.", ".query."), (".to_k.", ".key."), (".to_v.", ".value."), (".to_out.0.", ".proj_attn.")):
+            if "attentions" in k:
+                k = k.replace(new, dep)
+        renamed[k] = v.half().contiguous()
+    save_file(renamed, old / "diffusion_pytorch_model.safetensors")
     tok = tiny_tokenizer(out / "tokenizer")
     ids = tok(PROMPTS, padding="max_length", max_length=12, truncation=True, return_tensors="pt").input_ids
     golden["clip.ids"] = ids.float()

@@ -8,7 +8,9 @@ use anyhow::{bail, Context as _};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 use clap::{Args, Subcommand};
-use extranerf_diffusion::config::{UNetConfig, VaeConfig, CROSS_ATTN_DOWN, CROSS_ATTN_UP, DOWN, UP};
+use extranerf_diffusion::config::{
+    UNetConfig, VaeConfig, CROSS_ATTN_DOWN, CROSS_ATTN_UP, DOWN, UP,
+};
 use extranerf_diffusion::device::{diffusion_device, Backend};
 use extranerf_diffusion::fill;
 use extranerf_diffusion::inpaint::{seeded_noise, Codec, SampleSettings, SplitMix};
@@ -52,8 +54,9 @@ pub enum DiffusionCommand {
     /// Train a scene prior from scratch: a small pixel-space inpainting diffusion model
     /// (diffusers UNet2DConditionModel layout, learned conditioning tokens) on the scene's
     /// training views with crops, flips, colour jitter and random masks, holding out regions
-    /// of every view; then score its inpainting of those held-out regions (PSNR and LPIPS
-    /// inside the hole) against the mean-colour, harmonic and edge-aware diffusion fills.
+    /// of every view; then score its inpainting of those regions and of holes cut into the
+    /// split's test views (PSNR inside the hole, LPIPS around it) against the mean-colour,
+    /// harmonic and edge-aware diffusion fills.
     Prior(PriorArgs),
     /// Inpaint an image where a mask is white, with a model folder (and optional LoRA).
     Inpaint(InpaintArgs),
@@ -99,18 +102,30 @@ pub struct PriorArgs {
     /// AdamW learning rate.
     #[arg(long, default_value_t = 2e-3)]
     pub lr: f64,
-    /// Held-out regions per view (never trained on; scored afterwards).
+    /// Regions per view to score: held out of every training view (never in the loss) and
+    /// cut into every test view of the split (which training never sees).
     #[arg(long, default_value_t = 2)]
     pub holes: usize,
     /// Held-out region side in pixels (at the downscaled resolution).
     #[arg(long, default_value_t = 16)]
     pub hole_size: usize,
-    /// DDIM steps of the inpainting (from pure noise).
+    /// DDIM steps of the inpainting from pure noise.
     #[arg(long, default_value_t = 25)]
     pub eval_steps: usize,
+    /// Noise strength of the refinement run, which starts from the harmonic fill (as ExtraNeRF
+    /// starts from a render).
+    #[arg(long, default_value_t = 0.5)]
+    pub refine_strength: f64,
+    /// DDIM steps of the refinement run (ExtraNeRF: about 10).
+    #[arg(long, default_value_t = 10)]
+    pub refine_steps: usize,
     /// Seed (holes, crops, noise).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Score an existing prior (a `model/` folder this command wrote, with its
+    /// prior_holes.json) instead of training one.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
     /// Folder with lpips_alex_v0.1.safetensors (default: $EXTRANERF_MODELS/lpips, else
     /// ../shared/models/lpips).
     #[arg(long)]
@@ -285,7 +300,8 @@ pub fn prior_unet_config(channels: &[usize], token_dim: usize) -> anyhow::Result
         attention_head_dim: extranerf_diffusion::config::PerBlock::One(4),
         ..UNetConfig::default()
     };
-    c.validate().map_err(|e| anyhow::anyhow!("--channels {channels:?}: {e}"))?;
+    c.validate()
+        .map_err(|e| anyhow::anyhow!("--channels {channels:?}: {e}"))?;
     Ok(c)
 }
 
@@ -308,7 +324,13 @@ struct View {
     rgb: Vec<f32>,
 }
 
-fn load_views(scene: &Path, split: &str, factor: u32, downscale: u32) -> anyhow::Result<Vec<View>> {
+/// The training views (and the held-out test views) of a split, downscaled.
+fn load_view_sets(
+    scene: &Path,
+    split: &str,
+    factor: u32,
+    downscale: u32,
+) -> anyhow::Result<(Vec<View>, Vec<View>)> {
     let spec = SceneSpec {
         dir: scene.to_path_buf(),
         split: split.to_string(),
@@ -320,38 +342,78 @@ fn load_views(scene: &Path, split: &str, factor: u32, downscale: u32) -> anyhow:
     let loaded = spec
         .load()
         .with_context(|| format!("loading the scene {}", scene.display()))?;
-    let mut views = Vec::new();
-    for &i in &loaded.split.train {
-        let cam = &loaded.scene.cameras[i];
-        let img = load_image(&cam.image)?;
-        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, downscale)
-            .with_context(|| format!("downscaling {}", cam.image.display()))?;
-        let name = cam
-            .image
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| format!("view{i}"));
-        views.push(View {
-            index: i,
-            name,
-            width: w as usize,
-            height: h as usize,
-            rgb,
-        });
+    let load = |ids: &[usize]| -> anyhow::Result<Vec<View>> {
+        let mut views = Vec::new();
+        for &i in ids {
+            let cam = &loaded.scene.cameras[i];
+            let img = load_image(&cam.image)?;
+            let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, downscale)
+                .with_context(|| format!("downscaling {} by --downscale", cam.image.display()))?;
+            let name = cam
+                .image
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| format!("view{i}"));
+            views.push(View {
+                index: i,
+                name,
+                width: w as usize,
+                height: h as usize,
+                rgb,
+            });
+        }
+        Ok(views)
+    };
+    let train = load(&loaded.split.train)?;
+    if train.is_empty() {
+        bail!(
+            "the {split} split of {} has no training views",
+            scene.display()
+        );
     }
-    if views.is_empty() {
-        bail!("the {split} split of {} has no training views", scene.display());
-    }
-    Ok(views)
+    Ok((train, load(&loaded.split.test)?))
 }
 
-#[derive(Clone, Copy, Debug)]
+fn load_views(scene: &Path, split: &str, factor: u32, downscale: u32) -> anyhow::Result<Vec<View>> {
+    Ok(load_view_sets(scene, split, factor, downscale)?.0)
+}
+
+#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize, PartialEq)]
 struct Hole {
     view: usize,
     x: usize,
     y: usize,
     w: usize,
     h: usize,
+}
+
+/// `count` random rectangles of about `size` pixels per view, at least 2 pixels from the border
+/// and fitting a `window` around them.
+fn random_holes(
+    views: &[View],
+    count: usize,
+    size: usize,
+    window: usize,
+    rng: &mut SplitMix,
+) -> Vec<Hole> {
+    let mut holes = Vec::new();
+    for (vi, v) in views.iter().enumerate() {
+        for _ in 0..count {
+            let w = (size as f64 * (0.75 + rng.unit() * 0.5)) as usize;
+            let h = (size as f64 * (0.75 + rng.unit() * 0.5)) as usize;
+            let (w, h) = (w.clamp(2, window - 4), h.clamp(2, window - 4));
+            let x = 2 + rng.below(v.width - w - 4);
+            let y = 2 + rng.below(v.height - h - 4);
+            holes.push(Hole {
+                view: vi,
+                x,
+                y,
+                w,
+                h,
+            });
+        }
+    }
+    holes
 }
 
 fn progress_printer(label: &'static str) -> impl FnMut(&Progress) {
@@ -467,214 +529,369 @@ fn psnr(mse: f64) -> f64 {
     -10.0 * mse.max(1e-12).log10()
 }
 
+/// One scored hole: its window (truth, the pixels unknown to the model, this hole's pixels).
+struct Window {
+    set: &'static str,
+    view: String,
+    hole: Hole,
+    gt: Vec<f32>,
+    unknown: Vec<f32>,
+    this_hole: Vec<f32>,
+    lpips_origin: (usize, usize),
+}
+
+fn windows_for(
+    set: &'static str,
+    views: &[View],
+    holes: &[Hole],
+    window: usize,
+    lp: usize,
+) -> Vec<Window> {
+    holes
+        .iter()
+        .map(|h| {
+            let v = &views[h.view];
+            let ox = (h.x + h.w / 2)
+                .saturating_sub(window / 2)
+                .min(v.width - window);
+            let oy = (h.y + h.h / 2)
+                .saturating_sub(window / 2)
+                .min(v.height - window);
+            let inside = |hh: &Hole, x: usize, y: usize| {
+                x >= hh.x && x < hh.x + hh.w && y >= hh.y && y < hh.y + hh.h
+            };
+            let mut unknown = vec![0f32; window * window];
+            let mut this_hole = vec![0f32; window * window];
+            for y in 0..window {
+                for x in 0..window {
+                    let (gx, gy) = (ox + x, oy + y);
+                    if holes.iter().any(|o| o.view == h.view && inside(o, gx, gy)) {
+                        unknown[y * window + x] = 1.0;
+                    }
+                    if inside(h, gx, gy) {
+                        this_hole[y * window + x] = 1.0;
+                    }
+                }
+            }
+            let cx = (h.x + h.w / 2 - ox).saturating_sub(lp / 2).min(window - lp);
+            let cy = (h.y + h.h / 2 - oy).saturating_sub(lp / 2).min(window - lp);
+            Window {
+                set,
+                view: v.name.clone(),
+                hole: *h,
+                gt: crop(&v.rgb, v.width, ox, oy, window, window),
+                unknown,
+                this_hole,
+                lpips_origin: (cx, cy),
+            }
+        })
+        .collect()
+}
+
 /// `extranerf diffusion prior`.
 fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    if a.holes == 0 || a.hole_size < 2 {
+        bail!(
+            "--holes must be at least 1 and --hole-size at least 2 (the evaluation needs regions)"
+        );
+    }
+    if a.eval_steps == 0 || a.refine_steps == 0 {
+        bail!("--eval-steps and --refine-steps must be at least 1");
+    }
+    if !(a.refine_strength > 0.0 && a.refine_strength <= 1.0) {
+        bail!("--refine-strength {} must be in (0, 1]", a.refine_strength);
+    }
+    let lpips_dir = a
+        .lpips
+        .clone()
+        .unwrap_or_else(crate::nerf::default_lpips_dir);
+    let lpips = Lpips::load(
+        &lpips_dir.join("lpips_alex_v0.1.safetensors"),
+        LpipsNet::Alex,
+    )
+    .with_context(|| format!("LPIPS weights in {} (--lpips)", lpips_dir.display()))?;
     let (backend, dev) = a.backend.device(ctx)?;
-    let views = load_views(&a.scene, &a.split, a.factor, a.downscale)?;
+    let (views, test_views) = load_view_sets(&a.scene, &a.split, a.factor, a.downscale)?;
     std::fs::create_dir_all(a.out.join("eval"))
         .with_context(|| format!("creating {}", a.out.display()))?;
-    let cfg = prior_unet_config(&a.channels, 64)?;
+    let cfg = match &a.model {
+        Some(dir) => {
+            extranerf_diffusion::config::UNetConfig::from_file(&dir.join("unet/config.json"))?
+        }
+        None => prior_unet_config(&a.channels, 64)?,
+    };
     let multiple = cfg.size_multiple();
     let window = (a.hole_size * 3).max(32).div_ceil(multiple) * multiple;
-    for v in &views {
+    let lp = 32.min(window);
+    for v in views.iter().chain(&test_views) {
         if v.width < window.max(a.crop) || v.height < window.max(a.crop) {
             bail!(
-                "view {} is {}x{}: smaller than the {}-pixel crop or {window}-pixel evaluation window (lower --downscale, --crop or --hole-size)",
+                "view {} is {}x{}: smaller than the {}-pixel --crop or the {window}-pixel evaluation window (lower --downscale, --crop or --hole-size)",
                 v.name, v.width, v.height, a.crop
             );
         }
     }
     if a.crop % multiple != 0 {
-        bail!("--crop {} must be a multiple of {multiple} for {} levels", a.crop, a.channels.len());
+        bail!(
+            "--crop {} must be a multiple of {multiple} for {} levels",
+            a.crop,
+            cfg.levels()
+        );
     }
-    // Held-out regions: never trained on, scored at the end.
+    // Held-out regions of the training views (never in the loss, always holes to the model)
+    // and synthetic holes in the split's test views, which training never sees at all.
     let mut rng = SplitMix(a.seed ^ 0x5eed);
-    let mut holes = Vec::new();
-    let mut images = Vec::new();
-    for (vi, v) in views.iter().enumerate() {
-        let mut known = vec![1f32; v.width * v.height];
-        for _ in 0..a.holes {
-            let w = (a.hole_size as f64 * (0.75 + rng.unit() * 0.5)) as usize;
-            let h = (a.hole_size as f64 * (0.75 + rng.unit() * 0.5)) as usize;
-            let (w, h) = (w.clamp(2, window - 4), h.clamp(2, window - 4));
-            let x = 2 + rng.below(v.width - w - 4);
-            let y = 2 + rng.below(v.height - h - 4);
-            for yy in y..y + h {
-                for xx in x..x + w {
-                    known[yy * v.width + xx] = 0.0;
-                }
-            }
-            holes.push(Hole { view: vi, x, y, w, h });
+    let holes = match &a.model {
+        Some(dir) => {
+            let p = dir.join("prior_holes.json");
+            let text = std::fs::read_to_string(&p)
+                .with_context(|| format!("{}: the held-out regions of this prior", p.display()))?;
+            serde_json::from_str(&text).with_context(|| format!("{}: malformed", p.display()))?
         }
-        images.push(TrainImage {
-            width: v.width,
-            height: v.height,
-            rgb: v.rgb.clone(),
-            known,
-            masks: Vec::new(),
-        });
-    }
-    let ad = dev.clone().autodiff();
-    ad.seed(a.seed);
-    let pipe = Pipeline::new(cfg.clone(), None, prior_scheduler(), 4, &ad)?;
-    let params = pipe.model.unet.num_params();
-    let flops = 2 * pipe.model.unet.macs(a.crop, a.crop, 4);
-    eprintln!(
-        "scene prior (trained here from scratch; no pretrained weights): pixel-space U-Net {:?}, {params} parameters, {:.2} GFLOP per {}x{} forward; {} views {}x{}, {} held-out regions",
-        a.channels,
-        flops as f64 / 1e9,
-        a.crop,
-        a.crop,
-        views.len(),
-        views[0].width,
-        views[0].height,
-        holes.len()
-    );
-    let model = Trainable {
-        unet: pipe.model.unet,
-        tokens: pipe.model.tokens,
+        None => random_holes(&views, a.holes, a.hole_size, window, &mut rng),
     };
-    let aug = Augment {
-        crop: a.crop,
-        ..Augment::default()
+    let mut test_rng = SplitMix(a.seed ^ 0x7e57);
+    let test_holes = random_holes(&test_views, a.holes, a.hole_size, window, &mut test_rng);
+    let (trained, train_s, curve, params) = match &a.model {
+        Some(dir) => {
+            let p = Pipeline::load(dir, &dev, "")?;
+            let params = p.model.unet.num_params();
+            eprintln!("scoring the prior in {} (no training)", dir.display());
+            (p, 0.0, Vec::new(), params)
+        }
+        None => {
+            let mut images = Vec::new();
+            for (vi, v) in views.iter().enumerate() {
+                let mut known = vec![1f32; v.width * v.height];
+                for h in holes.iter().filter(|h: &&Hole| h.view == vi) {
+                    for yy in h.y..h.y + h.h {
+                        for xx in h.x..h.x + h.w {
+                            known[yy * v.width + xx] = 0.0;
+                        }
+                    }
+                }
+                images.push(TrainImage {
+                    width: v.width,
+                    height: v.height,
+                    rgb: v.rgb.clone(),
+                    known,
+                    masks: Vec::new(),
+                });
+            }
+            let ad = dev.clone().autodiff();
+            ad.seed(a.seed);
+            let pipe = Pipeline::new(cfg.clone(), None, prior_scheduler(), 4, &ad)?;
+            let params = pipe.model.unet.num_params();
+            let flops = 2 * pipe.model.unet.macs(a.crop, a.crop, 4);
+            eprintln!(
+                "scene prior (trained here from scratch; no pretrained weights): pixel-space U-Net {:?}, {params} parameters, {:.2} GFLOP per {}x{} forward; {} training views {}x{} with {} held-out regions; {} test views with {} holes",
+                cfg.block_out_channels,
+                flops as f64 / 1e9,
+                a.crop,
+                a.crop,
+                views.len(),
+                views[0].width,
+                views[0].height,
+                holes.len(),
+                test_views.len(),
+                test_holes.len()
+            );
+            let model = Trainable {
+                unet: pipe.model.unet,
+                tokens: pipe.model.tokens,
+            };
+            let settings = TrainSettings {
+                steps: a.steps,
+                batch: a.batch,
+                lr: a.lr,
+                token_lr: a.lr,
+                seed: a.seed,
+                ..TrainSettings::default()
+            };
+            let schedule = pipe.model.schedule.clone();
+            let t_train = Instant::now();
+            let (model, curve) = train::train(
+                model,
+                &pipe.model.codec,
+                &schedule,
+                &images,
+                &Augment {
+                    crop: a.crop,
+                    ..Augment::default()
+                },
+                &settings,
+                &ad,
+                &mut progress_printer("prior"),
+            )?;
+            let train_s = t_train.elapsed().as_secs_f64();
+            write_curve(&a.out, &curve, "scene prior: diffusion loss")?;
+            let model = model.valid();
+            let trained = Pipeline {
+                model: extranerf_diffusion::inpaint::InpaintModel {
+                    unet: model.unet,
+                    tokens: model.tokens,
+                    codec: Codec::Pixels(Default::default()),
+                    schedule,
+                },
+                unet_config: cfg,
+                vae_config: None,
+                scheduler_config: prior_scheduler(),
+                notes: vec!["trained from scratch on the scene's views".into()],
+            };
+            let mdir = a.out.join("model");
+            trained.save(&mdir)?;
+            extranerf_diffusion::write_atomic(
+                &mdir.join("prior_holes.json"),
+                serde_json::to_string(&holes)?.as_bytes(),
+            )?;
+            eprintln!("saved {}", mdir.display());
+            (trained, train_s, curve, params)
+        }
     };
-    let settings = TrainSettings {
-        steps: a.steps,
-        batch: a.batch,
-        lr: a.lr,
-        token_lr: a.lr,
-        seed: a.seed,
-        ..TrainSettings::default()
-    };
-    let schedule = pipe.model.schedule.clone();
-    let t_train = Instant::now();
-    let (model, curve) = train::train(
-        model,
-        &pipe.model.codec,
-        &schedule,
-        &images,
-        &aug,
-        &settings,
-        &ad,
-        &mut progress_printer("prior"),
-    )?;
-    let train_s = t_train.elapsed().as_secs_f64();
-    write_curve(&a.out, &curve, "scene prior: diffusion loss")?;
-    let model = model.valid();
-    let trained = Pipeline {
-        model: extranerf_diffusion::inpaint::InpaintModel {
-            unet: model.unet,
-            tokens: model.tokens,
-            codec: Codec::Pixels(Default::default()),
-            schedule,
-        },
-        unet_config: cfg,
-        vae_config: None,
-        scheduler_config: prior_scheduler(),
-        notes: vec!["trained from scratch on the scene's views".into()],
-    };
-    trained.save(&a.out.join("model"))?;
-    eprintln!("saved {}", a.out.join("model").display());
 
-    // Score the held-out regions: every method sees the same window around the hole.
-    let lpips_dir = a.lpips.clone().unwrap_or_else(crate::nerf::default_lpips_dir);
-    let lpips = Lpips::load(&lpips_dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex)
-        .with_context(|| format!("LPIPS weights in {}", lpips_dir.display()))?;
-    let n = holes.len();
-    let mut win_gt = Vec::new();
-    let mut win_mask = Vec::new();
-    let mut origins = Vec::new();
-    for h in &holes {
-        let v = &views[h.view];
-        let cx = (h.x + h.w / 2).saturating_sub(window / 2).min(v.width - window);
-        let cy = (h.y + h.h / 2).saturating_sub(window / 2).min(v.height - window);
-        origins.push((cx, cy));
-        win_gt.push(crop(&v.rgb, v.width, cx, cy, window, window));
-        // The window's unknown pixels: this hole and any other held-out region inside it.
-        let known = &images[h.view].known;
-        let mut m = vec![0f32; window * window];
-        for y in 0..window {
-            for x in 0..window {
-                if known[(cy + y) * v.width + cx + x] < 0.5 {
-                    m[y * window + x] = 1.0;
+    // Score: every method sees the same window around the hole, with every unknown pixel in
+    // it unknown; PSNR over this hole's pixels, LPIPS on a 32x32 crop around it.
+    let mut wins = windows_for(
+        "training views, held-out regions",
+        &views,
+        &holes,
+        window,
+        lp,
+    );
+    wins.extend(windows_for(
+        "test views (never trained on)",
+        &test_views,
+        &test_holes,
+        window,
+        lp,
+    ));
+    let n = wins.len();
+    let mut fills: Vec<[Vec<f32>; 3]> = Vec::with_capacity(n);
+    for w in &wins {
+        fills.push([
+            fill::mean_fill(&w.gt, &w.unknown, window, window)?,
+            fill::harmonic_fill(&w.gt, &w.unknown, window, window, 4000, 1e-5)?,
+            fill::edge_aware_fill(&w.gt, &w.unknown, window, window, 100, 0.05)?,
+        ]);
+    }
+    // The prior, twice: from pure noise, and as ExtraNeRF uses it, from a blurry estimate (the
+    // harmonic fill) noised to --refine-strength and denoised in --refine-steps.
+    let run_prior = |starts: &[Vec<f32>],
+                     strength: f64,
+                     steps: usize,
+                     seed: u64|
+     -> anyhow::Result<(Vec<Vec<f32>>, f64)> {
+        let t = Instant::now();
+        let mut img = Vec::with_capacity(n * 3 * window * window);
+        let mut msk = Vec::with_capacity(n * window * window);
+        for (i, w) in wins.iter().enumerate() {
+            img.extend(to_chw(&starts[i], window, window));
+            msk.extend_from_slice(&w.unknown);
+        }
+        let img_t = Tensor::<1>::from_floats(img.as_slice(), &dev).reshape([n, 3, window, window]);
+        let mask_t = Tensor::<1>::from_floats(msk.as_slice(), &dev).reshape([n, 1, window, window]);
+        let noise = seeded_noise([n, 3, window, window], seed, &dev);
+        let out = trained.model.inpaint(
+            img_t,
+            mask_t,
+            noise,
+            &SampleSettings {
+                strength,
+                steps,
+                guidance: 1.0,
+                keep_known: true,
+            },
+        )?;
+        let v: Vec<f32> = out
+            .image
+            .into_data()
+            .try_to_vec_as::<f32>()
+            .map_err(|e| anyhow::anyhow!("reading the inpainted windows: {e:?}"))?;
+        let ws = window * window * 3;
+        let per = (0..n)
+            .map(|i| to_hwc(&v[i * ws..(i + 1) * ws], window, window))
+            .collect();
+        Ok((per, t.elapsed().as_secs_f64()))
+    };
+    let grey: Vec<Vec<f32>> = wins
+        .iter()
+        .map(|w| {
+            let mut g = w.gt.clone();
+            for (p, m) in w.unknown.iter().enumerate() {
+                if *m > 0.5 {
+                    g[3 * p..3 * p + 3].copy_from_slice(&[0.5; 3]);
                 }
             }
-        }
-        win_mask.push(m);
-    }
-    let t_inpaint = Instant::now();
-    let mut batch_img = Vec::with_capacity(n * 3 * window * window);
-    let mut batch_mask = Vec::with_capacity(n * window * window);
-    for i in 0..n {
-        let mut masked = win_gt[i].clone();
-        for (p, m) in win_mask[i].iter().enumerate() {
-            if *m > 0.5 {
-                masked[3 * p..3 * p + 3].copy_from_slice(&[0.5; 3]);
-            }
-        }
-        batch_img.extend(to_chw(&masked, window, window));
-        batch_mask.extend_from_slice(&win_mask[i]);
-    }
-    let img_t = Tensor::<1>::from_floats(batch_img.as_slice(), &dev).reshape([n, 3, window, window]);
-    let mask_t = Tensor::<1>::from_floats(batch_mask.as_slice(), &dev).reshape([n, 1, window, window]);
-    let noise = seeded_noise([n, 3, window, window], a.seed ^ 0xe7a1, &dev);
-    let out = trained.model.inpaint(
-        img_t,
-        mask_t,
-        noise,
-        &SampleSettings {
-            strength: 1.0,
-            steps: a.eval_steps,
-            guidance: 1.0,
-            keep_known: true,
-        },
+            g
+        })
+        .collect();
+    let (from_noise, noise_s) = run_prior(&grey, 1.0, a.eval_steps, a.seed ^ 0xe7a1)?;
+    let harmonic: Vec<Vec<f32>> = fills.iter().map(|f| f[1].clone()).collect();
+    let (refined, refine_s) = run_prior(
+        &harmonic,
+        a.refine_strength,
+        a.refine_steps,
+        a.seed ^ 0x4ef1,
     )?;
-    let prior_out: Vec<f32> = out
-        .image
-        .into_data()
-        .try_to_vec_as::<f32>()
-        .map_err(|e| anyhow::anyhow!("reading the inpainted windows: {e:?}"))?;
-    let inpaint_s = t_inpaint.elapsed().as_secs_f64();
-    let methods = ["mean colour", "harmonic fill", "edge-aware fill", "scene prior"];
-    let mut psnrs = vec![Vec::new(); 4];
-    let mut lps = vec![Vec::new(); 4];
+    let methods = [
+        "mean colour",
+        "harmonic fill",
+        "edge-aware fill",
+        "scene prior (from noise)",
+        "scene prior (refining harmonic)",
+    ];
+    let k_methods = methods.len();
+    let sets = [
+        "training views, held-out regions",
+        "test views (never trained on)",
+    ];
+    let mut psnrs = vec![vec![Vec::new(); k_methods]; 2];
+    let mut lps = vec![vec![Vec::new(); k_methods]; 2];
     let mut per_hole = Vec::new();
-    for i in 0..n {
-        let ws = window * window * 3;
-        let prior_i = to_hwc(&prior_out[i * ws..(i + 1) * ws], window, window);
-        let masked = &win_gt[i];
+    for (i, w) in wins.iter().enumerate() {
+        let si = usize::from(w.set != sets[0]);
+        let [mean_f, harm_f, edge_f] = fills[i].clone();
         let results = [
-            fill::mean_fill(masked, &win_mask[i], window, window)?,
-            fill::harmonic_fill(masked, &win_mask[i], window, window, 4000, 1e-5)?,
-            fill::edge_aware_fill(masked, &win_mask[i], window, window, 100, 0.05)?,
-            prior_i,
+            mean_f,
+            harm_f,
+            edge_f,
+            from_noise[i].clone(),
+            refined[i].clone(),
         ];
+        let (cx, cy) = w.lpips_origin;
+        let gt_crop = crop(&w.gt, window, cx, cy, lp, lp);
         let mut row = serde_json::Map::new();
-        let h = holes[i];
-        row.insert("view".into(), views[h.view].name.clone().into());
+        row.insert("set".into(), w.set.into());
+        row.insert("view".into(), w.view.clone().into());
+        let h = w.hole;
         row.insert("hole".into(), serde_json::json!([h.x, h.y, h.w, h.h]));
-        let mut strip = win_gt[i].clone();
-        let mut masked_vis = win_gt[i].clone();
-        for (p, m) in win_mask[i].iter().enumerate() {
+        let mut strip = w.gt.clone();
+        let mut masked_vis = w.gt.clone();
+        for (p, m) in w.unknown.iter().enumerate() {
             if *m > 0.5 {
                 masked_vis[3 * p..3 * p + 3].copy_from_slice(&[1.0, 0.0, 1.0]);
             }
         }
         strip.extend(masked_vis);
         for (k, r) in results.iter().enumerate() {
-            let p = psnr(mse_in(r, &win_gt[i], &win_mask[i]));
-            let l = lpips.distance(r, &win_gt[i], window as u32, window as u32)?;
-            psnrs[k].push(p);
-            lps[k].push(l);
+            let p = psnr(mse_in(r, &w.gt, &w.this_hole));
+            let l = lpips.distance(
+                &crop(r, window, cx, cy, lp, lp),
+                &gt_crop,
+                lp as u32,
+                lp as u32,
+            )?;
+            psnrs[si][k].push(p);
+            lps[si][k].push(l);
             row.insert(
                 methods[k].into(),
-                serde_json::json!({"psnr_in_mask": p, "lpips_window": l}),
+                serde_json::json!({"psnr_in_mask": p, "lpips_hole_crop": l}),
             );
             strip.extend_from_slice(r);
         }
-        // Strip of windows side by side: gt | masked | mean | harmonic | edge | prior.
-        let cols = 6;
+        // Windows side by side: truth | unknown pixels (magenta) | one per method.
+        let cols = 2 + k_methods;
         let mut side = vec![0f32; window * window * 3 * cols];
         for c in 0..cols {
             for y in 0..window {
@@ -685,8 +902,11 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                 }
             }
         }
+        let tag = if si == 0 { "train" } else { "test" };
         write_png(
-            &a.out.join("eval").join(format!("{}_hole{i}.png", views[h.view].name)),
+            &a.out
+                .join("eval")
+                .join(format!("{tag}_{}_hole{i}.png", w.view)),
             (window * cols) as u32,
             window as u32,
             &side,
@@ -694,49 +914,60 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
         per_hole.push(serde_json::Value::Object(row));
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    println!(
-        "held-out inpainting, {n} regions of about {hs}x{hs} px in {window}x{window} windows ({} views at {}x{}):",
-        views.len(),
-        views[0].width,
-        views[0].height,
-        hs = a.hole_size,
-    );
-    println!("{:<16} {:>14} {:>14}", "method", "PSNR in mask", "LPIPS (alex)");
     let mut summary = serde_json::Map::new();
-    for k in 0..4 {
+    for (si, set) in sets.iter().enumerate() {
+        let count = psnrs[si][0].len();
         println!(
-            "{:<16} {:>11.2} dB {:>14.4}",
-            methods[k],
-            mean(&psnrs[k]),
-            mean(&lps[k])
+            "{set}: {count} regions of about {hs}x{hs} px in {window}x{window} windows",
+            hs = a.hole_size
         );
-        summary.insert(
-            methods[k].into(),
-            serde_json::json!({"psnr_in_mask": mean(&psnrs[k]), "lpips_window": mean(&lps[k])}),
+        println!(
+            "  {:<32} {:>14} {:>22}",
+            "method", "PSNR in hole", "LPIPS (alex, 32x32)"
         );
+        let mut m = serde_json::Map::new();
+        for k in 0..k_methods {
+            println!(
+                "  {:<32} {:>11.2} dB {:>22.4}",
+                methods[k],
+                mean(&psnrs[si][k]),
+                mean(&lps[si][k])
+            );
+            m.insert(
+                methods[k].into(),
+                serde_json::json!({"psnr_in_mask": mean(&psnrs[si][k]), "lpips_hole_crop": mean(&lps[si][k]), "regions": count}),
+            );
+        }
+        summary.insert((*set).into(), serde_json::Value::Object(m));
     }
     let report = serde_json::json!({
         "scene": a.scene,
-        "model": "scene prior trained from scratch here (no pretrained weights): pixel-space inpainting U-Net, diffusers layout",
+        "model": match &a.model {
+            Some(d) => format!("prior loaded from {}", d.display()),
+            None => "scene prior trained from scratch here (no pretrained weights): pixel-space inpainting U-Net, diffusers layout".into(),
+        },
         "backend": backend.name(),
-        "channels": a.channels,
+        "channels": trained.unet_config.block_out_channels,
         "parameters": params,
-        "gflop_per_crop_forward": flops as f64 / 1e9,
         "steps": a.steps,
         "batch": a.batch,
         "crop": a.crop,
         "lr": a.lr,
         "views": views.len(),
+        "test_views": test_views.len(),
         "view_size": [views[0].width, views[0].height],
         "factor": a.factor,
         "downscale": a.downscale,
-        "holes": n,
+        "holes_per_view": a.holes,
         "hole_size": a.hole_size,
         "window": window,
+        "lpips_crop": lp,
         "eval_ddim_steps": a.eval_steps,
+        "refine_strength": a.refine_strength,
+        "refine_ddim_steps": a.refine_steps,
         "train_seconds": train_s,
-        "train_it_per_s": a.steps as f64 / train_s,
-        "inpaint_seconds": inpaint_s,
+        "train_it_per_s": if train_s > 0.0 { a.steps as f64 / train_s } else { 0.0 },
+        "inpaint_seconds": {"from_noise": noise_s, "refine": refine_s},
         "final_loss": curve.last().map(|c| c.1),
         "mean": summary,
         "per_hole": per_hole,
@@ -755,11 +986,30 @@ fn read_rgb(path: &Path) -> anyhow::Result<(usize, usize, Vec<f32>)> {
 /// `extranerf diffusion inpaint`.
 fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
     let (_, dev) = a.backend.device(ctx)?;
+    // Anything the model draws at load (fresh tokens for an SD folder without a text encoder)
+    // follows --seed too.
+    dev.seed(a.seed);
+    if !(a.strength > 0.0 && a.strength <= 1.0) || a.steps == 0 || !(a.guidance >= 1.0) {
+        bail!(
+            "--strength {} must be in (0, 1], --steps {} at least 1 and --guidance {} at least 1",
+            a.strength,
+            a.steps,
+            a.guidance
+        );
+    }
     let mut pipe = Pipeline::load(&a.model, &dev, &a.prompt)?;
     if let Some(dir) = &a.lora {
         let (_, unet) = lora::load(dir, pipe.model.unet, &dev)?;
         pipe.model.unet = unet;
-        pipe.notes.push(format!("LoRA adapters from {}", dir.display()));
+        pipe.notes
+            .push(format!("LoRA adapters from {}", dir.display()));
+        // The identifier tokens fine-tuned with the adapters.
+        let tdir = dir.join("text_encoder");
+        if tdir.join(extranerf_diffusion::text::TOKENS_FILE).is_file() {
+            pipe.model.tokens = LearnedTokens::load(&tdir, &dev)?;
+            pipe.notes
+                .push(format!("conditioning tokens from {}", tdir.display()));
+        }
     }
     for n in &pipe.notes {
         eprintln!("model: {n}");
@@ -782,7 +1032,13 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
     }
     let mask: Vec<f32> = mrgb
         .chunks(3)
-        .map(|p| if (p[0] + p[1] + p[2]) / 3.0 > 0.5 { 1.0 } else { 0.0 })
+        .map(|p| {
+            if (p[0] + p[1] + p[2]) / 3.0 > 0.5 {
+                1.0
+            } else {
+                0.0
+            }
+        })
         .collect();
     let img_t = Tensor::<1>::from_floats(to_chw(&rgb, w, h).as_slice(), &dev).reshape([1, 3, h, w]);
     let mask_t = Tensor::<1>::from_floats(mask.as_slice(), &dev).reshape([1, 1, h, w]);
@@ -827,7 +1083,26 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
     for n in &pipe.notes {
         eprintln!("model: {n}");
     }
+    if a.rank == 0 {
+        bail!("--rank must be at least 1");
+    }
     let views = load_views(&a.scene, &a.split, a.factor, a.downscale)?;
+    let m = pipe.model.size_multiple();
+    if a.crop == 0 || a.crop % m != 0 {
+        bail!(
+            "--crop {} must be a positive multiple of {m} for this model",
+            a.crop
+        );
+    }
+    if let Some(v) = views.iter().find(|v| v.width < a.crop || v.height < a.crop) {
+        bail!(
+            "view {} is {}x{}, smaller than --crop {} (lower --crop or --downscale)",
+            v.name,
+            v.width,
+            v.height,
+            a.crop
+        );
+    }
     let mut images = Vec::new();
     let mut with_masks = 0;
     for v in &views {
@@ -845,7 +1120,8 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
                     for y in 0..v.height {
                         for x in 0..v.width {
                             let (sx, sy) = (x * mw / v.width, y * mh / v.height);
-                            if m[3 * (sy * mw + sx)] > 0.5 {
+                            let k = 3 * (sy * mw + sx);
+                            if (m[k] + m[k + 1] + m[k + 2]) / 3.0 > 0.5 {
                                 mask[y * v.width + x] = 1.0;
                             }
                         }
@@ -936,7 +1212,7 @@ fn init(a: &InitArgs) -> anyhow::Result<()> {
         )?,
         _ => Pipeline::new(
             UNetConfig::sd15_inpainting(),
-            Some(VaeConfig::default()),
+            Some(VaeConfig::sd()),
             SchedulerConfig::default(),
             8,
             &dev,
@@ -999,15 +1275,22 @@ pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
             o => bail!("--backends: {o:?} is not cpu or device"),
         };
         let (_, dev) = diffusion_device(ctx, backend)?;
-        let bname: &'static str = if backend == Backend::Cpu { "cpu (flex)" } else { "device (wgpu)" };
+        let bname: &'static str = if backend == Backend::Cpu {
+            "cpu (flex)"
+        } else {
+            "device (wgpu)"
+        };
         for (name, cfg, side) in &configs {
             dev.seed(1);
             let unet = UNet2DConditionModel::new(cfg, &dev)?;
             let (n, s) = (2usize, 8usize);
             let macs = unet.macs(*side, *side, s) as f64 * n as f64;
             let x = seeded_noise([n, 9, *side, *side], 1, &dev);
-            let ctx_t = seeded_noise([n, s, cfg.cross_attention_dim, 1], 2, &dev)
-                .reshape([n, s, cfg.cross_attention_dim]);
+            let ctx_t = seeded_noise([n, s, cfg.cross_attention_dim, 1], 2, &dev).reshape([
+                n,
+                s,
+                cfg.cross_attention_dim,
+            ]);
             let (warm, t) = time_it(a.iters, || {
                 let y = unet.forward(x.clone(), &[500.0, 20.0], &ctx_t);
                 let _ = y.sum().into_scalar::<f32>();
@@ -1025,8 +1308,11 @@ pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
             ad.seed(1);
             let unet_ad = UNet2DConditionModel::new(cfg, &ad)?;
             let xa = seeded_noise([n, 9, *side, *side], 1, &ad);
-            let ca = seeded_noise([n, s, cfg.cross_attention_dim, 1], 2, &ad)
-                .reshape([n, s, cfg.cross_attention_dim]);
+            let ca = seeded_noise([n, s, cfg.cross_attention_dim, 1], 2, &ad).reshape([
+                n,
+                s,
+                cfg.cross_attention_dim,
+            ]);
             let (warm, t) = time_it(a.iters, || {
                 let y = unet_ad.forward(xa.clone(), &[500.0, 20.0], &ca);
                 let g = y.powi_scalar(2).mean().backward();
@@ -1046,7 +1332,11 @@ pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
             });
             // One LoRA fine-tuning step (rank 4 on attention; base frozen): forward, backward
             // and AdamW on the adapters.
-            let lunet = lora::apply(UNet2DConditionModel::new(cfg, &ad)?, &LoraConfig::attention(4, 4.0), &ad)?;
+            let lunet = lora::apply(
+                UNet2DConditionModel::new(cfg, &ad)?,
+                &LoraConfig::attention(4, 4.0),
+                &ad,
+            )?;
             let mut model = Some(Trainable {
                 unet: lunet,
                 tokens: LearnedTokens::new(s, cfg.cross_attention_dim, &ad),
@@ -1083,7 +1373,16 @@ pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
             };
             let (warm, t) = time_it(a.iters, || {
                 let m = model.take().context("model")?;
-                let (m, _) = train::train(m, &codec, &sched, &images, &aug, &settings, &ad, &mut |_| {})?;
+                let (m, _) = train::train(
+                    m,
+                    &codec,
+                    &sched,
+                    &images,
+                    &aug,
+                    &settings,
+                    &ad,
+                    &mut |_| {},
+                )?;
                 model = Some(m);
                 Ok(())
             })?;

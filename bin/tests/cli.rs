@@ -650,11 +650,37 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     let lpips = extranerf_tests::shared_data().join("../models/lpips");
     let prior = dir.join("prior");
     let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
-    let common = ["--factor", "1", "--downscale", "1", "--diffusion-backend", "cpu"];
+    let common = [
+        "--factor",
+        "1",
+        "--downscale",
+        "1",
+        "--diffusion-backend",
+        "cpu",
+    ];
     let mut args: Vec<String> = [
-        "diffusion", "prior", "--scene", &s(&scene), "--out", &s(&prior), "--steps", "6",
-        "--batch", "2", "--crop", "32", "--channels", "16,32", "--holes", "1", "--hole-size",
-        "8", "--eval-steps", "2", "--lpips", &s(&lpips),
+        "diffusion",
+        "prior",
+        "--scene",
+        &s(&scene),
+        "--out",
+        &s(&prior),
+        "--steps",
+        "6",
+        "--batch",
+        "2",
+        "--crop",
+        "32",
+        "--channels",
+        "16,32",
+        "--holes",
+        "1",
+        "--hole-size",
+        "8",
+        "--eval-steps",
+        "2",
+        "--lpips",
+        &s(&lpips),
     ]
     .iter()
     .map(|v| v.to_string())
@@ -665,21 +691,74 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     assert!(ok, "{err}");
     assert!(err.contains("trained here from scratch"), "{err}");
     assert!(err.contains("prior step     6/6"), "{err}");
-    for m in ["mean colour", "harmonic fill", "edge-aware fill", "scene prior"] {
+    for m in [
+        "mean colour",
+        "harmonic fill",
+        "edge-aware fill",
+        "scene prior (from noise)",
+        "scene prior (refining harmonic)",
+    ] {
         assert!(out.contains(m), "{m} missing:\n{out}");
     }
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(prior.join("prior_eval.json")).unwrap()).unwrap();
-    assert_eq!(report["holes"], 6, "{report}");
-    for m in ["mean colour", "scene prior"] {
-        assert!(report["mean"][m]["psnr_in_mask"].as_f64().unwrap().is_finite());
-        assert!(report["mean"][m]["lpips_window"].as_f64().unwrap() >= 0.0);
+    assert_eq!(report["holes_per_view"], 1, "{report}");
+    for set in [
+        "training views, held-out regions",
+        "test views (never trained on)",
+    ] {
+        for m in [
+            "mean colour",
+            "scene prior (from noise)",
+            "scene prior (refining harmonic)",
+        ] {
+            let r = &report["mean"][set][m];
+            assert!(r["psnr_in_mask"].as_f64().unwrap().is_finite(), "{set} {m}");
+            assert!(r["lpips_hole_crop"].as_f64().unwrap() >= 0.0, "{set} {m}");
+        }
     }
+    assert_eq!(
+        report["mean"]["test views (never trained on)"]["mean colour"]["regions"],
+        8
+    );
     let curve = std::fs::read_to_string(prior.join("loss.csv")).unwrap();
     assert!(curve.starts_with("step,loss\n6,"), "{curve}");
     assert!(prior.join("loss.svg").is_file());
-    assert!(prior.join("model/unet/diffusion_pytorch_model.safetensors").is_file());
-    assert_eq!(std::fs::read_dir(prior.join("eval")).unwrap().count(), 6);
+    assert!(prior
+        .join("model/unet/diffusion_pytorch_model.safetensors")
+        .is_file());
+    assert_eq!(std::fs::read_dir(prior.join("eval")).unwrap().count(), 14);
+    assert!(prior.join("model/prior_holes.json").is_file());
+    // Scoring the saved prior again without training gives the same figures.
+    let again = dir.join("again");
+    let (ok, _, err) = extranerf(&[
+        "diffusion",
+        "prior",
+        "--scene",
+        &s(&scene),
+        "--out",
+        &s(&again),
+        "--model",
+        &s(&prior.join("model")),
+        "--holes",
+        "1",
+        "--hole-size",
+        "8",
+        "--eval-steps",
+        "2",
+        "--lpips",
+        &s(&lpips),
+        "--factor",
+        "1",
+        "--downscale",
+        "1",
+        "--diffusion-backend",
+        "cpu",
+    ]);
+    assert!(ok, "{err}");
+    let r2: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(again.join("prior_eval.json")).unwrap()).unwrap();
+    assert_eq!(r2["mean"], report["mean"]);
 
     // Inpainting with the prior keeps the known pixels.
     let view = scene.join("images/view_00.png");
@@ -687,8 +766,20 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     write_mask_png(&mask, 64, 48, (20, 12, 16, 12));
     let result = dir.join("inpainted.png");
     let (ok, out, err) = extranerf(&[
-        "diffusion", "inpaint", "--model", &s(&prior.join("model")), "--image", &s(&view),
-        "--mask", &s(&mask), "--out", &s(&result), "--steps", "2", "--diffusion-backend", "cpu",
+        "diffusion",
+        "inpaint",
+        "--model",
+        &s(&prior.join("model")),
+        "--image",
+        &s(&view),
+        "--mask",
+        &s(&mask),
+        "--out",
+        &s(&result),
+        "--steps",
+        "2",
+        "--diffusion-backend",
+        "cpu",
     ]);
     assert!(ok, "{err}");
     assert!(out.contains("DDIM steps"), "{out}");
@@ -711,9 +802,25 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     write_mask_png(&masks.join("trainmask_000_mask.png"), 32, 24, (4, 4, 8, 8));
     let tuned = dir.join("lora");
     let mut args: Vec<String> = [
-        "diffusion", "finetune", "--model", &s(&prior.join("model")), "--scene", &s(&scene),
-        "--masks", &s(&masks), "--out", &s(&tuned), "--steps", "3", "--batch", "2", "--crop",
-        "32", "--rank", "2", "--convs",
+        "diffusion",
+        "finetune",
+        "--model",
+        &s(&prior.join("model")),
+        "--scene",
+        &s(&scene),
+        "--masks",
+        &s(&masks),
+        "--out",
+        &s(&tuned),
+        "--steps",
+        "3",
+        "--batch",
+        "2",
+        "--crop",
+        "32",
+        "--rank",
+        "2",
+        "--convs",
     ]
     .iter()
     .map(|v| v.to_string())
@@ -724,57 +831,168 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     assert!(ok, "{err}");
     assert!(err.contains("1 with pseudo-disocclusion masks"), "{err}");
     assert!(err.contains("finetune step     3/3"), "{err}");
-    for f in ["pytorch_lora_weights.safetensors", "adapter_config.json", "loss.csv", "loss.svg"] {
+    for f in [
+        "pytorch_lora_weights.safetensors",
+        "adapter_config.json",
+        "loss.csv",
+        "loss.svg",
+    ] {
         assert!(tuned.join(f).is_file(), "{f}");
     }
     let (ok, _, err) = extranerf(&[
-        "diffusion", "inpaint", "--model", &s(&prior.join("model")), "--lora", &s(&tuned),
-        "--image", &s(&view), "--mask", &s(&mask), "--out", &s(&dir.join("tuned.png")),
-        "--steps", "2", "--diffusion-backend", "cpu",
+        "diffusion",
+        "inpaint",
+        "--model",
+        &s(&prior.join("model")),
+        "--lora",
+        &s(&tuned),
+        "--image",
+        &s(&view),
+        "--mask",
+        &s(&mask),
+        "--out",
+        &s(&dir.join("tuned.png")),
+        "--steps",
+        "2",
+        "--diffusion-backend",
+        "cpu",
     ]);
     assert!(ok, "{err}");
     assert!(err.contains("LoRA adapters from"), "{err}");
+    assert!(err.contains("conditioning tokens from"), "{err}");
+    // The adapters and tokens change the result (same seed, same noise).
+    let base = image::open(&result).unwrap().to_rgb8();
+    let tuned_img = image::open(dir.join("tuned.png")).unwrap().to_rgb8();
+    assert_ne!(base.as_raw(), tuned_img.as_raw(), "LoRA had no effect");
 
     // A latent (VAE) model from init, with guidance.
     let tiny = dir.join("tiny");
     let (ok, out, err) = extranerf(&["diffusion", "init", "--config", "tiny", "--out", &s(&tiny)]);
     assert!(ok && out.contains("randomly initialised"), "{err}");
     let (ok, _, err) = extranerf(&[
-        "diffusion", "inpaint", "--model", &s(&tiny), "--image", &s(&view), "--mask", &s(&mask),
-        "--out", &s(&dir.join("tiny.png")), "--steps", "2", "--strength", "0.6", "--guidance",
-        "2.5", "--diffusion-backend", "cpu",
+        "diffusion",
+        "inpaint",
+        "--model",
+        &s(&tiny),
+        "--image",
+        &s(&view),
+        "--mask",
+        &s(&mask),
+        "--out",
+        &s(&dir.join("tiny.png")),
+        "--steps",
+        "2",
+        "--strength",
+        "0.6",
+        "--guidance",
+        "2.5",
+        "--diffusion-backend",
+        "cpu",
     ]);
     assert!(ok, "{err}");
 
     // Clear errors.
     let (ok, _, err) = extranerf(&[
-        "diffusion", "inpaint", "--model", &s(&dir.join("none")), "--image", &s(&view),
-        "--mask", &s(&mask), "--out", &s(&result),
+        "diffusion",
+        "inpaint",
+        "--model",
+        &s(&dir.join("none")),
+        "--image",
+        &s(&view),
+        "--mask",
+        &s(&mask),
+        "--out",
+        &s(&result),
     ]);
     assert!(!ok && err.contains("model_index.json"), "{err}");
     let small = dir.join("small.png");
     write_mask_png(&small, 32, 24, (0, 0, 4, 4));
     let (ok, _, err) = extranerf(&[
-        "diffusion", "inpaint", "--model", &s(&prior.join("model")), "--image", &s(&view),
-        "--mask", &s(&small), "--out", &s(&result), "--diffusion-backend", "cpu",
+        "diffusion",
+        "inpaint",
+        "--model",
+        &s(&prior.join("model")),
+        "--image",
+        &s(&view),
+        "--mask",
+        &s(&small),
+        "--out",
+        &s(&result),
+        "--diffusion-backend",
+        "cpu",
     ]);
-    assert!(!ok && err.contains("small.png") && err.contains("32x24"), "{err}");
+    assert!(
+        !ok && err.contains("small.png") && err.contains("32x24"),
+        "{err}"
+    );
     let (ok, _, err) = extranerf(&[
-        "diffusion", "prior", "--scene", &s(&scene), "--out", &s(&dir.join("p2")), "--crop", "33",
-        "--channels", "16,32", "--factor", "1", "--downscale", "1", "--diffusion-backend", "cpu",
+        "diffusion",
+        "prior",
+        "--scene",
+        &s(&scene),
+        "--out",
+        &s(&dir.join("p2")),
+        "--crop",
+        "33",
+        "--channels",
+        "16,32",
+        "--factor",
+        "1",
+        "--downscale",
+        "1",
+        "--diffusion-backend",
+        "cpu",
+        "--lpips",
+        &s(&lpips),
     ]);
     assert!(!ok && err.contains("--crop 33"), "{err}");
+    let (ok, _, err) = extranerf(&[
+        "diffusion",
+        "prior",
+        "--scene",
+        &s(&scene),
+        "--out",
+        &s(&dir.join("p3")),
+        "--holes",
+        "0",
+    ]);
+    assert!(!ok && err.contains("--holes"), "{err}");
+    let (ok, _, err) = extranerf(&[
+        "diffusion",
+        "inpaint",
+        "--model",
+        &s(&prior.join("model")),
+        "--image",
+        &s(&view),
+        "--mask",
+        &s(&mask),
+        "--out",
+        &s(&result),
+        "--strength",
+        "1.5",
+    ]);
+    assert!(!ok && err.contains("--strength 1.5"), "{err}");
     let (ok, _, err) = extranerf(&["diffusion", "init", "--config", "huge", "--out", "x"]);
     assert!(!ok && err.contains("huge"), "{err}");
 
     // The bench, CPU backend, tiny configuration.
     let json = dir.join("bench.json");
     let (ok, out, err) = extranerf(&[
-        "bench", "diffusion", "--backends", "cpu", "--tiny-only", "--iters", "1", "--json",
+        "bench",
+        "diffusion",
+        "--backends",
+        "cpu",
+        "--tiny-only",
+        "--iters",
+        "1",
+        "--json",
         &s(&json),
     ]);
     assert!(ok, "{err}");
-    assert!(out.contains("forward+backward") && out.contains("SD-1.5 inpainting"), "{out}");
+    assert!(
+        out.contains("forward+backward") && out.contains("SD-1.5 inpainting"),
+        "{out}"
+    );
     let j: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(j["rows"].as_array().unwrap().len(), 3);
     let _ = std::fs::remove_dir_all(dir);

@@ -249,7 +249,8 @@ pub fn multi_head_attention(
     let [b, l, inner] = q.dims();
     let s = k.dims()[1];
     let dh = inner / heads;
-    let split = |t: Tensor<3>, n: usize| -> Tensor<4> { t.reshape([b, n, heads, dh]).swap_dims(1, 2) };
+    let split =
+        |t: Tensor<3>, n: usize| -> Tensor<4> { t.reshape([b, n, heads, dh]).swap_dims(1, 2) };
     let o = attention(
         split(q, l),
         split(k, s),
@@ -294,8 +295,12 @@ impl FeedForward {
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
         let h = self.net.0.proj.forward(x);
         let mut halves = h.chunk(2, 2);
-        let gate = halves.pop().unwrap_or_else(|| unreachable!("chunk(2) gives 2"));
-        let value = halves.pop().unwrap_or_else(|| unreachable!("chunk(2) gives 2"));
+        let gate = halves
+            .pop()
+            .unwrap_or_else(|| unreachable!("chunk(2) gives 2"));
+        let value = halves
+            .pop()
+            .unwrap_or_else(|| unreachable!("chunk(2) gives 2"));
         self.net.2.forward(value * gelu(gate))
     }
 
@@ -346,7 +351,10 @@ impl BasicTransformerBlock {
     /// `[b, l, dim]`, context `[b, s, context_dim]` -> `[b, l, dim]`.
     pub fn forward(&self, x: Tensor<3>, context: &Tensor<3>) -> Tensor<3> {
         let x = self.attn1.forward(self.norm1.forward(x.clone()), None) + x;
-        let x = self.attn2.forward(self.norm2.forward(x.clone()), Some(context)) + x;
+        let x = self
+            .attn2
+            .forward(self.norm2.forward(x.clone()), Some(context))
+            + x;
         self.ff.forward(self.norm3.forward(x.clone())) + x
     }
 

@@ -227,7 +227,11 @@ impl ClipTextModel {
 
     /// Context length.
     pub fn max_len(&self) -> usize {
-        self.text_model.embeddings.position_embedding.weight.lazy_shape()[0]
+        self.text_model
+            .embeddings
+            .position_embedding
+            .weight
+            .lazy_shape()[0]
     }
 
     /// Token ids `[b][l]` (l <= max_len) -> last hidden state `[b, l, hidden]`.
@@ -240,7 +244,12 @@ impl ClipTextModel {
                 self.max_len()
             )));
         }
-        let vocab = self.text_model.embeddings.token_embedding.weight.lazy_shape()[0];
+        let vocab = self
+            .text_model
+            .embeddings
+            .token_embedding
+            .weight
+            .lazy_shape()[0];
         if let Some(t) = ids.iter().flatten().find(|t| **t as usize >= vocab) {
             return Err(DiffusionError::Input(format!(
                 "token id {t} is outside the {vocab}-token vocabulary"
@@ -261,9 +270,10 @@ impl ClipTextModel {
         let causal: Vec<bool> = (0..l * l).map(|k| k % l > k / l).collect();
         for layer in &self.text_model.encoder.layers {
             let heads = layer.self_attn.heads;
-            let mask = Tensor::<1, Bool>::from_data(TensorData::new(causal.clone(), [l * l]), device)
-                .reshape([1, 1, l, l])
-                .expand([b, heads, l, l]);
+            let mask =
+                Tensor::<1, Bool>::from_data(TensorData::new(causal.clone(), [l * l]), device)
+                    .reshape([1, 1, l, l])
+                    .expand([b, heads, l, l]);
             let a = &layer.self_attn;
             let x = layer.layer_norm1.forward(h.clone());
             let o = multi_head_attention(
@@ -316,7 +326,8 @@ fn bytes_to_unicode() -> [char; 256] {
     let mut out = ['\0'; 256];
     let mut n = 0u32;
     for b in 0..256u32 {
-        let printable = (33..=126).contains(&b) || (161..=172).contains(&b) || (174..=255).contains(&b);
+        let printable =
+            (33..=126).contains(&b) || (161..=172).contains(&b) || (174..=255).contains(&b);
         out[b as usize] = if printable {
             char::from_u32(b).unwrap_or('?')
         } else {
@@ -369,9 +380,11 @@ impl ClipTokenizer {
                     problem: e.to_string(),
                 })?;
                 let p = v.get("pad_token").and_then(|p| {
-                    p.as_str()
-                        .map(str::to_string)
-                        .or_else(|| p.get("content").and_then(|c| c.as_str()).map(str::to_string))
+                    p.as_str().map(str::to_string).or_else(|| {
+                        p.get("content")
+                            .and_then(|c| c.as_str())
+                            .map(str::to_string)
+                    })
                 });
                 match p {
                     Some(p) => id(&p)?,
@@ -391,7 +404,11 @@ impl ClipTokenizer {
     }
 
     fn words(text: &str) -> Vec<String> {
-        let text = text.split_whitespace().collect::<Vec<_>>().join(" ").to_lowercase();
+        let text = text
+            .split_whitespace()
+            .collect::<Vec<_>>()
+            .join(" ")
+            .to_lowercase();
         let chars: Vec<char> = text.chars().collect();
         let mut out = Vec::new();
         let mut i = 0;

@@ -71,9 +71,6 @@ fn d_true() -> bool {
 fn d_one() -> usize {
     1
 }
-fn d_two() -> usize {
-    2
-}
 fn d_one_f() -> f64 {
     1.0
 }
@@ -231,7 +228,10 @@ fn unet_fixed() -> Vec<(&'static str, Vec<Value>)> {
         ("conv_out_kernel", vec![json!(3)]),
         ("attention_type", vec![json!("default")]),
         ("cross_attention_norm", vec![Value::Null]),
-        ("mid_block_only_cross_attention", vec![Value::Null, json!(false)]),
+        (
+            "mid_block_only_cross_attention",
+            vec![Value::Null, json!(false)],
+        ),
         ("reverse_transformer_layers_per_block", vec![Value::Null]),
     ]
 }
@@ -421,24 +421,35 @@ impl UNetConfig {
         for (name, p) in [
             ("layers_per_block", &self.layers_per_block),
             ("attention_head_dim", &self.attention_head_dim),
-            ("transformer_layers_per_block", &self.transformer_layers_per_block),
+            (
+                "transformer_layers_per_block",
+                &self.transformer_layers_per_block,
+            ),
         ] {
             if !p.len_ok(n) {
                 return Err(format!("{name} must be one number or one per block ({n})"));
             }
         }
-        if let Some(h) = &self.num_attention_heads {
-            if !h.len_ok(n) {
-                return Err(format!(
-                    "num_attention_heads must be one number or one per block ({n})"
-                ));
-            }
+        if self.num_attention_heads.is_some() {
+            // diffusers' UNet2DConditionModel refuses it too (attention_head_dim is the head
+            // count there, for historical reasons).
+            return Err(
+                "num_attention_heads must be null for UNet2DConditionModel (diffusers reads the head count from attention_head_dim)".into(),
+            );
         }
         if self.in_channels == 0 || self.out_channels == 0 || self.cross_attention_dim == 0 {
             return Err("in_channels, out_channels and cross_attention_dim must be > 0".into());
         }
+        if self.block_out_channels[0] < 2 {
+            return Err(
+                "block_out_channels[0] must be at least 2 (the timestep embedding width)".into(),
+            );
+        }
         for (i, &c) in self.block_out_channels.iter().enumerate() {
             let g = self.norm_num_groups;
+            if c == 0 {
+                return Err(format!("block_out_channels[{i}] is 0"));
+            }
             if g == 0 || c % g != 0 {
                 return Err(format!(
                     "block_out_channels[{i}] = {c} is not a multiple of norm_num_groups = {g}"
@@ -498,7 +509,7 @@ pub struct VaeConfig {
     #[serde(default = "vae_boc")]
     pub block_out_channels: Vec<usize>,
     /// ResNets per encoder level (decoder levels have one more).
-    #[serde(default = "d_two")]
+    #[serde(default = "d_one")]
     pub layers_per_block: usize,
     /// Activation ("silu").
     #[serde(default = "d_silu")]
@@ -517,27 +528,39 @@ pub struct VaeConfig {
     pub other: Map<String, Value>,
 }
 
+// diffusers' AutoencoderKL defaults (one level of 64 channels); SD's are VaeConfig::sd().
 fn vae_down() -> Vec<String> {
-    vec!["DownEncoderBlock2D".into(); 4]
+    vec!["DownEncoderBlock2D".into()]
 }
 fn vae_up() -> Vec<String> {
-    vec!["UpDecoderBlock2D".into(); 4]
+    vec!["UpDecoderBlock2D".into()]
 }
 fn vae_boc() -> Vec<usize> {
-    vec![128, 256, 512, 512]
+    vec![64]
 }
 fn d_scaling() -> f64 {
     0.18215
 }
 
 impl Default for VaeConfig {
-    /// Stable Diffusion's VAE (f = 8, 4 latent channels).
+    /// diffusers' AutoencoderKL defaults (what a config.json that omits a key means).
     fn default() -> Self {
         serde_json::from_str("{}").unwrap_or_else(|_| unreachable!("all fields have defaults"))
     }
 }
 
 impl VaeConfig {
+    /// Stable Diffusion's VAE (f = 8, 4 latent channels, 128/256/512/512).
+    pub fn sd() -> VaeConfig {
+        VaeConfig {
+            down_block_types: vec!["DownEncoderBlock2D".into(); 4],
+            up_block_types: vec!["UpDecoderBlock2D".into(); 4],
+            block_out_channels: vec![128, 256, 512, 512],
+            layers_per_block: 2,
+            ..VaeConfig::default()
+        }
+    }
+
     /// A tiny VAE with the same structure (f = 4: three levels of 16/32/32 channels, 4
     /// latent channels), for tests and benches.
     pub fn tiny() -> VaeConfig {
@@ -547,7 +570,7 @@ impl VaeConfig {
             block_out_channels: vec![16, 32, 32],
             layers_per_block: 1,
             norm_num_groups: 8,
-            ..VaeConfig::default()
+            ..VaeConfig::sd()
         }
     }
 
@@ -579,13 +602,20 @@ impl VaeConfig {
                 self.class_name
             ));
         }
-        check_other(&self.other, &vae_fixed(), VAE_INFORMATIONAL, "AutoencoderKL")?;
+        check_other(
+            &self.other,
+            &vae_fixed(),
+            VAE_INFORMATIONAL,
+            "AutoencoderKL",
+        )?;
         let n = self.block_out_channels.len();
         if n == 0 {
             return Err("block_out_channels is empty".into());
         }
         if self.down_block_types.len() != n || self.up_block_types.len() != n {
-            return Err(format!("down_block_types and up_block_types must have {n} entries"));
+            return Err(format!(
+                "down_block_types and up_block_types must have {n} entries"
+            ));
         }
         if let Some(t) = self
             .down_block_types
@@ -596,7 +626,11 @@ impl VaeConfig {
                 "down block {t:?} is not supported (supported: DownEncoderBlock2D)"
             ));
         }
-        if let Some(t) = self.up_block_types.iter().find(|t| *t != "UpDecoderBlock2D") {
+        if let Some(t) = self
+            .up_block_types
+            .iter()
+            .find(|t| *t != "UpDecoderBlock2D")
+        {
             return Err(format!(
                 "up block {t:?} is not supported (supported: UpDecoderBlock2D)"
             ));
@@ -607,10 +641,20 @@ impl VaeConfig {
                 self.act_fn
             ));
         }
-        if self.layers_per_block == 0 || self.latent_channels == 0 {
-            return Err("layers_per_block and latent_channels must be > 0".into());
+        if self.layers_per_block == 0
+            || self.latent_channels == 0
+            || self.in_channels == 0
+            || self.out_channels == 0
+        {
+            return Err(
+                "layers_per_block, latent_channels, in_channels and out_channels must be > 0"
+                    .into(),
+            );
         }
         for (i, &c) in self.block_out_channels.iter().enumerate() {
+            if c == 0 {
+                return Err(format!("block_out_channels[{i}] is 0"));
+            }
             if self.norm_num_groups == 0 || c % self.norm_num_groups != 0 {
                 return Err(format!(
                     "block_out_channels[{i}] = {c} is not a multiple of norm_num_groups = {}",

@@ -7,8 +7,8 @@
 //! in both cases the U-Net's input has `2 * latent + 1` channels.
 
 use burn::module::Module;
-use burn::tensor::module::{interpolate, max_pool2d};
-use burn::tensor::ops::{InterpolateMode, InterpolateOptions, MaxPoolOptions};
+use burn::tensor::module::max_pool2d;
+use burn::tensor::ops::MaxPoolOptions;
 use burn::tensor::{Device, Tensor};
 
 use crate::scheduler::{ddim_timesteps, guide, Schedule};
@@ -63,26 +63,11 @@ impl Codec {
         }
     }
 
-    /// A hole mask `[n, 1, H, W]` at the variable's resolution: nearest for a VAE (as the SD
-    /// inpainting pipeline, which the pretrained model saw), unchanged for pixels.
+    /// A hole mask `[n, 1, H, W]` at the variable's resolution: a latent cell is a hole when
+    /// any of its pixels is, so an unknown pixel is never shown as known (diffusers' pipeline
+    /// takes the nearest pixel instead; this is the conservative choice, used in training and
+    /// sampling alike). Unchanged for pixel-space models.
     pub fn mask(&self, mask: Tensor<4>) -> Tensor<4> {
-        match self {
-            Codec::Vae(v) => {
-                let [_, _, h, w] = mask.dims();
-                let f = v.factor();
-                interpolate(
-                    mask,
-                    InterpolateOptions::new(InterpolateMode::Nearest)
-                        .with_output_size([h / f, w / f]),
-                )
-            }
-            Codec::Pixels(_) => mask,
-        }
-    }
-
-    /// Like [`Codec::mask`] but a variable cell is a hole when any of its pixels is (used for
-    /// loss validity, where leaking an unknown pixel is worse than losing a known one).
-    pub fn mask_any(&self, mask: Tensor<4>) -> Tensor<4> {
         match self {
             Codec::Vae(v) => {
                 let f = v.factor();
@@ -258,9 +243,7 @@ impl InpaintModel {
         }
         let steps = ddim_timesteps(&self.schedule, s.strength, s.steps);
         let t_start = steps[0];
-        let mut z = self
-            .schedule
-            .add_noise(z0, noise, &vec![t_start; n]);
+        let mut z = self.schedule.add_noise(z0, noise, &vec![t_start; n]);
         let cond = self.tokens.forward(n);
         let guided = s.guidance > 1.0;
         let device = image.device();
@@ -288,7 +271,9 @@ impl InpaintModel {
                 let c = halves.pop().unwrap_or_else(|| unreachable!("two halves"));
                 out = guide(c, u, s.guidance);
             }
-            z = self.schedule.ddim_step(out, z, t, steps.get(i + 1).copied());
+            z = self
+                .schedule
+                .ddim_step(out, z, t, steps.get(i + 1).copied());
         }
         let mut result = ((self.codec.decode(z) + 1.0) * 0.5).clamp(0.0, 1.0);
         if s.keep_known {

@@ -61,7 +61,11 @@ impl Linear {
 
     /// `[..., in] -> [..., out]`.
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        let base = linear(x.clone(), self.weight.val(), self.bias.as_ref().map(|b| b.val()));
+        let base = linear(
+            x.clone(),
+            self.weight.val(),
+            self.bias.as_ref().map(|b| b.val()),
+        );
         match (&self.lora_a, &self.lora_b) {
             (Some(a), Some(b)) => {
                 let h = linear(x, a.val().transpose(), None);
@@ -156,7 +160,12 @@ impl Conv2d {
         match (&self.lora_a, &self.lora_b) {
             (Some(a), Some(b)) => {
                 let h = conv2d(x, a.val(), None, opts);
-                let up = conv2d(h, b.val(), None, ConvOptions::new([1, 1], [0, 0], [1, 1], 1));
+                let up = conv2d(
+                    h,
+                    b.val(),
+                    None,
+                    ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
+                );
                 base + up * self.lora_scale
             }
             _ => base,

@@ -98,7 +98,8 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         .unwrap_or_default();
     let tmp = path.with_file_name(format!(".{name}.tmp{}", std::process::id()));
     let mut f = std::fs::File::create(&tmp).map_err(|e| DiffusionError::io(&tmp, e))?;
-    f.write_all(bytes).map_err(|e| DiffusionError::io(&tmp, e))?;
+    f.write_all(bytes)
+        .map_err(|e| DiffusionError::io(&tmp, e))?;
     f.sync_all().map_err(|e| DiffusionError::io(&tmp, e))?;
     drop(f);
     std::fs::rename(&tmp, path).map_err(|e| DiffusionError::io(path, e))

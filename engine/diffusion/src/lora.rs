@@ -203,7 +203,10 @@ pub fn save(dir: &Path, unet: &UNet2DConditionModel, config: &LoraConfig) -> Res
         .get_bytes()
         .map_err(|e| not_lora_err(&file, e.to_string()))?;
     if count_lora(unet) == 0 {
-        return Err(not_lora_err(&file, "the model has no LoRA adapters to save"));
+        return Err(not_lora_err(
+            &file,
+            "the model has no LoRA adapters to save",
+        ));
     }
     crate::write_atomic(&file, &bytes)?;
     crate::config::write_json(&dir.join(LORA_CONFIG), config)

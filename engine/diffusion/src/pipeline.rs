@@ -116,10 +116,11 @@ impl Pipeline {
         };
         let sched_path = dir.join("scheduler").join("scheduler_config.json");
         let scheduler_config = SchedulerConfig::from_file(&sched_path)?;
-        let schedule = Schedule::new(&scheduler_config).map_err(|problem| DiffusionError::Config {
-            path: sched_path,
-            problem,
-        })?;
+        let schedule =
+            Schedule::new(&scheduler_config).map_err(|problem| DiffusionError::Config {
+                path: sched_path,
+                problem,
+            })?;
         let mut notes = Vec::new();
         let tokens_dir = dir.join("text_encoder");
         let tokens = if tokens_dir.join(crate::text::TOKENS_FILE).is_file() {
@@ -141,8 +142,14 @@ impl Pipeline {
             let e = clip.forward(&ids, device)?;
             let [_, l, d] = e.dims();
             let mut rows = e.chunk(2, 0);
-            let empty = rows.pop().unwrap_or_else(|| unreachable!("two rows")).reshape([l, d]);
-            let cond = rows.pop().unwrap_or_else(|| unreachable!("two rows")).reshape([l, d]);
+            let empty = rows
+                .pop()
+                .unwrap_or_else(|| unreachable!("two rows"))
+                .reshape([l, d]);
+            let cond = rows
+                .pop()
+                .unwrap_or_else(|| unreachable!("two rows"))
+                .reshape([l, d]);
             notes.push(format!(
                 "weights from {}; conditioning: CLIP embedding of {prompt:?} (adapted as learned tokens when fine-tuned)",
                 dir.display()
@@ -187,7 +194,11 @@ impl Pipeline {
         other.insert("_diffusers_version".into(), Value::from("0.31.0"));
         other.insert(
             "codec".into(),
-            Value::from(if self.vae_config.is_some() { "vae" } else { "pixels" }),
+            Value::from(if self.vae_config.is_some() {
+                "vae"
+            } else {
+                "pixels"
+            }),
         );
         other.insert("conditioning".into(), Value::from("learned_tokens"));
         crate::config::write_json(

@@ -84,14 +84,25 @@ impl Default for SchedulerConfig {
 }
 
 impl SchedulerConfig {
-    /// Parses `scheduler_config.json`; `trained_betas` must be null.
+    /// Parses `scheduler_config.json`. Keys that change the noise process and are not
+    /// modelled (`trained_betas`, `rescale_betas_zero_snr`, `thresholding`) must be off; the
+    /// sampler-spacing keys (`timestep_spacing`, `steps_offset`, `set_alpha_to_one`,
+    /// `clip_sample`, ...) are ignored because [`ddim_timesteps`] defines the spacing.
     pub fn from_file(path: &Path) -> Result<SchedulerConfig, DiffusionError> {
         let c: SchedulerConfig = crate::config::read_json(path)?;
-        if c.other.get("trained_betas").is_some_and(|v| !v.is_null()) {
-            return Err(DiffusionError::Config {
-                path: path.to_path_buf(),
-                problem: "trained_betas is not supported (use beta_schedule)".into(),
-            });
+        for (key, off) in [
+            ("trained_betas", serde_json::Value::Null),
+            ("rescale_betas_zero_snr", serde_json::Value::Bool(false)),
+            ("thresholding", serde_json::Value::Bool(false)),
+        ] {
+            if let Some(v) = c.other.get(key) {
+                if *v != off {
+                    return Err(DiffusionError::Config {
+                        path: path.to_path_buf(),
+                        problem: format!("{key} = {v} is not supported (supported: {off})"),
+                    });
+                }
+            }
         }
         Schedule::new(&c).map_err(|problem| DiffusionError::Config {
             path: path.to_path_buf(),
@@ -131,7 +142,11 @@ impl Schedule {
                     .collect()
             }
             BetaSchedule::SquaredCosCapV2 => {
-                let f = |t: f64| ((t + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2).cos().powi(2);
+                let f = |t: f64| {
+                    ((t + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2)
+                        .cos()
+                        .powi(2)
+                };
                 (0..n)
                     .map(|i| {
                         let (t1, t2) = (i as f64 / n as f64, (i + 1) as f64 / n as f64);
@@ -186,8 +201,9 @@ impl Schedule {
         (1.0 - self.alpha_bar(Some(t))).sqrt()
     }
 
-    /// The training timestep whose noise level is closest to `strength` in (0, 1] of the
-    /// largest one (strength 1 = pure noise).
+    /// The starting timestep for a strength in (0, 1]: linear in the timestep index, as
+    /// diffusers' img2img and inpainting pipelines map it (strength 1 = the last timestep,
+    /// sampled from pure noise). The noise level there is [`Schedule::noise_level`].
     pub fn timestep_for_strength(&self, strength: f64) -> usize {
         let s = strength.clamp(0.0, 1.0);
         ((s * (self.len() - 1) as f64).round() as usize).min(self.len() - 1)
@@ -203,7 +219,10 @@ impl Schedule {
     pub fn add_noise(&self, x0: Tensor<4>, noise: Tensor<4>, t: &[usize]) -> Tensor<4> {
         let d = x0.device();
         let a = Self::per_item(t.iter().map(|&t| self.alpha_bar(Some(t)).sqrt()), &d);
-        let b = Self::per_item(t.iter().map(|&t| (1.0 - self.alpha_bar(Some(t))).sqrt()), &d);
+        let b = Self::per_item(
+            t.iter().map(|&t| (1.0 - self.alpha_bar(Some(t))).sqrt()),
+            &d,
+        );
         x0 * a + noise * b
     }
 
@@ -214,8 +233,10 @@ impl Schedule {
             Prediction::V => {
                 let d = x0.device();
                 let a = Self::per_item(t.iter().map(|&t| self.alpha_bar(Some(t)).sqrt()), &d);
-                let b =
-                    Self::per_item(t.iter().map(|&t| (1.0 - self.alpha_bar(Some(t))).sqrt()), &d);
+                let b = Self::per_item(
+                    t.iter().map(|&t| (1.0 - self.alpha_bar(Some(t))).sqrt()),
+                    &d,
+                );
                 noise * a - x0 * b
             }
         }
@@ -256,9 +277,15 @@ impl Schedule {
 /// The DDIM timesteps that start from an image noised to `strength` (the training timestep
 /// [`Schedule::timestep_for_strength`]) and reach the clean image in `steps` steps, evenly
 /// spaced and descending; the step after the last one is the clean image.
+/// With more steps than timesteps below the start, every timestep from the start down to 0 is
+/// visited once.
 pub fn ddim_timesteps(schedule: &Schedule, strength: f64, steps: usize) -> Vec<usize> {
     let start = schedule.timestep_for_strength(strength);
-    let steps = steps.clamp(1, start + 1);
+    if steps > start {
+        return (0..=start).rev().collect();
+    }
+    // Spacing start / steps >= 1, so the rounded timesteps are distinct.
+    let steps = steps.max(1);
     (0..steps)
         .map(|i| {
             let f = 1.0 - i as f64 / steps as f64;

@@ -18,9 +18,10 @@ use crate::{DiffusionError, Result};
 pub struct LearnedTokens {
     /// The embeddings.
     pub tokens: Param<Tensor<2>>,
-    /// The unconditional context for guidance (CLIP's empty-prompt embedding when the tokens
-    /// started from a prompt); zeros when None. A constant: not trained, not saved.
-    pub null_context: Option<Tensor<2>>,
+    /// The unconditional context for guidance and for conditioning dropout in training (CLIP's
+    /// empty-prompt embedding when the tokens started from a prompt); zeros when None. Saved,
+    /// never trained.
+    pub null_tokens: Option<Param<Tensor<2>>>,
 }
 
 /// `text_encoder/config.json` of a learned-token conditioning.
@@ -34,6 +35,9 @@ pub struct LearnedTokensConfig {
     pub tokens: usize,
     /// Width (the U-Net's cross_attention_dim).
     pub dim: usize,
+    /// The file also holds `null_tokens` (the guidance baseline), else the baseline is zeros.
+    #[serde(default)]
+    pub null_tokens: bool,
 }
 
 /// File name of the learned tokens.
@@ -49,7 +53,7 @@ impl LearnedTokens {
                 std: 1.0,
             }
             .init([n, dim], device),
-            null_context: None,
+            null_tokens: None,
         }
     }
 
@@ -58,7 +62,7 @@ impl LearnedTokens {
     pub fn from_embedding(prompt: Tensor<2>, empty: Tensor<2>) -> LearnedTokens {
         LearnedTokens {
             tokens: Param::from_tensor(prompt),
-            null_context: Some(empty),
+            null_tokens: Some(Param::from_tensor(empty).set_require_grad(false)),
         }
     }
 
@@ -71,17 +75,14 @@ impl LearnedTokens {
     /// The context for a batch: `[batch, n, dim]`.
     pub fn forward(&self, batch: usize) -> Tensor<3> {
         let [n, d] = self.dims();
-        self.tokens
-            .val()
-            .unsqueeze::<3>()
-            .expand([batch, n, d])
+        self.tokens.val().unsqueeze::<3>().expand([batch, n, d])
     }
 
     /// The null context for guidance `[batch, n, dim]`: the empty prompt's embedding, or zeros.
     pub fn null(&self, batch: usize, device: &Device) -> Tensor<3> {
         let [n, d] = self.dims();
-        match &self.null_context {
-            Some(t) => t.clone().unsqueeze::<3>().expand([batch, n, d]),
+        match &self.null_tokens {
+            Some(t) => t.val().detach().unsqueeze::<3>().expand([batch, n, d]),
             None => Tensor::zeros([batch, n, d], device),
         }
     }
@@ -96,6 +97,7 @@ impl LearnedTokens {
                 class_name: "LearnedTokens".into(),
                 tokens: n,
                 dim: d,
+                null_tokens: self.null_tokens.is_some(),
             },
         )
     }
@@ -114,6 +116,13 @@ impl LearnedTokens {
             });
         }
         let mut t = LearnedTokens::new(c.tokens, c.dim, device);
+        if c.null_tokens {
+            t.null_tokens = Some(
+                Initializer::Zeros
+                    .init([c.tokens, c.dim], device)
+                    .set_require_grad(false),
+            );
+        }
         crate::weights::load_into(&mut t, &dir.join(TOKENS_FILE), &[], &[])?;
         Ok(t)
     }

@@ -116,8 +116,12 @@ pub struct TrainSettings {
     pub seed: u64,
     /// Read the loss back every this many steps (each read waits for the device).
     pub log_every: usize,
-    /// Gradient norm clip (0 = off).
+    /// Gradient norm clip (0 = off), applied per parameter tensor (burn's Norm clipping), not
+    /// to the global norm.
     pub clip: f64,
+    /// Fraction of batch items conditioned on the null context (classifier-free guidance needs
+    /// it trained; 0 for LoRA fine-tuning of a model that already has it).
+    pub cond_dropout: f64,
 }
 
 impl Default for TrainSettings {
@@ -131,6 +135,7 @@ impl Default for TrainSettings {
             seed: 0,
             log_every: 25,
             clip: 1.0,
+            cond_dropout: 0.1,
         }
     }
 }
@@ -313,6 +318,7 @@ pub fn batch_loss(
     codec: &Codec,
     schedule: &Schedule,
     batch: &Batch,
+    cond_dropout: f64,
     rng: &mut SplitMix,
     device: &Device,
 ) -> Tensor<1> {
@@ -327,13 +333,23 @@ pub fn batch_loss(
     let z0 = codec.encode(x.clone()).detach();
     let masked = codec.encode(x * keep).detach();
     let mask_z = codec.mask(hole);
-    let valid = codec.mask_any(known.neg() + 1.0).neg() + 1.0;
+    let valid = codec.mask(known.neg() + 1.0).neg() + 1.0;
     let t: Vec<usize> = (0..n).map(|_| rng.below(schedule.len())).collect();
     let noise = seeded_noise(z0.dims(), rng.next(), device);
     let zt = schedule.add_noise(z0.clone(), noise.clone(), &t);
     let target = schedule.target(z0, noise, &t);
     let ts: Vec<f32> = t.iter().map(|&t| t as f32).collect();
-    let context = model.tokens.forward(n);
+    // Conditioning dropout: some items see the null context, so that guidance has a trained
+    // unconditional branch.
+    let keep: Vec<f32> = (0..n)
+        .map(|_| if rng.unit() < cond_dropout { 0.0 } else { 1.0 })
+        .collect();
+    let context = if keep.iter().all(|k| *k == 1.0) {
+        model.tokens.forward(n)
+    } else {
+        let k = Tensor::<1>::from_floats(keep.as_slice(), device).reshape([n, 1, 1]);
+        model.tokens.forward(n) * k.clone() + model.tokens.null(n, device) * (k.neg() + 1.0)
+    };
     let pred = model
         .unet
         .forward(unet_input(zt, mask_z, masked), &ts, &context);
@@ -369,10 +385,15 @@ pub fn train(
             aug.crop
         )));
     }
-    if s.steps == 0 || s.batch == 0 || !(s.lr > 0.0) || !(s.token_lr >= 0.0) {
+    if s.steps == 0
+        || s.batch == 0
+        || !(s.lr > 0.0)
+        || !(s.token_lr >= 0.0)
+        || !(0.0..1.0).contains(&s.cond_dropout)
+    {
         return Err(DiffusionError::Input(format!(
-            "steps {} and batch {} must be > 0, lr {} > 0 and token lr {} >= 0",
-            s.steps, s.batch, s.lr, s.token_lr
+            "steps {} and batch {} must be > 0, lr {} > 0, token lr {} >= 0 and conditioning dropout {} in [0, 1)",
+            s.steps, s.batch, s.lr, s.token_lr, s.cond_dropout
         )));
     }
     let adam = || {
@@ -398,7 +419,15 @@ pub fn train(
     let mut since = 0usize;
     for step in 1..=s.steps {
         let batch = draw_batch(images, aug, s.batch, &mut rng)?;
-        let loss = batch_loss(&model, codec, schedule, &batch, &mut rng, device);
+        let loss = batch_loss(
+            &model,
+            codec,
+            schedule,
+            &batch,
+            s.cond_dropout,
+            &mut rng,
+            device,
+        );
         let mut grads = loss.backward();
         let warm = if s.warmup > 0 {
             (step as f64 / s.warmup as f64).min(1.0)

@@ -193,7 +193,12 @@ impl AutoencoderKL {
 
     /// Image -> latent down-sampling factor.
     pub fn factor(&self) -> usize {
-        1 << self.encoder.down_blocks.iter().filter(|b| !b.downsamplers.is_empty()).count()
+        1 << self
+            .encoder
+            .down_blocks
+            .iter()
+            .filter(|b| !b.downsamplers.is_empty())
+            .count()
     }
 
     /// `image [n, 3, h, w]` in [-1, 1] -> (mean, log-variance clamped to [-30, 20]), each
@@ -217,7 +222,9 @@ impl AutoencoderKL {
             .pop()
             .unwrap_or_else(|| unreachable!("chunk(2) gives 2"))
             .clamp(-30.0, 20.0);
-        let mean = parts.pop().unwrap_or_else(|| unreachable!("chunk(2) gives 2"));
+        let mean = parts
+            .pop()
+            .unwrap_or_else(|| unreachable!("chunk(2) gives 2"));
         (mean, logvar)
     }
 

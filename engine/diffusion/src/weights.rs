@@ -102,13 +102,23 @@ pub fn load_into<M: Module + ModuleSnapshot>(
             format!(
                 "{} tensors of the model are missing from the file: {}{}",
                 missing.len(),
-                missing.iter().take(8).copied().collect::<Vec<_>>().join(", "),
+                missing
+                    .iter()
+                    .take(8)
+                    .copied()
+                    .collect::<Vec<_>>()
+                    .join(", "),
                 if missing.len() > 8 { ", ..." } else { "" }
             ),
         ));
     }
     if !res.errors.is_empty() {
-        let list: Vec<String> = res.errors.iter().take(8).map(|e| format!("{e:?}")).collect();
+        let list: Vec<String> = res
+            .errors
+            .iter()
+            .take(8)
+            .map(|e| format!("{e:?}"))
+            .collect();
         return Err(weights_err(
             file,
             format!(
@@ -179,7 +189,9 @@ fn check_header(file: &Path, bytes: &[u8]) -> Result<()> {
         if end > data_len {
             return Err(weights_err(
                 file,
-                format!("tensor {k:?} ends at byte {end} of a {data_len}-byte data section (truncated)"),
+                format!(
+                    "tensor {k:?} ends at byte {end} of a {data_len}-byte data section (truncated)"
+                ),
             ));
         }
     }
@@ -209,7 +221,10 @@ pub const VAE_DEPRECATED: &[(&str, &str)] = &[
     (r"\.attentions\.(\d+)\.query\.", ".attentions.$1.to_q."),
     (r"\.attentions\.(\d+)\.key\.", ".attentions.$1.to_k."),
     (r"\.attentions\.(\d+)\.value\.", ".attentions.$1.to_v."),
-    (r"\.attentions\.(\d+)\.proj_attn\.", ".attentions.$1.to_out.0."),
+    (
+        r"\.attentions\.(\d+)\.proj_attn\.",
+        ".attentions.$1.to_out.0.",
+    ),
 ];
 
 /// Loads `dir/config.json` and `dir/diffusion_pytorch_model.safetensors` (or its fp16 variant).
@@ -217,7 +232,10 @@ pub fn load_unet(dir: &Path, device: &Device) -> Result<(UNetConfig, UNet2DCondi
     let config = UNetConfig::from_file(&dir.join("config.json"))?;
     let file = find_weights(
         dir,
-        &[DIFFUSERS_WEIGHTS, "diffusion_pytorch_model.fp16.safetensors"],
+        &[
+            DIFFUSERS_WEIGHTS,
+            "diffusion_pytorch_model.fp16.safetensors",
+        ],
     )?;
     let mut unet = UNet2DConditionModel::new(&config, device)?;
     load_into(&mut unet, &file, &[], &[])?;
@@ -235,7 +253,10 @@ pub fn load_vae(dir: &Path, device: &Device) -> Result<(VaeConfig, AutoencoderKL
     let config = VaeConfig::from_file(&dir.join("config.json"))?;
     let file = find_weights(
         dir,
-        &[DIFFUSERS_WEIGHTS, "diffusion_pytorch_model.fp16.safetensors"],
+        &[
+            DIFFUSERS_WEIGHTS,
+            "diffusion_pytorch_model.fp16.safetensors",
+        ],
     )?;
     let mut vae = AutoencoderKL::new(&config, device)?;
     load_into(&mut vae, &file, VAE_DEPRECATED, &[])?;
@@ -264,7 +285,10 @@ pub fn parameter_names<M: Module>(model: &M) -> Vec<(String, Vec<usize>)> {
         fn exit_module(&mut self, _: &str, _: &str) {
             self.stack.pop();
         }
-        fn visit_float<const D: usize>(&mut self, p: &burn::module::Param<burn::tensor::Tensor<D>>) {
+        fn visit_float<const D: usize>(
+            &mut self,
+            p: &burn::module::Param<burn::tensor::Tensor<D>>,
+        ) {
             let Some((leaf, module)) = self.stack.last() else {
                 return;
             };
