@@ -632,7 +632,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
             );
         }
     }
-    if a.crop % multiple != 0 {
+    if !a.crop.is_multiple_of(multiple) {
         bail!(
             "--crop {} must be a multiple of {multiple} for {} levels",
             a.crop,
@@ -989,7 +989,10 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
     // Anything the model draws at load (fresh tokens for an SD folder without a text encoder)
     // follows --seed too.
     dev.seed(a.seed);
-    if !(a.strength > 0.0 && a.strength <= 1.0) || a.steps == 0 || !(a.guidance >= 1.0) {
+    if !(a.strength > 0.0 && a.strength <= 1.0)
+        || a.steps == 0
+        || !(a.guidance.is_finite() && a.guidance >= 1.0)
+    {
         bail!(
             "--strength {} must be in (0, 1], --steps {} at least 1 and --guidance {} at least 1",
             a.strength,
@@ -1088,7 +1091,7 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
     }
     let views = load_views(&a.scene, &a.split, a.factor, a.downscale)?;
     let m = pipe.model.size_multiple();
-    if a.crop == 0 || a.crop % m != 0 {
+    if a.crop == 0 || !a.crop.is_multiple_of(m) {
         bail!(
             "--crop {} must be a positive multiple of {m} for this model",
             a.crop

@@ -80,7 +80,9 @@ impl ClipTextConfig {
                 self.hidden_act
             ));
         }
-        if self.num_attention_heads == 0 || self.hidden_size % self.num_attention_heads != 0 {
+        if self.num_attention_heads == 0
+            || !self.hidden_size.is_multiple_of(self.num_attention_heads)
+        {
             return Err(format!(
                 "hidden_size {} is not a multiple of num_attention_heads {}",
                 self.hidden_size, self.num_attention_heads
@@ -263,7 +265,7 @@ impl ClipTextModel {
             .position_embedding
             .weight
             .val()
-            .slice([0..l])
+            .narrow(0, 0, l)
             .unsqueeze::<3>();
         let mut h = tok + pos;
         // Causal mask: query i sees keys j <= i.

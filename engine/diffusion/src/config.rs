@@ -475,7 +475,7 @@ impl UNetConfig {
         if self.freq_shift > 0 && self.block_out_channels[0] / 2 <= self.freq_shift {
             return Err("freq_shift must be below half of block_out_channels[0]".into());
         }
-        if !(self.norm_eps > 0.0) {
+        if !(self.norm_eps.is_finite() && self.norm_eps > 0.0) {
             return Err("norm_eps must be > 0".into());
         }
         Ok(())

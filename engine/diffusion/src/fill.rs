@@ -119,7 +119,7 @@ pub fn edge_aware_fill(
 ) -> Result<Vec<f32>> {
     let mut u = harmonic_fill(img, mask, w, h, 2000, 1e-5)?;
     let holes: Vec<usize> = (0..w * h).filter(|&i| hole(mask, i)).collect();
-    if holes.is_empty() || holes.len() == w * h || !(k > 0.0) {
+    if holes.is_empty() || holes.len() == w * h || !(k.is_finite() && k > 0.0) {
         return Ok(u);
     }
     let lambda = 0.2f32;

@@ -18,6 +18,7 @@ use crate::vae::AutoencoderKL;
 use crate::{DiffusionError, Result};
 
 /// How images become the diffusion variable.
+#[allow(clippy::large_enum_variant)] // a module tree; burn has no Module for Box
 #[derive(Module, Debug)]
 pub enum Codec {
     /// Latent diffusion through an autoencoder.
@@ -139,8 +140,8 @@ pub fn seeded_noise(shape: [usize; 4], seed: u64, device: &Device) -> Tensor<4> 
     let mut v = Vec::with_capacity(n);
     while v.len() < n {
         // Box-Muller on two uniforms in (0, 1].
-        let u1 = ((rng.next() >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
-        let u2 = (rng.next() >> 11) as f64 / (1u64 << 53) as f64;
+        let u1 = ((rng.next_u64() >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+        let u2 = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
         let r = (-2.0 * u1.ln()).sqrt();
         let a = 2.0 * std::f64::consts::PI * u2;
         v.push((r * a.cos()) as f32);
@@ -157,7 +158,7 @@ pub struct SplitMix(pub u64);
 
 impl SplitMix {
     /// Next 64 random bits.
-    pub fn next(&mut self) -> u64 {
+    pub fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
@@ -167,7 +168,7 @@ impl SplitMix {
 
     /// Uniform in [0, 1).
     pub fn unit(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
     }
 
     /// Uniform integer in [0, n).
@@ -223,7 +224,10 @@ impl InpaintModel {
                 mask.dims()
             )));
         }
-        if !(s.strength > 0.0 && s.strength <= 1.0) || s.steps == 0 || !(s.guidance >= 1.0) {
+        if !(s.strength > 0.0 && s.strength <= 1.0)
+            || s.steps == 0
+            || !(s.guidance.is_finite() && s.guidance >= 1.0)
+        {
             return Err(DiffusionError::Input(format!(
                 "sampling: strength {} must be in (0, 1], steps {} > 0, guidance {} >= 1",
                 s.strength, s.steps, s.guidance

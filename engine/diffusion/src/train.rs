@@ -335,7 +335,7 @@ pub fn batch_loss(
     let mask_z = codec.mask(hole);
     let valid = codec.mask(known.neg() + 1.0).neg() + 1.0;
     let t: Vec<usize> = (0..n).map(|_| rng.below(schedule.len())).collect();
-    let noise = seeded_noise(z0.dims(), rng.next(), device);
+    let noise = seeded_noise(z0.dims(), rng.next_u64(), device);
     let zt = schedule.add_noise(z0.clone(), noise.clone(), &t);
     let target = schedule.target(z0, noise, &t);
     let ts: Vec<f32> = t.iter().map(|&t| t as f32).collect();
@@ -360,6 +360,7 @@ pub fn batch_loss(
 
 /// Trains `model` (parameters on an autodiff device; frozen ones get no update) and returns it
 /// with the loss curve (step, mean loss per report). `on_progress` sees every report.
+#[allow(clippy::too_many_arguments)] // each is a distinct input of the loop
 pub fn train(
     mut model: Trainable,
     codec: &Codec,
@@ -379,7 +380,7 @@ pub fn train(
         im.check(i)?;
     }
     let m = codec.factor() * (1 << (model.unet.down_blocks.len() - 1));
-    if aug.crop == 0 || aug.crop % m != 0 {
+    if aug.crop == 0 || !aug.crop.is_multiple_of(m) {
         return Err(DiffusionError::Input(format!(
             "crop {} must be a positive multiple of {m} for this model",
             aug.crop
@@ -387,8 +388,8 @@ pub fn train(
     }
     if s.steps == 0
         || s.batch == 0
-        || !(s.lr > 0.0)
-        || !(s.token_lr >= 0.0)
+        || !(s.lr.is_finite() && s.lr > 0.0)
+        || !(s.token_lr.is_finite() && s.token_lr >= 0.0)
         || !(0.0..1.0).contains(&s.cond_dropout)
     {
         return Err(DiffusionError::Input(format!(

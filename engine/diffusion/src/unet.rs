@@ -100,9 +100,9 @@ impl UNet2DConditionModel {
         };
         let mut down_blocks = Vec::with_capacity(n);
         let mut out_ch = boc[0];
-        for i in 0..n {
+        for (i, &ch) in boc.iter().enumerate() {
             let in_ch = out_ch;
-            out_ch = boc[i];
+            out_ch = ch;
             let layers = c.layers_per_block.get(i);
             let attn = c.down_has_attention(i);
             down_blocks.push(DownBlock {
