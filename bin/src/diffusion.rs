@@ -22,7 +22,6 @@ use extranerf_diffusion::train::{self, Augment, Progress, TrainImage, TrainSetti
 use extranerf_diffusion::unet::UNet2DConditionModel;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::load_image;
-use extranerf_nerf::metrics::lpips::{Lpips, LpipsNet};
 use extranerf_nerf::mvs::downscale_rgb;
 use extranerf_nerf::run::{write_png, SceneSpec};
 
@@ -602,15 +601,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     if !(a.refine_strength > 0.0 && a.refine_strength <= 1.0) {
         bail!("--refine-strength {} must be in (0, 1]", a.refine_strength);
     }
-    let lpips_dir = a
-        .lpips
-        .clone()
-        .unwrap_or_else(crate::nerf::default_lpips_dir);
-    let lpips = Lpips::load(
-        &lpips_dir.join("lpips_alex_v0.1.safetensors"),
-        LpipsNet::Alex,
-    )
-    .with_context(|| format!("LPIPS weights in {} (--lpips)", lpips_dir.display()))?;
+    let lpips = crate::nerf::lpips_alex(a.lpips.as_deref())?;
     let (backend, dev) = a.backend.device(ctx)?;
     let (views, test_views) = load_view_sets(&a.scene, &a.split, a.factor, a.downscale)?;
     std::fs::create_dir_all(a.out.join("eval"))

@@ -758,6 +758,13 @@ pub fn default_lpips_dir() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"))
 }
 
+/// The AlexNet LPIPS from `dir` (default [`default_lpips_dir`]), the error naming the folder.
+pub fn lpips_alex(dir: Option<&std::path::Path>) -> anyhow::Result<Lpips> {
+    let dir = dir.map(PathBuf::from).unwrap_or_else(default_lpips_dir);
+    Lpips::load(&dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex)
+        .with_context(|| format!("LPIPS weights in {} (--lpips)", dir.display()))
+}
+
 /// Arguments of `extranerf eval`.
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {

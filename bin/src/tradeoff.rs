@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::load_image;
-use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
+use extranerf_nerf::metrics::{psnr, ssim, Lpips};
 use extranerf_nerf::mvs::downscale_rgb;
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::run::{RunConfig, SceneSpec};
@@ -348,14 +348,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         depth_dir: None,
     };
     let loaded = spec.load()?;
-    let lpips_dir = a
-        .lpips
-        .clone()
-        .unwrap_or_else(crate::nerf::default_lpips_dir);
-    let lpips = Lpips::load(
-        &lpips_dir.join("lpips_alex_v0.1.safetensors"),
-        LpipsNet::Alex,
-    )?;
+    let lpips = crate::nerf::lpips_alex(a.lpips.as_deref())?;
     // Held-out views and their ground truth at the scoring resolution, loaded once.
     let mut tests = Vec::new();
     for &i in &loaded.split.test {
