@@ -600,7 +600,7 @@ fn schedules_and_ddim_match_references() {
     let x0 = seeded_noise([2, 3, 4, 4], 1, &dev) * 0.5;
     let eps = seeded_noise([2, 3, 4, 4], 2, &dev);
     let x0v = values(x0.clone());
-    for pred in [Prediction::Epsilon, Prediction::V] {
+    for pred in [Prediction::Epsilon, Prediction::V, Prediction::Sample] {
         let s = schedule(BetaSchedule::ScaledLinear, pred);
         // The target splits back into the noise and the image.
         let t = [700usize, 700];

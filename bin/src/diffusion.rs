@@ -101,6 +101,10 @@ pub struct PriorArgs {
     /// AdamW learning rate.
     #[arg(long, default_value_t = 2e-3)]
     pub lr: f64,
+    /// What the U-Net predicts: `v_prediction` (stable at every noise level), `epsilon` (the
+    /// noise, as SD 1.x) or `sample` (the clean image).
+    #[arg(long, default_value = "v_prediction", value_parser = ["v_prediction", "epsilon", "sample"])]
+    pub prediction: String,
     /// Regions per view to score: held out of every training view (never in the loss) and
     /// cut into every test view of the split (which training never sees).
     #[arg(long, default_value_t = 2)]
@@ -304,13 +308,21 @@ pub fn prior_unet_config(channels: &[usize], token_dim: usize) -> anyhow::Result
     Ok(c)
 }
 
-/// The prior's noise process: cosine betas with v-prediction (stable at every noise level for
-/// a small pixel model).
-pub fn prior_scheduler() -> SchedulerConfig {
+/// The prior's noise process: cosine betas, v-prediction by default (stable at every noise
+/// level for a small pixel model).
+pub fn prior_scheduler(prediction: Prediction) -> SchedulerConfig {
     SchedulerConfig {
         beta_schedule: BetaSchedule::SquaredCosCapV2,
-        prediction_type: Prediction::V,
+        prediction_type: prediction,
         ..SchedulerConfig::default()
+    }
+}
+
+fn parse_prediction(s: &str) -> Prediction {
+    match s {
+        "epsilon" => Prediction::Epsilon,
+        "sample" => Prediction::Sample,
+        _ => Prediction::V,
     }
 }
 
@@ -672,7 +684,8 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
             }
             let ad = dev.clone().autodiff();
             ad.seed(a.seed);
-            let pipe = Pipeline::new(cfg.clone(), None, prior_scheduler(), 4, &ad)?;
+            let sched_cfg = prior_scheduler(parse_prediction(&a.prediction));
+            let pipe = Pipeline::new(cfg.clone(), None, sched_cfg.clone(), 4, &ad)?;
             let params = pipe.model.unet.num_params();
             let flops = 2 * pipe.model.unet.macs(a.crop, a.crop, 4);
             eprintln!(
@@ -727,7 +740,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                 },
                 unet_config: cfg,
                 vae_config: None,
-                scheduler_config: prior_scheduler(),
+                scheduler_config: sched_cfg,
                 notes: vec!["trained from scratch on the scene's views".into()],
             };
             let mdir = a.out.join("model");
@@ -944,6 +957,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
         "batch": a.batch,
         "crop": a.crop,
         "lr": a.lr,
+        "prediction": trained.scheduler_config.prediction_type,
         "views": views.len(),
         "test_views": test_views.len(),
         "view_size": [views[0].width, views[0].height],
@@ -1200,7 +1214,7 @@ fn init(a: &InitArgs) -> anyhow::Result<()> {
         "pixel" => Pipeline::new(
             prior_unet_config(&[32, 64, 96], 64)?,
             None,
-            prior_scheduler(),
+            prior_scheduler(Prediction::V),
             4,
             &dev,
         )?,

@@ -34,6 +34,8 @@ pub enum Prediction {
     /// v = sqrt(a) eps - sqrt(1 - a) x0 (Salimans & Ho).
     #[serde(rename = "v_prediction")]
     V,
+    /// The clean image x0 itself (diffusers' "sample").
+    Sample,
 }
 
 fn d_t() -> usize {
@@ -226,10 +228,11 @@ impl Schedule {
         x0 * a + noise * b
     }
 
-    /// The training target: the noise, or v = sqrt(a) eps - sqrt(1 - a) x0.
+    /// The training target: the noise, v = sqrt(a) eps - sqrt(1 - a) x0, or x0.
     pub fn target(&self, x0: Tensor<4>, noise: Tensor<4>, t: &[usize]) -> Tensor<4> {
         match self.prediction {
             Prediction::Epsilon => noise,
+            Prediction::Sample => x0,
             Prediction::V => {
                 let d = x0.device();
                 let a = Self::per_item(t.iter().map(|&t| self.alpha_bar(Some(t)).sqrt()), &d);
@@ -255,6 +258,11 @@ impl Schedule {
                 let x0 = x_t.clone() * sa - out.clone() * sb;
                 let eps = out * sa + x_t * sb;
                 (eps, x0)
+            }
+            Prediction::Sample => {
+                // sqrt(1 - a) > 0 at every training timestep (betas in (0, 1)).
+                let eps = (x_t - out.clone() * sa) / sb.max(1e-12);
+                (eps, out)
             }
         }
     }
