@@ -508,3 +508,111 @@ fn all_black_and_all_white_images_train_without_nan() {
     }
     assert_no_validation_messages(ctx);
 }
+
+/// The fused training step (one kernel from pixels to gradients, plus the MLP weight-gradient
+/// reduction) against the standalone chain, whose kernels the tests above check against the f64
+/// reference: the same batch loss, MSE and gradient of every parameter, in NDC and in contracted
+/// world space, with L2 and Huber, depth targets on some pixels, the distortion loss and
+/// gradient scaling, with the MLPs' outputs read back from the records and (case 1) recomputed.
+#[test]
+fn fused_step_gradient_matches_the_standalone_chain() {
+    use extranerf_nerf::demo::write_demo_scene;
+    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer};
+    let e = engine();
+    let ctx = &e.ctx;
+    let dir = scratch_dir("fused-step");
+    write_demo_scene(&dir, 32, 24).unwrap();
+    let spec = SceneSpec {
+        dir: dir.clone(),
+        split: "extrapolation".into(),
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let loaded = spec.load().unwrap();
+    let world = ModelConfig {
+        space: "world".into(),
+        near: 0.5,
+        far: 8.0,
+        radius: 2.0,
+        contraction: "l2".into(),
+        ..tiny()
+    };
+    let cases = [
+        (tiny(), "l2", false, 1e-2f32),
+        (tiny(), "huber", true, 0.0),
+        (world, "l2", true, 5e-2),
+    ];
+    for (ci, (model, rgb_loss, grad_scaling, distortion)) in cases.into_iter().enumerate() {
+        let mut rng = Rng::new(40 + ci as u64);
+        let mut views = training_views(&spec, &loaded, &model).unwrap();
+        // Depth targets on about a third of the pixels, in the ray space's units.
+        let (lo, hi) = (model.near + 0.1, model.far * 0.8);
+        for v in &mut views {
+            let n = v.1.rgb.len() / 3;
+            let d: Vec<[f32; 2]> = (0..n)
+                .map(|_| {
+                    let conf = if rng.uniform(0.0, 1.0) < 0.33 {
+                        1.0
+                    } else {
+                        0.0
+                    };
+                    [rng.uniform(lo, hi), conf]
+                })
+                .collect();
+            v.2 = Some(d);
+        }
+        let mut params = init_params(&model, 5);
+        let lay = ParamLayout::new(&model);
+        for v in &mut params[lay.table.0..lay.table.0 + lay.table.1] {
+            *v = rng.uniform(-1.0, 1.0);
+        }
+        let data = TrainData::new(ctx, &views).unwrap();
+        let run = |fused: bool, recompute: bool| {
+            let cfg = TrainConfig {
+                rays: 96,
+                samples: 12,
+                rgb_loss: rgb_loss.into(),
+                huber_delta: 0.05,
+                depth_lambda: 0.2,
+                distortion_lambda: distortion,
+                grad_scaling,
+                seed: 9,
+                background: [0.2, 0.5, 0.9],
+                fused_step: fused,
+                fused_recompute: recompute,
+                ..TrainConfig::default()
+            };
+            let nerf = Nerf::new(ctx, model.clone(), &params, cfg.background).unwrap();
+            let mut t = Trainer::new(ctx, nerf, cfg, 3, None).unwrap();
+            assert_eq!(t.is_fused(), fused, "{:?}", t.standalone_reason());
+            t.gradient(ctx, &e.prims, &data).unwrap()
+        };
+        let (g_fused, s_fused) = run(true, ci == 1);
+        let (g_std, s_std) = run(false, false);
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * (1.0 + b.abs());
+        assert!(
+            close(s_fused.loss, s_std.loss) && close(s_fused.mse, s_std.mse),
+            "case {ci}: fused {s_fused:?} vs standalone {s_std:?}"
+        );
+        assert!(s_std.loss > 0.0);
+        let sections = [lay.table, lay.density, lay.color];
+        for (si, &(start, len)) in sections.iter().enumerate() {
+            let want = &g_std[start..start + len];
+            let got = &g_fused[start..start + len];
+            let scale = want.iter().fold(0f32, |m, v| m.max(v.abs()));
+            assert!(scale > 0.0, "case {ci} section {si}: no gradient");
+            let nonzero = want.iter().filter(|v| **v != 0.0).count();
+            for (j, (&g, &w)) in got.iter().zip(want).enumerate() {
+                assert!(
+                    g.is_finite() && (g - w).abs() <= 2e-5 * scale + 1e-4 * w.abs(),
+                    "case {ci} section {si} param {j}: fused {g} vs standalone {w} (largest {scale})"
+                );
+            }
+            assert!(nonzero >= 8, "case {ci} section {si}: {nonzero} nonzero");
+        }
+    }
+    assert_no_validation_messages(ctx);
+}

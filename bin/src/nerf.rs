@@ -117,6 +117,14 @@ pub struct TrainArgs {
     /// mean sample spacing (or when its density is below the grid's mean) [default: 0.01].
     #[arg(long, value_name = "ALPHA")]
     occupancy_opacity: Option<f32>,
+    /// Training step kernels: fused (one kernel from pixels to gradients plus the MLP
+    /// weight-gradient reduction; the default where the model allows it), fused-recompute (the
+    /// same, re-running the MLPs' forward pass in the backward instead of reading their outputs
+    /// back from the weight-gradient records) or standalone (one kernel per stage, every sample
+    /// in memory between them). precision f16 and --occupancy-res always use standalone. May be
+    /// given with --resume.
+    #[arg(long, value_name = "KIND", value_parser = ["fused", "fused-recompute", "standalone"])]
+    step: Option<String>,
     /// Steps between progress lines (1 to 64).
     #[arg(long, default_value_t = 25)]
     log_every: u32,
@@ -252,6 +260,10 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         if let Some(s) = a.steps {
             cfg.train.steps = s;
         }
+    }
+    if let Some(step) = &a.step {
+        cfg.train.fused_step = step != "standalone";
+        cfg.train.fused_recompute = step == "fused-recompute";
     }
     let run = TrainRun {
         out: a.out.clone(),
@@ -406,6 +418,12 @@ pub fn train_loop(
         cfg.train.rays,
         cfg.train.samples
     );
+    match trainer.standalone_reason() {
+        None => eprintln!(
+            "training step: fused kernel (pixels to gradients) + MLP weight-gradient reduction"
+        ),
+        Some(why) => eprintln!("training step: standalone kernels ({why})"),
+    }
     if let Some(occ) = trainer.occupancy() {
         let g = occ.config();
         eprintln!(
@@ -904,6 +922,10 @@ pub struct BenchTrainArgs {
     /// Timed steps (after 2 warm-up steps that also compile the kernels).
     #[arg(long, default_value_t = 10)]
     steps: u32,
+    /// Step kernels to measure: fused, fused-recompute, standalone, or all (the standalone chain
+    /// is then the same-run reference of the fused steps' speed).
+    #[arg(long, value_name = "KIND", default_value = "all", value_parser = ["fused", "fused-recompute", "standalone", "all"])]
+    step: String,
     /// Also write the results as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -938,62 +960,101 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     model.levels = a.levels;
     model.density_width = a.width;
     model.color_width = a.width;
-    let train = TrainConfig {
-        rays: a.rays,
-        samples: a.samples,
-        ..TrainConfig::default()
-    };
     let views = training_views(&spec, &loaded, &model)?;
-    let params = extranerf_nerf::model::init_params(&model, 0);
-    let nerf = Nerf::new(ctx, model.clone(), &params, train.background)?;
     let data = TrainData::new(ctx, &views)?;
     let prims = Prims::new(ctx)?;
-    let mut t = Trainer::new(ctx, nerf, train, 0, None)?;
-    let warm = Instant::now();
-    t.run_steps(ctx, &prims, &data, 2)?;
-    let warm_s = warm.elapsed().as_secs_f64();
-    let mut done = 0;
-    let t0 = Instant::now();
-    while done < a.steps {
-        let c = (a.steps - done).min(STAT_SLOTS);
-        t.run_steps(ctx, &prims, &data, c)?;
-        done += c;
-    }
-    let secs = t0.elapsed().as_secs_f64();
-    let sps = a.steps as f64 * t.samples_per_step() as f64 / secs;
-    let stages = t.profile_step(ctx, &prims, &data)?;
-    let total: f64 = stages.iter().map(|s| s.1).sum();
     println!("device: {}", ctx.info().name);
-    println!(
-        "model: hash grid {}x{}x2^{}, MLPs {:?} + {:?}; {} rays x {} samples = {} samples/step",
-        model.levels,
-        model.features,
-        model.log2_table,
-        model.density_mlp().dims,
-        model.color_mlp().dims,
-        a.rays,
-        a.samples,
-        t.samples_per_step()
-    );
-    println!(
-        "train step: {:.1} ms wall ({} steps), {:.3e} samples/s; warm-up incl. kernel compilation {:.1} s",
-        secs * 1e3 / a.steps as f64,
-        a.steps,
-        sps,
-        warm_s
-    );
-    println!(
-        "{:<44} {:>10} {:>7} {:>12}",
-        "stage (one profiled step)", "ms", "%", "samples/s"
-    );
-    for (name, ms) in &stages {
+    // (fused, recompute) per measured kind; the standalone chain last.
+    let kinds: &[(bool, bool)] = match a.step.as_str() {
+        "fused" => &[(true, false)],
+        "fused-recompute" => &[(true, true)],
+        "standalone" => &[(false, false)],
+        _ => &[(true, false), (true, true), (false, false)],
+    };
+    let mut results = Vec::new();
+    for &(fused, recompute) in kinds {
+        let train = TrainConfig {
+            rays: a.rays,
+            samples: a.samples,
+            fused_step: fused,
+            fused_recompute: recompute,
+            ..TrainConfig::default()
+        };
+        let params = extranerf_nerf::model::init_params(&model, 0);
+        let nerf = Nerf::new(ctx, model.clone(), &params, train.background)?;
+        let mut t = Trainer::new(ctx, nerf, train, 0, None)?;
+        let label = match t.standalone_reason() {
+            None if recompute => "fused step, MLPs recomputed".to_string(),
+            None => "fused step".to_string(),
+            Some(why) if fused => format!("standalone kernels ({why})"),
+            Some(_) => "standalone kernels".to_string(),
+        };
+        let warm = Instant::now();
+        t.run_steps(ctx, &prims, &data, 2)?;
+        let warm_s = warm.elapsed().as_secs_f64();
+        let mut done = 0;
+        let t0 = Instant::now();
+        while done < a.steps {
+            let c = (a.steps - done).min(STAT_SLOTS);
+            t.run_steps(ctx, &prims, &data, c)?;
+            done += c;
+        }
+        let secs = t0.elapsed().as_secs_f64();
+        let sps = a.steps as f64 * t.samples_per_step() as f64 / secs;
+        let stages = t.profile_step(ctx, &prims, &data)?;
+        let total: f64 = stages.iter().map(|s| s.1).sum();
         println!(
-            "{name:<44} {ms:>10.3} {:>6.1}% {:>12.3e}",
-            100.0 * ms / total,
-            t.samples_per_step() as f64 / (ms * 1e-3)
+            "model: hash grid {}x{}x2^{}, MLPs {:?} + {:?}; {} rays x {} samples = {} samples/step",
+            model.levels,
+            model.features,
+            model.log2_table,
+            model.density_mlp().dims,
+            model.color_mlp().dims,
+            a.rays,
+            a.samples,
+            t.samples_per_step()
         );
+        println!(
+            "{label}: {:.1} ms wall per step ({} steps), {:.3e} samples/s; warm-up incl. kernel compilation {:.1} s",
+            secs * 1e3 / a.steps as f64,
+            a.steps,
+            sps,
+            warm_s
+        );
+        println!(
+            "{:<60} {:>10} {:>7} {:>12}",
+            "stage (one profiled step)", "ms", "%", "samples/s"
+        );
+        for (name, ms) in &stages {
+            println!(
+                "{name:<60} {ms:>10.3} {:>6.1}% {:>12.3e}",
+                100.0 * ms / total,
+                t.samples_per_step() as f64 / (ms * 1e-3)
+            );
+        }
+        println!("{:<60} {total:>10.3}", "total (GPU timestamps)");
+        results.push(serde_json::json!({
+            "step": label,
+            "fused": t.is_fused(),
+            "step_ms_wall": secs * 1e3 / a.steps as f64,
+            "samples_per_s": sps,
+            "warmup_s": warm_s,
+            "stages_ms": stages.iter().map(|(n, ms)| serde_json::json!({"stage": n, "ms": ms})).collect::<Vec<_>>(),
+        }));
     }
-    println!("{:<44} {total:>10.3}", "total (GPU timestamps)");
+    // Each fused kind against the standalone chain measured in this run.
+    let mut ratios = Vec::new();
+    if let Some(base) = results.iter().find(|r| r["fused"] == false) {
+        let b = base["samples_per_s"].as_f64().unwrap_or(f64::NAN);
+        for r in results.iter().filter(|r| r["fused"] == true) {
+            let x = r["samples_per_s"].as_f64().unwrap_or(f64::NAN) / b;
+            println!(
+                "{} vs standalone kernels in this run: {x:.2}x the samples/s",
+                r["step"].as_str().unwrap_or("?")
+            );
+            ratios.push(serde_json::json!({"step": r["step"], "over_standalone": x}));
+        }
+    }
     if let Some(path) = &a.json {
         let v = serde_json::json!({
             "device": ctx.info().name,
@@ -1002,10 +1063,8 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             "rays": a.rays,
             "samples_per_ray": a.samples,
             "steps": a.steps,
-            "step_ms_wall": secs * 1e3 / a.steps as f64,
-            "samples_per_s": sps,
-            "warmup_s": warm_s,
-            "stages_ms": stages.iter().map(|(n, ms)| serde_json::json!({"stage": n, "ms": ms})).collect::<Vec<_>>(),
+            "runs": results,
+            "ratios": ratios,
         });
         extranerf_nerf::safetensors::write_atomic(
             path,

@@ -149,7 +149,9 @@ fn train_resume_render_eval_on_fern() {
     let (ok, _, err) = extranerf(&args);
     assert!(ok, "{err}");
     assert!(
-        err.contains("step     6/6") && err.contains("samples/s"),
+        err.contains("step     6/6")
+            && err.contains("samples/s")
+            && err.contains("training step: fused kernel"),
         "{err}"
     );
     for f in ["config.json", "checkpoint.safetensors", "progress.jsonl"] {
@@ -160,9 +162,21 @@ fn train_resume_render_eval_on_fern() {
     assert!(!ok && err.contains("--resume"), "{err}");
     let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--rays", "9"]);
     assert!(!ok && err.contains("drop --rays"), "{err}");
-    let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--steps", "9"]);
+    // --step may change on resume: the standalone chain continues the fused run.
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--resume",
+        "--out",
+        run_s,
+        "--steps",
+        "9",
+        "--step",
+        "standalone",
+    ]);
     assert!(
-        ok && err.contains("resuming") && err.contains("step     9/9"),
+        ok && err.contains("resuming")
+            && err.contains("step     9/9")
+            && err.contains("training step: standalone kernels"),
         "{err}"
     );
     let progress = std::fs::read_to_string(run.join("progress.jsonl")).unwrap();

@@ -21,6 +21,7 @@ use crate::render::march::{MarchCuts, Marcher};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
 use crate::render::rays::{gpu_camera, GpuCamera, RayGen, RaySpace};
 use crate::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing, MAX_PROBES};
+use crate::render::train_step::{FusedStep, StepLosses, StepOutputs};
 
 /// Steps whose loss and MSE the device keeps between progress reads.
 pub const STAT_SLOTS: u32 = 64;
@@ -81,6 +82,20 @@ pub struct TrainConfig {
     /// far, or the grid's mean density when that is lower.
     #[serde(default = "default_occupancy_opacity")]
     pub occupancy_opacity: f32,
+    /// Train with the fused step (one kernel from pixels to gradients, plus the MLP
+    /// weight-gradient reduction; see [`FusedStep`]) where the model allows it; false, or a
+    /// model it does not support (precision f16, the occupancy grid, MLP shapes that do not fit
+    /// the uniform block), uses the standalone chain.
+    #[serde(default = "default_fused_step")]
+    pub fused_step: bool,
+    /// In the fused step, re-run both MLPs' forward pass in the backward pass instead of
+    /// reading their outputs back from the weight-gradient records the forward pass wrote.
+    #[serde(default)]
+    pub fused_recompute: bool,
+}
+
+fn default_fused_step() -> bool {
+    true
 }
 
 fn default_occupancy_opacity() -> f32 {
@@ -122,6 +137,8 @@ impl Default for TrainConfig {
             occupancy_warmup: default_occupancy_warmup(),
             occupancy_probes: default_occupancy_probes(),
             occupancy_opacity: default_occupancy_opacity(),
+            fused_step: default_fused_step(),
+            fused_recompute: false,
         }
     }
 }
@@ -294,10 +311,17 @@ impl Workspace {
         rays: u32,
         samples: u32,
         grads: bool,
+        per_sample_buffers: bool,
     ) -> Result<Workspace> {
         let r = rays as usize;
-        let n = r * samples as usize;
-        count_u32(n as u64, "samples per batch")?;
+        // The fused step keeps every sample in registers: its per-sample buffers are stubs of
+        // one element that no kernel binds.
+        let n = if per_sample_buffers {
+            r * samples as usize
+        } else {
+            1
+        };
+        count_u32(r as u64 * samples as u64, "samples per batch")?;
         let gr = |len: usize| if grads { len } else { 1 };
         let mut per_sample = Vec::new();
         for (i, (name, w)) in field.per_sample().into_iter().enumerate() {
@@ -638,6 +662,7 @@ impl Nerf {
                 chunk_rays,
                 samples,
                 false,
+                true,
             )?),
             March::Fused(cuts) => RenderIo::Fused {
                 cuts,
@@ -743,6 +768,10 @@ pub struct Trainer {
     step: u32,
     /// The occupancy grid that training skips empty space with, when enabled.
     occupancy: Option<Occupancy>,
+    /// The fused training step, when used.
+    fused: Option<FusedStep>,
+    /// Why the standalone chain trains instead, when it does.
+    standalone_reason: Option<String>,
 }
 
 impl Trainer {
@@ -757,6 +786,25 @@ impl Trainer {
     ) -> Result<Trainer> {
         cfg.validate()?;
         let total = nerf.field.layout().total;
+        let why_not = if !cfg.fused_step {
+            Some("the standalone chain was asked for".to_string())
+        } else if cfg.occupancy_res > 0 {
+            Some("the fused step samples whole rays; the occupancy grid needs the standalone sampler".to_string())
+        } else {
+            FusedStep::supports(&nerf.field)
+                .err()
+                .map(|e| e.to_string())
+        };
+        let fused = match why_not {
+            None => Some(FusedStep::new(
+                ctx,
+                &nerf.field,
+                cfg.rays,
+                cfg.samples,
+                cfg.fused_recompute,
+            )?),
+            Some(_) => None,
+        };
         let ws = Workspace::new(
             ctx,
             &nerf.field,
@@ -764,6 +812,7 @@ impl Trainer {
             cfg.rays,
             cfg.samples,
             true,
+            fused.is_none(),
         )?;
         let adam = Adam::new(ctx, total as u64, cfg.adam())?;
         if let Some((m, v)) = moments {
@@ -806,7 +855,19 @@ impl Trainer {
             nerf,
             cfg,
             step,
+            fused,
+            standalone_reason: why_not,
         })
+    }
+
+    /// True when steps run the fused kernel ([`FusedStep`]).
+    pub fn is_fused(&self) -> bool {
+        self.fused.is_some()
+    }
+
+    /// Why the standalone chain trains instead of the fused step, when it does.
+    pub fn standalone_reason(&self) -> Option<&str> {
+        self.standalone_reason.as_deref()
     }
 
     /// Steps taken so far.
@@ -895,13 +956,16 @@ impl Trainer {
         }))
     }
 
-    /// Records training step `step` (1-based).
+    /// Records training step `step` (1-based); without `update`, everything but Adam (the
+    /// gradient stays in the gradient buffer).
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
     fn record_step<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
         prims: &'a Prims,
         data: &'a TrainData,
         step: u32,
+        update: bool,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let ws = &self.ws;
@@ -924,6 +988,16 @@ impl Trainer {
         };
         rec.dispatch(&self.batch, b.into_array(), &p, n)?;
         mark(prof, rec, "batch (pixels, targets)")?;
+        if let Some(fused) = &self.fused {
+            self.record_fused(rec, fused, data, seed, prof)?;
+            self.record_stats(rec, prims, step)?;
+            mark(prof, rec, "loss and MSE stats")?;
+            if !update {
+                return Ok(());
+            }
+            self.record_adam(rec, step)?;
+            return mark(prof, rec, "adam + hash decay");
+        }
         let nerf = &self.nerf;
         let skip = self.record_occupancy(rec, prims, step, seed)?;
         mark(prof, rec, "occupancy update")?;
@@ -979,21 +1053,7 @@ impl Trainer {
             mse: ws.mse.binding(),
         };
         rec.dispatch(&self.ray_mse, b.into_array(), &mp, n)?;
-        let slot = ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT;
-        prims.reduce_sum(
-            rec,
-            &self.reduce,
-            ws.loss.binding(),
-            n,
-            self.stats.slice(slot, 1)?,
-        )?;
-        prims.reduce_sum(
-            rec,
-            &self.reduce,
-            ws.mse.binding(),
-            n,
-            self.stats.slice(slot + SLOT, 1)?,
-        )?;
+        self.record_stats(rec, prims, step)?;
         mark(prof, rec, "losses, MSE, stats")?;
         // Backward.
         rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
@@ -1025,7 +1085,42 @@ impl Trainer {
             ws.samples,
             prof,
         )?;
-        // Hash decay's gradient is folded into the Adam pass.
+        if !update {
+            return Ok(());
+        }
+        self.record_adam(rec, step)?;
+        mark(prof, rec, "adam + hash decay")
+    }
+
+    /// Records the reduction of the batch's per-ray loss and MSE into step `step`'s stat slot.
+    fn record_stats<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        prims: &'a Prims,
+        step: u32,
+    ) -> Result<()> {
+        let ws = &self.ws;
+        let n = ws.rays as u64;
+        let slot = ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT;
+        prims.reduce_sum(
+            rec,
+            &self.reduce,
+            ws.loss.binding(),
+            n,
+            self.stats.slice(slot, 1)?,
+        )?;
+        prims.reduce_sum(
+            rec,
+            &self.reduce,
+            ws.mse.binding(),
+            n,
+            self.stats.slice(slot + SLOT, 1)?,
+        )
+    }
+
+    /// Records Adam's update of every parameter, with hash decay's gradient folded in.
+    fn record_adam<'a>(&'a self, rec: &mut Recorder<'a>, step: u32) -> Result<()> {
+        let nerf = &self.nerf;
         let decay = (self.cfg.hash_decay_lambda > 0.0).then(|| {
             let lay = nerf.field.layout();
             TableDecay {
@@ -1043,8 +1138,56 @@ impl Trainer {
             step,
             1.0,
             decay,
+        )
+    }
+
+    /// Records the fused step's forward and backward pass after the batch is drawn.
+    fn record_fused<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        fused: &'a FusedStep,
+        data: &'a TrainData,
+        seed: u32,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let ws = &self.ws;
+        let nerf = &self.nerf;
+        rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
+        mark(prof, rec, "zero gradients")?;
+        let losses = StepLosses {
+            loss: self.cfg.loss()?,
+            // The kernel's loss is per ray; the batch mean (like the photometric loss).
+            distortion: self.cfg.distortion_lambda / ws.rays as f32,
+            grad_scaling: self.cfg.grad_scaling,
+        };
+        fused.record(
+            rec,
+            &nerf.field,
+            nerf.sections(&nerf.params)?,
+            nerf.sections(&self.grads)?,
+            data.cameras.binding(),
+            data.n_images,
+            ws.pixels.binding(),
+            &Targets {
+                rgb: ws.target_rgb.binding(),
+                depth: ws.target_depth.binding(),
+            },
+            &losses,
+            Some(seed),
+            nerf.background,
+            &StepOutputs {
+                rgba: ws.out_rgba.binding(),
+                depth: ws.out_depth.binding(),
+                loss: ws.loss.binding(),
+                mse: ws.mse.binding(),
+                dist_loss: ws.dist_loss.binding(),
+            },
         )?;
-        mark(prof, rec, "adam + hash decay")
+        mark(
+            prof,
+            rec,
+            "fused step (march, losses, backward) + MLP weight gradients",
+        )
     }
 
     /// Runs one training step with a timestamp after every stage: `(stage, ms)` in order.
@@ -1061,7 +1204,7 @@ impl Trainer {
             rec.reset_timer(&timer)?;
             let mut prof = Some(Profiler::new(&timer));
             mark(&mut prof, &mut rec, "start")?;
-            self.record_step(&mut rec, prims, data, step, &mut prof)?;
+            self.record_step(&mut rec, prims, data, step, true, &mut prof)?;
             ctx.run(rec)?;
             prof.map(|p| p.names().to_vec()).unwrap_or_default()
         };
@@ -1073,6 +1216,32 @@ impl Trainer {
             .zip(t.windows(2))
             .map(|(&name, w)| (name, (w[1] - w[0]) * 1e-6))
             .collect())
+    }
+
+    /// The gradient of the next step's batch loss with respect to every parameter (the flat
+    /// layout), and that step's loss and MSE, without updating anything: the step counter and
+    /// the parameters stay as they are, so the same batch is drawn again.
+    pub fn gradient(
+        &mut self,
+        ctx: &Context,
+        prims: &Prims,
+        data: &TrainData,
+    ) -> Result<(Vec<f32>, StepStats)> {
+        let step = self.step + 1;
+        {
+            let mut rec = ctx.recorder("train gradient")?;
+            self.record_step(&mut rec, prims, data, step, false, &mut None)?;
+            ctx.run(rec)?;
+        }
+        let stats = self.stats.read()?;
+        let slot = ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT;
+        Ok((
+            self.grads.read()?,
+            StepStats {
+                loss: stats[slot] as f64,
+                mse: stats[slot + SLOT] as f64 / self.cfg.rays as f64,
+            },
+        ))
     }
 
     /// Runs `count` steps (at most [`STAT_SLOTS`]) in one submission and returns their mean
@@ -1093,7 +1262,7 @@ impl Trainer {
         {
             let mut rec = ctx.recorder("train steps")?;
             for s in first..first + count {
-                self.record_step(&mut rec, prims, data, s, &mut None)?;
+                self.record_step(&mut rec, prims, data, s, true, &mut None)?;
             }
             ctx.run(rec)?;
         }

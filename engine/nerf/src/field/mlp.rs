@@ -214,6 +214,40 @@ impl Mlp {
         self.block.is_some()
     }
 
+    /// Records only the weight-gradient pass over `n` points whose f32 records (every layer's
+    /// input and pre-activation gradient, [`MlpConfig::saved_stride`] floats per point) another
+    /// kernel wrote into `saved`, such as the fused training step: adds the parameter gradient
+    /// to `d_weights`.
+    pub fn weight_gradient<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        saved: Binding<'a>,
+        d_weights: Binding<'a>,
+        n: u64,
+    ) -> Result<()> {
+        let c = &self.config;
+        if self.f16.is_some() {
+            return Err(GpuError::Usage(
+                "the weight-gradient pass over external records reads the f32 record; this MLP keeps an f16 one".into(),
+            ));
+        }
+        d_weights.check_fits(c.param_count() as u64, 4, "MLP weight gradients")?;
+        saved.check_fits(n * c.saved_stride() as u64, 4, "MLP records")?;
+        let mut p = self.params(n)?;
+        p.saved_stride = c.saved_stride() as u32;
+        let b = k::mlp_wgrad::Bindings {
+            shape_buf: self.shape.binding(),
+            d_weights,
+            saved4: saved,
+        };
+        rec.dispatch(
+            &self.wgrad,
+            b.into_array(),
+            &p,
+            c.wgrad_blocks() * self.groups as u64,
+        )
+    }
+
     /// The configuration.
     pub fn config(&self) -> &MlpConfig {
         &self.config

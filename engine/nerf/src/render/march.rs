@@ -3,8 +3,9 @@
 //! registers, and composites with early termination. A second kernel is the fused occupancy
 //! update, which evaluates the field's density at one jittered point per cell.
 //!
-//! This path is forward only (rendering, evaluation, occupancy). Training keeps the standalone
-//! chain (`model::Field` + `render::composite`), which stores what its backward needs.
+//! This path is forward only (rendering, evaluation, occupancy). Training runs the fused step
+//! of `render::train_step`, built on the same WGSL functions, or the standalone chain
+//! (`model::Field` + `render::composite`).
 
 use extranerf_gpu::kernels::render::march as k;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};

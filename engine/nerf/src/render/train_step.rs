@@ -1,0 +1,254 @@
+//! The fused training step (`render/train_step.wgsl`): one kernel per batch does everything
+//! from a (camera, pixel) pair to the parameter gradients. Per ray it builds the ray, places
+//! the jittered strata, evaluates the hash grid and both MLPs in registers, composites, takes
+//! the RGB, depth and distortion losses, and then walks the samples again, recomputing the
+//! forward pass to back-propagate through compositing, the heads, both MLPs and the hash grid
+//! (atomics into the table's gradient). Only the MLP weight gradient, a reduction over every
+//! sample of the batch, runs after it: the kernel writes each sample's layer inputs and
+//! pre-activation gradients, and `Mlp::weight_gradient` sums them.
+//!
+//! It computes what the standalone chain (rays, samples, `Field::forward`/`backward`,
+//! compositing and the loss kernels, see `trainer`) computes, without the per-sample buffers
+//! between kernels. It needs the fused march's MLP shapes ([`color_base`]) and the f32 MLP
+//! record, and it samples whole rays (no occupancy skipping).
+
+use extranerf_gpu::kernels::render::train_step as k;
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+
+use crate::field::mlp::BLOCK_FLOATS;
+use crate::model::Field;
+use crate::render::loss::{LossConfig, RgbLoss, Targets};
+use crate::render::march::{check_sampling_range, color_base};
+
+/// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
+/// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
+/// (mean of the channels) and the distortion loss.
+#[derive(Clone, Copy, Debug)]
+pub struct StepOutputs<'a> {
+    /// Rendered colour and opacity, `[n, 4]`.
+    pub rgba: Binding<'a>,
+    /// Expected depth, `[n]`.
+    pub depth: Binding<'a>,
+    /// Photometric + depth loss divided by n, `[n]`.
+    pub loss: Binding<'a>,
+    /// Squared colour error, `[n]`.
+    pub mse: Binding<'a>,
+    /// Distortion loss (its weight includes 1 / n), `[n]`.
+    pub dist_loss: Binding<'a>,
+}
+
+/// The loss terms of a fused step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepLosses {
+    /// Photometric and depth terms.
+    pub loss: LossConfig,
+    /// Distortion weight, already divided by the batch size (as the standalone kernel takes
+    /// it).
+    pub distortion: f32,
+    /// Floaters No More: scale each sample's gradients by min(1, t^2).
+    pub grad_scaling: bool,
+}
+
+/// The fused training-step kernel and its scratch for one batch shape.
+#[derive(Debug)]
+pub struct FusedStep {
+    kernel: Kernel,
+    mlp_block: Buffer<f32>,
+    saved_density: Buffer<f32>,
+    saved_color: Buffer<f32>,
+    rays: u32,
+    samples: u32,
+    recompute: bool,
+}
+
+impl FusedStep {
+    /// Why `field` cannot train with the fused step, or `Ok` when it can.
+    pub fn supports(field: &Field) -> Result<()> {
+        color_base(field)?;
+        if field.density().is_f16() || field.color().is_f16() {
+            return Err(GpuError::Usage(
+                "the fused training step keeps the f32 MLP record; precision f16 trains with the standalone kernels".into(),
+            ));
+        }
+        let cfg = field.config();
+        check_sampling_range(cfg.space == "ndc", cfg.near, cfg.far)
+    }
+
+    /// The kernel and its scratch for batches of `rays` rays with `samples` samples each. With
+    /// `recompute`, the backward pass re-runs both MLPs' forward pass per sample and writes the
+    /// weight-gradient records then; without, the forward pass writes them and the backward
+    /// reads the MLP outputs back from them.
+    pub fn new(
+        ctx: &Context,
+        field: &Field,
+        rays: u32,
+        samples: u32,
+        recompute: bool,
+    ) -> Result<FusedStep> {
+        Self::supports(field)?;
+        if rays == 0 || samples == 0 {
+            return Err(GpuError::Usage(
+                "the fused step needs at least one ray and one sample per ray".into(),
+            ));
+        }
+        let n = rays as usize * samples as usize;
+        count_u32(n as u64, "samples per batch")?;
+        let records = |words: usize, what: &str| -> Result<Buffer<f32>> {
+            let floats = n.checked_mul(words).ok_or_else(|| {
+                GpuError::Usage(format!("{what}: {n} samples x {words} floats overflow"))
+            })?;
+            Buffer::new(ctx, what, floats)
+        };
+        Ok(FusedStep {
+            kernel: Kernel::new(ctx, &k::train_step::DESC)?,
+            mlp_block: Buffer::new(ctx, "fused step MLP weights", BLOCK_FLOATS)?,
+            saved_density: records(
+                field.config().density_mlp().saved_stride(),
+                "fused step density MLP records",
+            )?,
+            saved_color: records(
+                field.config().color_mlp().saved_stride(),
+                "fused step colour MLP records",
+            )?,
+            rays,
+            samples,
+            recompute,
+        })
+    }
+
+    /// Rays per batch.
+    pub fn rays(&self) -> u32 {
+        self.rays
+    }
+
+    /// Records one step's forward and backward pass for the batch `pixels[rays]` (camera,
+    /// pixel) with `targets`: writes `out` and adds the gradient of the batch loss (photometric,
+    /// depth and distortion) to `d_params` (same sections as `params`; zero it first for a
+    /// fresh gradient). `seed` jitters the strata as the standalone sampler does.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn record<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        field: &'a Field,
+        params: [Binding<'a>; 3],
+        d_params: [Binding<'a>; 3],
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        pixels: Binding<'a>,
+        targets: &Targets<'a>,
+        losses: &StepLosses,
+        seed: Option<u32>,
+        background: [f32; 3],
+        out: &StepOutputs<'a>,
+    ) -> Result<()> {
+        let n = self.rays as u64;
+        let cfg = field.config();
+        pixels.check_fits(2 * n, 4, "fused step pixels")?;
+        targets
+            .rgb
+            .check_fits(4 * n, 4, "fused step target colours")?;
+        targets
+            .depth
+            .check_fits(2 * n, 4, "fused step target depths")?;
+        out.rgba.check_fits(4 * n, 4, "fused step colour output")?;
+        out.depth.check_fits(n, 4, "fused step depth output")?;
+        out.loss.check_fits(n, 4, "fused step loss output")?;
+        out.mse.check_fits(n, 4, "fused step MSE output")?;
+        out.dist_loss
+            .check_fits(n, 4, "fused step distortion output")?;
+        let (loss_kind, huber) = match losses.loss.rgb {
+            RgbLoss::L2 => (0, 0.0),
+            RgbLoss::Huber(d) => (1, d),
+        };
+        let ok = |v: f32| v.is_finite() && v >= 0.0;
+        if !(ok(losses.distortion) && ok(losses.loss.depth_lambda) && ok(huber)) {
+            return Err(GpuError::Usage(format!(
+                "fused step loss weights must be finite and >= 0: {losses:?}"
+            )));
+        }
+        let ndc = cfg.space == "ndc";
+        let scene = field.scene();
+        let d_mlp = cfg.density_mlp();
+        let c_mlp = cfg.color_mlp();
+        // Both MLPs into the uniform block: density at 0, colour after it.
+        let base = color_base(field)?;
+        rec.copy(
+            params[1],
+            0,
+            self.mlp_block.binding(),
+            0,
+            d_mlp.param_count() as u64 * 4,
+        )?;
+        rec.copy(
+            params[2],
+            0,
+            self.mlp_block.binding(),
+            base as u64 * 4,
+            c_mlp.param_count() as u64 * 4,
+        )?;
+        let p = k::Params {
+            n: self.rays,
+            samples: self.samples,
+            spacing: u32::from(!ndc),
+            ndc: u32::from(ndc),
+            near: cfg.near,
+            far: cfg.far,
+            ndc_near: 1.0,
+            contraction: scene.contraction as u32,
+            inv_radius: 1.0 / scene.radius,
+            levels: cfg.levels,
+            features: cfg.features,
+            geo_dims: cfg.geo_dims,
+            seed: seed.unwrap_or(0),
+            jitter: u32::from(seed.is_some()),
+            n_cameras,
+            color_base: base as u32,
+            center: [scene.center[0], scene.center[1], scene.center[2], huber],
+            background: [
+                background[0],
+                background[1],
+                background[2],
+                losses.loss.depth_lambda,
+            ],
+            loss_kind,
+            dist_lambda: losses.distortion,
+            grad_scaling: u32::from(losses.grad_scaling),
+            density_stride: d_mlp.saved_stride() as u32,
+            color_stride: c_mlp.saved_stride() as u32,
+            recompute: u32::from(self.recompute),
+            occ_res: 0,
+            occ_cascades: 0,
+        };
+        let (table, table_hi) = field.grid().parts(params[0])?;
+        let (d_table, d_table_hi) = field.grid().parts(d_params[0])?;
+        let b = k::train_step::Bindings {
+            cameras,
+            pixels,
+            level_info: field.grid().levels().binding(),
+            table,
+            density_shape: field.density().shape().binding(),
+            color_shape: field.color().shape().binding(),
+            target_rgb: targets.rgb,
+            target_depth: targets.depth,
+            out_rgba: out.rgba,
+            out_depth: out.depth,
+            loss: out.loss,
+            mlp: self.mlp_block.binding(),
+            table_hi,
+            mse: out.mse,
+            dist_loss: out.dist_loss,
+            d_table,
+            d_table_hi,
+            saved_density: self.saved_density.binding(),
+            saved_color: self.saved_color.binding(),
+        };
+        rec.dispatch(&self.kernel, b.into_array(), &p, n)?;
+        let ns = n * self.samples as u64;
+        field
+            .density()
+            .weight_gradient(rec, self.saved_density.binding(), d_params[1], ns)?;
+        field
+            .color()
+            .weight_gradient(rec, self.saved_color.binding(), d_params[2], ns)
+    }
+}

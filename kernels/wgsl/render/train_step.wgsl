@@ -1,0 +1,431 @@
+// Fused training step: one thread per ray does the whole forward and backward pass between a
+// batch pixel and the parameter gradients, except the MLP weight-gradient reduction.
+//
+//   pass 1 (forward): ray (NDC or world), jittered stratified samples, per sample the
+//     contraction, every hash-grid level, the density MLP, trunc-exp, SH4 and the colour MLP in
+//     registers; compositing, and the O(N) distortion sums. Nothing per sample touches memory.
+//   losses: RGB (L2 or Huber) and depth against the batch targets, as render/loss.wgsl; the
+//     distortion loss as render/distortion.wgsl (its lambda already divided by the batch).
+//   pass 2 (backward): per sample the forward values again, then the
+//     compositing gradient (render/composite.wgsl's, with its suffix sums as the pass-1 totals
+//     minus a running prefix; the distortion part of the total is 2 L, the loss being a
+//     quadratic form in the weights), gradient scaling, sigmoid and trunc-exp, both MLPs'
+//     data gradients, and the hash-grid scatter with f32 atomics into d_table.
+//
+// The MLP weight gradient is a reduction over all samples, so each sample's layer inputs and
+// pre-activation gradients go to memory (common/mlp_wgrad.wgsl's record layout) and
+// field/mlp.wgsl's mlp_wgrad sums them, as after the standalone mlp_bwd_data. Where those
+// records are written is the `recompute` choice: pass 1 writes them and pass 2 reads the
+// outputs' logits back (0), or pass 1 keeps everything in registers and pass 2 re-runs both
+// MLPs' forward pass to write them (1). Either way pass 2 recomputes the ray, the strata, the
+// contraction, the grid cells, the weights and the transmittance instead of storing them.
+//
+// Layouts: common/hash_grid.wgsl (levels, table, split tables), common/mlp.wgsl (weights per
+// layer W then b), the uniform block of common/mlp_block.wgsl with the density MLP at 0 and the
+// colour MLP at params.color_base. The standalone chain computes the same quantities:
+// render/{batch,rays,sample}.wgsl, field/*, render/{field_heads,composite,loss,distortion}.wgsl.
+//!include common/dispatch.wgsl
+//!include common/heads.wgsl
+//!include common/camera.wgsl
+//!include common/contract.wgsl
+//!include common/hash_grid.wgsl
+//!include common/mlp.wgsl
+//!include common/mlp_block.wgsl
+//!include common/occupancy.wgsl
+//!include common/rng.wgsl
+//!include common/sh.wgsl
+//!include common/volume.wgsl
+//!include common/field_eval.wgsl
+
+struct Params {
+    // Rays in the batch.
+    n: u32,
+    // Samples per ray.
+    samples: u32,
+    // 0: linear in t, 1: linear in disparity.
+    spacing: u32,
+    // Non-zero: march in NDC (near plane at `ndc_near`).
+    ndc: u32,
+    near: f32,
+    far: f32,
+    ndc_near: f32,
+    // Contraction mode (common/contract.wgsl) and 1 / scene radius.
+    contraction: u32,
+    inv_radius: f32,
+    // Hash-grid levels and features per level; floats per density-MLP output row.
+    levels: u32,
+    features: u32,
+    geo_dims: u32,
+    // Jitter seed of the strata (render/sample.wgsl's); jitter 0 puts samples at midpoints.
+    seed: u32,
+    jitter: u32,
+    n_cameras: u32,
+    // Float offset of the colour MLP in the uniform weight block.
+    color_base: u32,
+    // Scene centre (xyz); w: the Huber threshold.
+    center: vec4<f32>,
+    // Background colour (xyz); w: the depth-loss weight.
+    background: vec4<f32>,
+    // 0: L2, 1: Huber.
+    loss_kind: u32,
+    // Distortion-loss weight over the batch size (0: off).
+    dist_lambda: f32,
+    // 1: Floaters No More gradient scaling, min(1, t^2) per sample.
+    grad_scaling: u32,
+    // Floats per sample of the density and colour MLP records.
+    density_stride: u32,
+    color_stride: u32,
+    // 1: pass 2 re-runs both MLPs' forward pass per sample (writing the records then);
+    // 0: pass 1 writes the records and pass 2 reads the outputs' logits back from them.
+    recompute: u32,
+    // Read by common/field_eval.wgsl's `occupied`, which this kernel does not call.
+    occ_res: u32,
+    occ_cascades: u32,
+}
+var<immediate> params: Params;
+
+@group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
+// (camera, pixel = y * width + x) per ray.
+@group(0) @binding(1) var<storage, read> pixels: array<vec2<u32>>;
+@group(0) @binding(2) var<storage, read> level_info: array<HashLevel>;
+@group(0) @binding(3) var<storage, read> table: array<f32>;
+@group(0) @binding(4) var<storage, read> density_shape: array<MlpShape>;
+@group(0) @binding(5) var<storage, read> color_shape: array<MlpShape>;
+// Targets per ray: colour (rgb, unused) and depth with its confidence (0: none).
+@group(0) @binding(6) var<storage, read> target_rgb: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> target_depth: array<vec2<f32>>;
+@group(0) @binding(8) var<storage, read> occ_bits: array<u32>;
+// Per ray: (rgb, opacity), expected depth, photometric + depth loss (over the batch), squared
+// colour error (mean of the channels) and distortion loss.
+@group(0) @binding(9) var<storage, read_write> out_rgba: array<vec4<f32>>;
+@group(0) @binding(10) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(11) var<storage, read_write> loss: array<f32>;
+@group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
+@group(0) @binding(13) var<storage, read> table_hi: array<f32>;
+@group(0) @binding(14) var<storage, read_write> mse: array<f32>;
+@group(0) @binding(15) var<storage, read_write> dist_loss: array<f32>;
+// The hash table's gradient (both parts of a split table), added to with atomics.
+@group(0) @binding(16) var<storage, read_write> d_table: array<atomic<f32>>;
+@group(0) @binding(17) var<storage, read_write> d_table_hi: array<atomic<f32>>;
+// Per sample s = ray * samples + j: the density MLP's record at s * density_stride and the
+// colour MLP's at s * color_stride.
+@group(0) @binding(18) var<storage, read_write> saved_density: array<f32>;
+@group(0) @binding(19) var<storage, read_write> saved_color: array<f32>;
+
+// Entry e of the colour (or density) MLP's records; a branch, so each binding is only indexed
+// within its own range.
+fn rec_set(color: bool, e: u32, v: f32) {
+    if color {
+        saved_color[e] = v;
+    } else {
+        saved_density[e] = v;
+    }
+}
+
+fn rec_get(color: bool, e: u32) -> f32 {
+    if color {
+        return saved_color[e];
+    }
+    return saved_density[e];
+}
+
+// The forward pass of MLP `s` (weights at float `base` of the block) on a, writing each
+// layer's input and pre-activation into the record at `at` (mlp_bwd_data's layout).
+fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: u32, a: ptr<function, Act>) {
+    var z: Act;
+    var at = at_in;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        for (var j = 0u; j < ni; j += 1u) {
+            rec_set(color, at + j, act_get(a, j));
+        }
+        at += pad4(ni);
+        mlp_layer(base + mlp_offset(s, l), ni, no, a, &z);
+        for (var o = 0u; o < no; o += 1u) {
+            rec_set(color, at + o, act_get(&z, o));
+        }
+        at += pad4(no);
+        mlp_activate(&z, a, l + 1u < s.layers);
+    }
+}
+
+// Back-propagates g (dL/d output) through MLP `s` after forward_recorded at `at_in`: g becomes
+// dL/d input, and each record's pre-activation becomes its gradient (ReLU' on hidden layers).
+fn backward_recorded(color: bool, s: MlpShape, base: u32, at_in: u32, g: ptr<function, Act>) {
+    var z: Act;
+    var at = at_in;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        at += pad4(mlp_dim(s, l)) + pad4(mlp_dim(s, l + 1u));
+    }
+    for (var li = 0u; li < s.layers; li += 1u) {
+        let l = s.layers - 1u - li;
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        at -= pad4(no);
+        let last = l + 1u == s.layers;
+        for (var o = 0u; o < no; o += 1u) {
+            let go = act_get(g, o);
+            let d = select(select(0.0, go, rec_get(color, at + o) > 0.0), go, last);
+            rec_set(color, at + o, d);
+            act_set(&z, o, d);
+        }
+        at -= pad4(ni);
+        mlp_layer_back(base + mlp_offset(s, l), ni, no, &z, g);
+    }
+}
+
+// Float offset, within a record, of the last layer's pre-activations (the MLP's output).
+fn output_at(s: MlpShape) -> u32 {
+    var at = 0u;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        at += pad4(mlp_dim(s, l));
+        if l + 1u < s.layers {
+            at += pad4(mlp_dim(s, l + 1u));
+        }
+    }
+    return at;
+}
+
+// A record of zeros, so the weight-gradient pass adds nothing for this sample.
+fn zero_record(color: bool, at: u32, words: u32) {
+    for (var k = 0u; k < words; k += 1u) {
+        rec_set(color, at + k, 0.0);
+    }
+}
+
+fn scatter(hi: bool, e: u32, v: f32) {
+    if v == 0.0 {
+        return;
+    }
+    if hi {
+        atomicAdd(&d_table_hi[e], v);
+        return;
+    }
+    atomicAdd(&d_table[e], v);
+}
+
+// Adds d_enc (dL/d features, levels * features) of the contracted point x to d_table.
+fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
+    if !hg_valid(x) {
+        return;
+    }
+    let F = params.features;
+    for (var l = 0u; l < params.levels; l += 1u) {
+        let lv = level_info[l];
+        let cell = hg_cell(x, lv);
+        let hi = hg_part(lv) != 0u;
+        for (var k = 0u; k < 8u; k += 1u) {
+            let wk = hg_weight(cell.frac, k);
+            let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
+            for (var f = 0u; f < F; f += 1u) {
+                scatter(hi, e + f, wk * act_get(d_enc, l * F + f));
+            }
+        }
+    }
+}
+
+// The stratum of sample j: (t, dt, s) with s the jittered normalised position.
+fn stratum(ray: u32, j: u32) -> vec3<f32> {
+    let inv_k = 1.0 / f32(params.samples);
+    let s0 = f32(j) * inv_k;
+    let s1 = f32(j + 1u) * inv_k;
+    var jit = 0.5;
+    if params.jitter != 0u {
+        jit = rand01(pcg_hash(params.seed ^ pcg_hash(ray)) + j);
+    }
+    let s = mix(s0, s1, jit);
+    return vec3<f32>(t_of(s), t_of(s1) - t_of(s0), s);
+}
+
+// Writes the colour MLP's input row: the density row (already in a[0 .. geo_dims]) then SH4.
+fn color_input(a: ptr<function, Act>, sh: array<f32, 16>) {
+    let g4 = params.geo_dims >> 2u;
+    for (var k = 0u; k < 4u; k += 1u) {
+        (*a)[g4 + k] = vec4<f32>(sh[4u * k], sh[4u * k + 1u], sh[4u * k + 2u], sh[4u * k + 3u]);
+    }
+}
+
+fn sigmoid3(v: vec4<f32>) -> vec3<f32> {
+    return vec3<f32>(sigmoid(v.x), sigmoid(v.y), sigmoid(v.z));
+}
+
+@compute @workgroup_size(64)
+fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+              @builtin(local_invocation_index) lid: u32) {
+    let i = linear_group(wid, nwg) * 64u + lid;
+    if i >= params.n {
+        return;
+    }
+    let k = params.samples;
+    let ds = params.density_stride;
+    let cs = params.color_stride;
+    let pc = pixels[i];
+    var valid = pc.x < params.n_cameras;
+    var cam: GpuCamera;
+    if valid {
+        cam = cameras[pc.x];
+        valid = pc.y < cam.size.x * cam.size.y;
+    }
+    // Out-of-range camera or pixel indices: a zero pixel, no loss and no gradient.
+    if !valid {
+        out_rgba[i] = vec4<f32>(0.0);
+        out_depth[i] = 0.0;
+        loss[i] = 0.0;
+        mse[i] = 0.0;
+        dist_loss[i] = 0.0;
+        for (var j = 0u; j < k; j += 1u) {
+            zero_record(false, (i * k + j) * ds, ds);
+            zero_record(true, (i * k + j) * cs, cs);
+        }
+        return;
+    }
+    let world = camera_ray(cam, pixel_centre(cam, pc.y));
+    var ray = world;
+    if params.ndc != 0u {
+        ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
+    }
+    let sh = sh4(unit_dir(world[1]));
+    let dshape = density_shape[0];
+    let cshape = color_shape[0];
+
+    // Pass 1: forward.
+    var tau = 0.0;
+    var c = vec3<f32>(0.0);
+    var depth = 0.0;
+    var opacity = 0.0;
+    var wm_tot = 0.0;
+    var dist = 0.0;
+    var a: Act;
+    let store = params.recompute == 0u;
+    for (var j = 0u; j < k; j += 1u) {
+        let st = stratum(i, j);
+        let u = (ray[0] + st.x * ray[1] - params.center.xyz) * params.inv_radius;
+        var sigma = 0.0;
+        if store {
+            encode(contract_unit(u, params.contraction), &a);
+            forward_recorded(false, dshape, 0u, (i * k + j) * ds, &a);
+            sigma = trunc_exp(a[0].x);
+        } else {
+            sigma = density_at(u, &a);
+        }
+        let w = next_weight(sigma, st.y, &tau);
+        color_input(&a, sh);
+        if store {
+            forward_recorded(true, cshape, params.color_base, (i * k + j) * cs, &a);
+        } else {
+            mlp_forward(cshape, params.color_base, &a);
+        }
+        c += w * sigmoid3(a[0]);
+        depth += w * st.x;
+        // Distortion: opacity and wm_tot are the running W_<j and WM_<j here.
+        let below = st.z * opacity - wm_tot;
+        dist += 2.0 * w * below + w * w / (3.0 * f32(k));
+        opacity += w;
+        wm_tot += w * st.z;
+    }
+    let t_end = exp(-tau);
+    let rgb_out = c + t_end * params.background.xyz;
+    out_rgba[i] = vec4<f32>(rgb_out, opacity);
+    out_depth[i] = depth;
+
+    // Losses and their gradients with respect to the rendered colour and depth.
+    let inv_n = 1.0 / f32(params.n);
+    let e = rgb_out - target_rgb[i].xyz;
+    mse[i] = dot(e, e) / 3.0;
+    var l = 0.0;
+    var gc = vec3<f32>(0.0);
+    if params.loss_kind == 0u {
+        l = dot(e, e) / 3.0;
+        gc = 2.0 * e / 3.0;
+    } else {
+        let ae = abs(e);
+        let delta = params.center.w;
+        let quad = ae <= vec3<f32>(delta);
+        let lv = select(delta * (ae - 0.5 * delta), 0.5 * e * e, quad);
+        l = (lv.x + lv.y + lv.z) / 3.0;
+        gc = select(delta * sign(e), e, quad) / 3.0;
+    }
+    let td = target_depth[i];
+    var gd = 0.0;
+    if td.y > 0.0 {
+        let de = depth - td.x;
+        l += params.background.w * td.y * de * de;
+        gd = 2.0 * params.background.w * td.y * de;
+    }
+    loss[i] = l * inv_n;
+    gc *= inv_n;
+    gd *= inv_n;
+    let lam = params.dist_lambda;
+    dist_loss[i] = lam * dist;
+    let w_tot = opacity;
+    // sum_j w_j dL/dw_j: colour, depth and (the distortion loss being quadratic in w) 2 L.
+    let total = dot(c, gc) + depth * gd + 2.0 * lam * dist;
+    let bg = t_end * dot(params.background.xyz, gc);
+
+    // Pass 2: per sample the forward again (or its outputs from the records), then the
+    // backward.
+    let d_out = output_at(dshape);
+    let c_out = output_at(cshape);
+    tau = 0.0;
+    var prefix = 0.0;
+    var w_lt = 0.0;
+    var wm_lt = 0.0;
+    for (var j = 0u; j < k; j += 1u) {
+        let sidx = i * k + j;
+        let rd = sidx * ds;
+        let rc = sidx * cs;
+        let st = stratum(i, j);
+        let u = (ray[0] + st.x * ray[1] - params.center.xyz) * params.inv_radius;
+        let x = contract_unit(u, params.contraction);
+        var logit = 0.0;
+        if store {
+            logit = rec_get(false, rd + d_out);
+        } else {
+            encode(x, &a);
+            forward_recorded(false, dshape, 0u, rd, &a);
+            logit = a[0].x;
+        }
+        let sigma = trunc_exp(logit);
+        let dt = st.y;
+        let w = next_weight(sigma, dt, &tau);
+        var col = vec3<f32>(0.0);
+        if store {
+            col = vec3<f32>(sigmoid(rec_get(true, rc + c_out)), sigmoid(rec_get(true, rc + c_out + 1u)),
+                            sigmoid(rec_get(true, rc + c_out + 2u)));
+        } else {
+            color_input(&a, sh);
+            forward_recorded(true, cshape, params.color_base, rc, &a);
+            col = sigmoid3(a[0]);
+        }
+        // dL/dw_j: colour, depth and distortion.
+        let m = st.z;
+        let w_gt = w_tot - w_lt - w;
+        let wm_gt = wm_tot - wm_lt - w * m;
+        let below = m * w_lt - wm_lt;
+        let dw = lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / (3.0 * f32(k)) * w);
+        w_lt += w;
+        wm_lt += w * m;
+        let uj = dot(col, gc) + st.x * gd + dw;
+        prefix += w * uj;
+        let dx = exp(-tau) * uj - (total - prefix) - bg;
+        var scale = 1.0;
+        if params.grad_scaling != 0u {
+            scale = min(1.0, st.x * st.x);
+        }
+        let d_sigma = select(0.0, scale * dt * dx, dt > 0.0 && sigma >= 0.0);
+        let d_rgb = scale * w * gc;
+        // Sigmoid, then the colour MLP.
+        var g: Act;
+        for (var q = 0u; q < 16u; q += 1u) {
+            g[q] = vec4<f32>(0.0);
+        }
+        g[0] = vec4<f32>(d_rgb * col * (vec3<f32>(1.0) - col), 0.0);
+        backward_recorded(true, cshape, params.color_base, rc, &g);
+        // The density row's gradient: the colour input's first geo_dims entries, plus the
+        // density through trunc-exp (its gradient clamped like the value).
+        g[0].x += d_sigma * sigma;
+        backward_recorded(false, dshape, 0u, rd, &g);
+        encode_backward(x, &g);
+    }
+}
