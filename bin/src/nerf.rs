@@ -118,12 +118,10 @@ pub struct TrainArgs {
     #[arg(long, value_name = "ALPHA")]
     occupancy_opacity: Option<f32>,
     /// Training step kernels: fused (one kernel from pixels to gradients plus the MLP
-    /// weight-gradient reduction; the default where the model allows it), fused-recompute (the
-    /// same, re-running the MLPs' forward pass in the backward instead of reading their outputs
-    /// back from the weight-gradient records) or standalone (one kernel per stage, every sample
-    /// in memory between them). precision f16 and --occupancy-res always use standalone. May be
-    /// given with --resume.
-    #[arg(long, value_name = "KIND", value_parser = ["fused", "fused-recompute", "standalone"])]
+    /// weight-gradient reduction; the default where the model allows it) or standalone (one
+    /// kernel per stage, every sample in memory between them). precision f16 and
+    /// --occupancy-res always use standalone. May be given with --resume.
+    #[arg(long, value_name = "KIND", value_parser = ["fused", "standalone"])]
     step: Option<String>,
     /// Steps between progress lines (1 to 64).
     #[arg(long, default_value_t = 25)]
@@ -262,8 +260,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         }
     }
     if let Some(step) = &a.step {
-        cfg.train.fused_step = step != "standalone";
-        cfg.train.fused_recompute = step == "fused-recompute";
+        cfg.train.fused_step = step == "fused";
     }
     let run = TrainRun {
         out: a.out.clone(),
@@ -922,9 +919,9 @@ pub struct BenchTrainArgs {
     /// Timed steps (after 2 warm-up steps that also compile the kernels).
     #[arg(long, default_value_t = 10)]
     steps: u32,
-    /// Step kernels to measure: fused, fused-recompute, standalone, or all (the standalone chain
-    /// is then the same-run reference of the fused steps' speed).
-    #[arg(long, value_name = "KIND", default_value = "all", value_parser = ["fused", "fused-recompute", "standalone", "all"])]
+    /// Step kernels to measure: fused, standalone, or both (the standalone chain is then the
+    /// same-run reference of the fused step's speed).
+    #[arg(long, value_name = "KIND", default_value = "both", value_parser = ["fused", "standalone", "both"])]
     step: String,
     /// Also write the results as JSON.
     #[arg(long, value_name = "FILE")]
@@ -964,27 +961,24 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     let data = TrainData::new(ctx, &views)?;
     let prims = Prims::new(ctx)?;
     println!("device: {}", ctx.info().name);
-    // (fused, recompute) per measured kind; the standalone chain last.
-    let kinds: &[(bool, bool)] = match a.step.as_str() {
-        "fused" => &[(true, false)],
-        "fused-recompute" => &[(true, true)],
-        "standalone" => &[(false, false)],
-        _ => &[(true, false), (true, true), (false, false)],
+    // The standalone chain last.
+    let kinds: &[bool] = match a.step.as_str() {
+        "fused" => &[true],
+        "standalone" => &[false],
+        _ => &[true, false],
     };
     let mut results = Vec::new();
-    for &(fused, recompute) in kinds {
+    for &fused in kinds {
         let train = TrainConfig {
             rays: a.rays,
             samples: a.samples,
             fused_step: fused,
-            fused_recompute: recompute,
             ..TrainConfig::default()
         };
         let params = extranerf_nerf::model::init_params(&model, 0);
         let nerf = Nerf::new(ctx, model.clone(), &params, train.background)?;
         let mut t = Trainer::new(ctx, nerf, train, 0, None)?;
         let label = match t.standalone_reason() {
-            None if recompute => "fused step, MLPs recomputed".to_string(),
             None => "fused step".to_string(),
             Some(why) if fused => format!("standalone kernels ({why})"),
             Some(_) => "standalone kernels".to_string(),

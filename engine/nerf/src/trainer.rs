@@ -88,10 +88,6 @@ pub struct TrainConfig {
     /// the uniform block), uses the standalone chain.
     #[serde(default = "default_fused_step")]
     pub fused_step: bool,
-    /// In the fused step, re-run both MLPs' forward pass in the backward pass instead of
-    /// reading their outputs back from the weight-gradient records the forward pass wrote.
-    #[serde(default)]
-    pub fused_recompute: bool,
 }
 
 fn default_fused_step() -> bool {
@@ -138,7 +134,6 @@ impl Default for TrainConfig {
             occupancy_probes: default_occupancy_probes(),
             occupancy_opacity: default_occupancy_opacity(),
             fused_step: default_fused_step(),
-            fused_recompute: false,
         }
     }
 }
@@ -796,13 +791,7 @@ impl Trainer {
                 .map(|e| e.to_string())
         };
         let fused = match why_not {
-            None => Some(FusedStep::new(
-                ctx,
-                &nerf.field,
-                cfg.rays,
-                cfg.samples,
-                cfg.fused_recompute,
-            )?),
+            None => Some(FusedStep::new(ctx, &nerf.field, cfg.rays, cfg.samples)?),
             Some(_) => None,
         };
         let ws = Workspace::new(
@@ -1183,11 +1172,9 @@ impl Trainer {
                 dist_loss: ws.dist_loss.binding(),
             },
         )?;
-        mark(
-            prof,
-            rec,
-            "fused step (march, losses, backward) + MLP weight gradients",
-        )
+        mark(prof, rec, "fused step (march, losses, backward)")?;
+        fused.record_weight_gradients(rec, &nerf.field, nerf.sections(&self.grads)?)?;
+        mark(prof, rec, "MLP weight gradients")
     }
 
     /// Runs one training step with a timestamp after every stage: `(stage, ms)` in order.

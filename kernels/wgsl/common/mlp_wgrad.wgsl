@@ -87,3 +87,72 @@ fn wgrad_flush(b: WgradBlock, blk: u32, lane: u32, acc_in: array<vec4<f32>, 4>) 
         }
     }
 }
+
+// The f32 record's wider blocks: 4 rows x 16 columns per thread (4 input vec4s per delta vec4,
+// 64 FMAs per 5 loads instead of 16 per 2; on lavapipe each load of a varying address is a
+// per-lane loop, so loads dominate). The column block past the last one holds the biases.
+fn wgrad_block_wide(s: MlpShape, blk: u32) -> WgradBlock {
+    var b: WgradBlock;
+    b.valid = false;
+    b.ni = 1u;
+    b.no = 1u;
+    var local = 0u;
+    var first = 0u;
+    var at = 0u;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let nb = (pad4(no) / 4u) * ((pad4(ni) + 15u) / 16u + 1u);
+        if !b.valid && blk < first + nb {
+            b.valid = true;
+            b.layer = l;
+            b.off = mlp_offset(s, l);
+            b.ni = ni;
+            b.no = no;
+            b.at = at;
+            local = blk - first;
+        }
+        at += pad4(ni) + pad4(no);
+        first += nb;
+    }
+    let cols = (pad4(b.ni) + 15u) / 16u + 1u;
+    b.o0 = (local / cols) * 4u;
+    let j16 = local % cols;
+    b.bias = j16 + 1u == cols;
+    b.j0 = j16 * 16u;
+    return b;
+}
+
+// wgrad_flush for a wide block: acc[4 * r + v][c] is row o0 + r, column j0 + 4 v + c (column 0
+// of acc[4 * r] for the bias). Every lane of the subgroup must call it.
+fn wgrad_flush_wide(b: WgradBlock, blk: u32, lane: u32, acc_in: array<vec4<f32>, 16>) {
+    var acc = acc_in;
+    let shared_block = subgroupAll(subgroupBroadcastFirst(blk) == blk);
+    if shared_block {
+        for (var q = 0u; q < 16u; q += 1u) {
+            acc[q] = subgroupAdd(acc[q]);
+        }
+    }
+    if !b.valid || (shared_block && lane != subgroupBroadcastFirst(lane)) {
+        return;
+    }
+    for (var r = 0u; r < 4u; r += 1u) {
+        let o = b.o0 + r;
+        if o >= b.no {
+            break;
+        }
+        if b.bias {
+            atomicAdd(&d_weights[b.off + b.no * b.ni + o], acc[4u * r].x);
+            continue;
+        }
+        for (var v = 0u; v < 4u; v += 1u) {
+            let a = acc[4u * r + v];
+            for (var c = 0u; c < 4u; c += 1u) {
+                let j = b.j0 + 4u * v + c;
+                if j < b.ni {
+                    atomicAdd(&d_weights[b.off + o * b.ni + j], a[c]);
+                }
+            }
+        }
+    }
+}

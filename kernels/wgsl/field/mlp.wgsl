@@ -143,8 +143,8 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-// Weight gradients (common/mlp_wgrad.wgsl): per point a thread loads one vec4 of deltas and one
-// vec4 of inputs for 16 FMAs.
+// Weight gradients (common/mlp_wgrad.wgsl's wide blocks): per point a thread loads one vec4 of
+// deltas and up to four vec4s of inputs for up to 64 FMAs.
 @compute @workgroup_size(64)
 fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
              @builtin(local_invocation_index) lid: u32,
@@ -152,27 +152,36 @@ fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
     let t = linear_group(wid, nwg) * 64u + lid;
     let blk = t / params.groups;
     let grp = t % params.groups;
-    let b = wgrad_block(shape_buf[0], blk);
-    var acc = array<vec4<f32>, 4>();
+    let b = wgrad_block_wide(shape_buf[0], blk);
+    var acc = array<vec4<f32>, 16>();
     if b.valid {
         let p0 = grp * params.chunk;
         let p1 = min(p0 + params.chunk, params.n);
         let stride4 = params.saved_stride / 4u;
         let d_at = (b.at + pad4(b.ni) + b.o0) / 4u;
         let x_at = (b.at + b.j0) / 4u;
+        // Input vec4s of this block inside the layer's input segment (1 for the bias).
+        var nv = 1u;
+        if !b.bias {
+            nv = min(4u, (pad4(b.ni) - b.j0) / 4u);
+        }
         for (var p = p0; p < p1; p += 1u) {
             let d = saved4[p * stride4 + d_at];
-            var x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
-            if !b.bias {
-                x = saved4[p * stride4 + x_at];
+            for (var v = 0u; v < 4u; v += 1u) {
+                if v < nv {
+                    var x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
+                    if !b.bias {
+                        x = saved4[p * stride4 + x_at + v];
+                    }
+                    acc[v] += d.x * x;
+                    acc[4u + v] += d.y * x;
+                    acc[8u + v] += d.z * x;
+                    acc[12u + v] += d.w * x;
+                }
             }
-            acc[0] += d.x * x;
-            acc[1] += d.y * x;
-            acc[2] += d.z * x;
-            acc[3] += d.w * x;
         }
     }
-    wgrad_flush(b, blk, lane, acc);
+    wgrad_flush_wide(b, blk, lane, acc);
 }
 
 // mlp_fwd with the weights in the uniform block.

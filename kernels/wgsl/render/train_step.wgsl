@@ -3,22 +3,25 @@
 //
 //   pass 1 (forward): ray (NDC or world), jittered stratified samples, per sample the
 //     contraction, every hash-grid level, the density MLP, trunc-exp, SH4 and the colour MLP in
-//     registers; compositing, and the O(N) distortion sums. Nothing per sample touches memory.
+//     registers; compositing, and the O(N) distortion sums.
 //   losses: RGB (L2 or Huber) and depth against the batch targets, as render/loss.wgsl; the
 //     distortion loss as render/distortion.wgsl (its lambda already divided by the batch).
-//   pass 2 (backward): per sample the forward values again, then the
-//     compositing gradient (render/composite.wgsl's, with its suffix sums as the pass-1 totals
-//     minus a running prefix; the distortion part of the total is 2 L, the loss being a
-//     quadratic form in the weights), gradient scaling, sigmoid and trunc-exp, both MLPs'
-//     data gradients, and the hash-grid scatter with f32 atomics into d_table.
+//   pass 2 (backward): the ray, strata, contraction, grid cells, weights and transmittance
+//     again (recomputed, not stored), then the compositing gradient (render/composite.wgsl's,
+//     with its suffix sums as the pass-1 totals minus a running prefix; the distortion part of
+//     the total is 2 L, the loss being a quadratic form in the weights), gradient scaling,
+//     sigmoid and trunc-exp, both MLPs' data gradients, and the hash-grid scatter with f32
+//     atomics into d_table.
 //
 // The MLP weight gradient is a reduction over all samples, so each sample's layer inputs and
 // pre-activation gradients go to memory (common/mlp_wgrad.wgsl's record layout) and
-// field/mlp.wgsl's mlp_wgrad sums them, as after the standalone mlp_bwd_data. Where those
-// records are written is the `recompute` choice: pass 1 writes them and pass 2 reads the
-// outputs' logits back (0), or pass 1 keeps everything in registers and pass 2 re-runs both
-// MLPs' forward pass to write them (1). Either way pass 2 recomputes the ray, the strata, the
-// contraction, the grid cells, the weights and the transmittance instead of storing them.
+// field/mlp.wgsl's mlp_wgrad sums them, as after the standalone mlp_bwd_data. Pass 1 writes
+// those records as it runs the MLPs, and pass 2 reads the MLPs' outputs back from them rather
+// than running the MLPs again (re-running them was measured slower on lavapipe).
+//
+// The samples of a ray go through the MLPs MLP_GROUP at a time (common/mlp_block.wgsl's
+// register blocking), then through compositing one by one in order. Slots past the last
+// sample repeat it and are ignored: they write no record, no colour and no gradient.
 //
 // Layouts: common/hash_grid.wgsl (levels, table, split tables), common/mlp.wgsl (weights per
 // layer W then b), the uniform block of common/mlp_block.wgsl with the density MLP at 0 and the
@@ -75,9 +78,7 @@ struct Params {
     // Floats per sample of the density and colour MLP records.
     density_stride: u32,
     color_stride: u32,
-    // 1: pass 2 re-runs both MLPs' forward pass per sample (writing the records then);
-    // 0: pass 1 writes the records and pass 2 reads the outputs' logits back from them.
-    recompute: u32,
+    _pad0: u32,
     // Read by common/field_eval.wgsl's `occupied`, which this kernel does not call.
     occ_res: u32,
     occ_cascades: u32,
@@ -129,49 +130,73 @@ fn rec_get(color: bool, e: u32) -> f32 {
     return saved_density[e];
 }
 
-// The forward pass of MLP `s` (weights at float `base` of the block) on a, writing each
-// layer's input and pre-activation into the record at `at` (mlp_bwd_data's layout).
-fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: u32, a: ptr<function, Act>) {
-    var z: Act;
+// The forward pass of MLP `s` (weights at float `base` of the block) on the group a, writing
+// each valid slot's layer inputs and pre-activations into its record at at[k] (mlp_bwd_data's
+// layout).
+fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid: vec4<bool>,
+                    a: ptr<function, ActGroup>) {
+    var z: ActGroup;
     var at = at_in;
     for (var l = 0u; l < s.layers; l += 1u) {
         let ni = mlp_dim(s, l);
         let no = mlp_dim(s, l + 1u);
-        for (var j = 0u; j < ni; j += 1u) {
-            rec_set(color, at + j, act_get(a, j));
+        for (var k = 0u; k < MLP_GROUP; k += 1u) {
+            if valid[k] {
+                for (var j = 0u; j < ni; j += 1u) {
+                    rec_set(color, at[k] + j, (*a)[k][j >> 2u][j & 3u]);
+                }
+            }
         }
-        at += pad4(ni);
-        mlp_layer(base + mlp_offset(s, l), ni, no, a, &z);
-        for (var o = 0u; o < no; o += 1u) {
-            rec_set(color, at + o, act_get(&z, o));
+        at += vec4<u32>(pad4(ni));
+        mlp_layer_group(base + mlp_offset(s, l), ni, no, a, &z);
+        for (var k = 0u; k < MLP_GROUP; k += 1u) {
+            if valid[k] {
+                for (var o = 0u; o < no; o += 1u) {
+                    rec_set(color, at[k] + o, z[k][o >> 2u][o & 3u]);
+                }
+            }
         }
-        at += pad4(no);
-        mlp_activate(&z, a, l + 1u < s.layers);
+        at += vec4<u32>(pad4(no));
+        let relu = l + 1u < s.layers;
+        for (var k = 0u; k < MLP_GROUP; k += 1u) {
+            for (var j = 0u; j < 16u; j += 1u) {
+                (*a)[k][j] = select(z[k][j], max(z[k][j], vec4<f32>(0.0)), relu);
+            }
+        }
     }
 }
 
-// Back-propagates g (dL/d output) through MLP `s` after forward_recorded at `at_in`: g becomes
-// dL/d input, and each record's pre-activation becomes its gradient (ReLU' on hidden layers).
-fn backward_recorded(color: bool, s: MlpShape, base: u32, at_in: u32, g: ptr<function, Act>) {
-    var z: Act;
+// Back-propagates g[k] (dL/d output) through MLP `s` after forward_recorded at at_in: g[k]
+// becomes dL/d input, and each valid record's pre-activations become their gradients (ReLU' on
+// hidden layers). Invalid slots must come in with g[k] = 0.
+fn backward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid: vec4<bool>,
+                     g: ptr<function, ActGroup>) {
+    var z: ActGroup;
     var at = at_in;
     for (var l = 0u; l < s.layers; l += 1u) {
-        at += pad4(mlp_dim(s, l)) + pad4(mlp_dim(s, l + 1u));
+        at += vec4<u32>(pad4(mlp_dim(s, l)) + pad4(mlp_dim(s, l + 1u)));
     }
     for (var li = 0u; li < s.layers; li += 1u) {
         let l = s.layers - 1u - li;
         let ni = mlp_dim(s, l);
         let no = mlp_dim(s, l + 1u);
-        at -= pad4(no);
+        at -= vec4<u32>(pad4(no));
         let last = l + 1u == s.layers;
-        for (var o = 0u; o < no; o += 1u) {
-            let go = act_get(g, o);
-            let d = select(select(0.0, go, rec_get(color, at + o) > 0.0), go, last);
-            rec_set(color, at + o, d);
-            act_set(&z, o, d);
+        for (var k = 0u; k < MLP_GROUP; k += 1u) {
+            for (var q = 0u; q < 16u; q += 1u) {
+                z[k][q] = vec4<f32>(0.0);
+            }
+            if valid[k] {
+                for (var o = 0u; o < no; o += 1u) {
+                    let go = (*g)[k][o >> 2u][o & 3u];
+                    let d = select(select(0.0, go, rec_get(color, at[k] + o) > 0.0), go, last);
+                    rec_set(color, at[k] + o, d);
+                    z[k][o >> 2u][o & 3u] = d;
+                }
+            }
         }
-        at -= pad4(ni);
-        mlp_layer_back(base + mlp_offset(s, l), ni, no, &z, g);
+        at -= vec4<u32>(pad4(ni));
+        mlp_layer_back_group(base + mlp_offset(s, l), ni, no, &z, g);
     }
 }
 
@@ -289,40 +314,55 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let dshape = density_shape[0];
     let cshape = color_shape[0];
 
-    // Pass 1: forward.
+    // Pass 1: forward, MLP_GROUP samples at a time through the MLPs.
     var tau = 0.0;
     var c = vec3<f32>(0.0);
     var depth = 0.0;
     var opacity = 0.0;
     var wm_tot = 0.0;
     var dist = 0.0;
-    var a: Act;
-    let store = params.recompute == 0u;
-    for (var j = 0u; j < k; j += 1u) {
-        let st = stratum(i, j);
-        let u = (ray[0] + st.x * ray[1] - params.center.xyz) * params.inv_radius;
-        var sigma = 0.0;
-        if store {
-            encode(contract_unit(u, params.contraction), &a);
-            forward_recorded(false, dshape, 0u, (i * k + j) * ds, &a);
-            sigma = trunc_exp(a[0].x);
-        } else {
-            sigma = density_at(u, &a);
+    var a: ActGroup;
+    let groups = (k + MLP_GROUP - 1u) / MLP_GROUP;
+    for (var gi = 0u; gi < groups; gi += 1u) {
+        var valid = vec4<bool>(false);
+        var rd = vec4<u32>(0u);
+        var rc = vec4<u32>(0u);
+        var st: array<vec3<f32>, 4>;
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            let j = gi * MLP_GROUP + q;
+            valid[q] = j < k;
+            let jj = min(j, k - 1u);
+            rd[q] = (i * k + jj) * ds;
+            rc[q] = (i * k + jj) * cs;
+            st[q] = stratum(i, jj);
+            let u = (ray[0] + st[q].x * ray[1] - params.center.xyz) * params.inv_radius;
+            // (A pointer to a[q] cannot be a call argument in SPIR-V: copy through t.)
+            var t: Act;
+            encode(contract_unit(u, params.contraction), &t);
+            a[q] = t;
         }
-        let w = next_weight(sigma, st.y, &tau);
-        color_input(&a, sh);
-        if store {
-            forward_recorded(true, cshape, params.color_base, (i * k + j) * cs, &a);
-        } else {
-            mlp_forward(cshape, params.color_base, &a);
+        forward_recorded(false, dshape, 0u, rd, valid, &a);
+        var sigma = vec4<f32>(0.0);
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            sigma[q] = trunc_exp(a[q][0].x);
+            var t = a[q];
+            color_input(&t, sh);
+            a[q] = t;
         }
-        c += w * sigmoid3(a[0]);
-        depth += w * st.x;
-        // Distortion: opacity and wm_tot are the running W_<j and WM_<j here.
-        let below = st.z * opacity - wm_tot;
-        dist += 2.0 * w * below + w * w / (3.0 * f32(k));
-        opacity += w;
-        wm_tot += w * st.z;
+        forward_recorded(true, cshape, params.color_base, rc, valid, &a);
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            if !valid[q] {
+                continue;
+            }
+            let w = next_weight(sigma[q], st[q].y, &tau);
+            c += w * sigmoid3(a[q][0]);
+            depth += w * st[q].x;
+            // Distortion: opacity and wm_tot are the running W_<j and WM_<j here.
+            let below = st[q].z * opacity - wm_tot;
+            dist += 2.0 * w * below + w * w / (3.0 * f32(k));
+            opacity += w;
+            wm_tot += w * st[q].z;
+        }
     }
     let t_end = exp(-tau);
     let rgb_out = c + t_end * params.background.xyz;
@@ -363,69 +403,76 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let total = dot(c, gc) + depth * gd + 2.0 * lam * dist;
     let bg = t_end * dot(params.background.xyz, gc);
 
-    // Pass 2: per sample the forward again (or its outputs from the records), then the
-    // backward.
+    // Pass 2: per sample its forward values again (the MLPs' outputs from the records), the
+    // compositing gradient in order, then the group's backward through both MLPs.
     let d_out = output_at(dshape);
     let c_out = output_at(cshape);
     tau = 0.0;
     var prefix = 0.0;
     var w_lt = 0.0;
     var wm_lt = 0.0;
-    for (var j = 0u; j < k; j += 1u) {
-        let sidx = i * k + j;
-        let rd = sidx * ds;
-        let rc = sidx * cs;
-        let st = stratum(i, j);
-        let u = (ray[0] + st.x * ray[1] - params.center.xyz) * params.inv_radius;
-        let x = contract_unit(u, params.contraction);
-        var logit = 0.0;
-        if store {
-            logit = rec_get(false, rd + d_out);
-        } else {
-            encode(x, &a);
-            forward_recorded(false, dshape, 0u, rd, &a);
-            logit = a[0].x;
+    var g: ActGroup;
+    for (var gi = 0u; gi < groups; gi += 1u) {
+        var valid = vec4<bool>(false);
+        var rd = vec4<u32>(0u);
+        var rc = vec4<u32>(0u);
+        var sigma = vec4<f32>(0.0);
+        var d_sigma = vec4<f32>(0.0);
+        var xs: array<vec3<f32>, 4>;
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            for (var r = 0u; r < 16u; r += 1u) {
+                g[q][r] = vec4<f32>(0.0);
+            }
+            let j = gi * MLP_GROUP + q;
+            valid[q] = j < k;
+            let jj = min(j, k - 1u);
+            rd[q] = (i * k + jj) * ds;
+            rc[q] = (i * k + jj) * cs;
+            let st = stratum(i, jj);
+            let u = (ray[0] + st.x * ray[1] - params.center.xyz) * params.inv_radius;
+            xs[q] = contract_unit(u, params.contraction);
+            if !valid[q] {
+                continue;
+            }
+            sigma[q] = trunc_exp(rec_get(false, rd[q] + d_out));
+            let dt = st.y;
+            let w = next_weight(sigma[q], dt, &tau);
+            let col = vec3<f32>(sigmoid(rec_get(true, rc[q] + c_out)),
+                                sigmoid(rec_get(true, rc[q] + c_out + 1u)),
+                                sigmoid(rec_get(true, rc[q] + c_out + 2u)));
+            // dL/dw_j: colour, depth and distortion.
+            let m = st.z;
+            let w_gt = w_tot - w_lt - w;
+            let wm_gt = wm_tot - wm_lt - w * m;
+            let below = m * w_lt - wm_lt;
+            let dw = lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / (3.0 * f32(k)) * w);
+            w_lt += w;
+            wm_lt += w * m;
+            let uj = dot(col, gc) + st.x * gd + dw;
+            prefix += w * uj;
+            let dx = exp(-tau) * uj - (total - prefix) - bg;
+            var scale = 1.0;
+            if params.grad_scaling != 0u {
+                scale = min(1.0, st.x * st.x);
+            }
+            d_sigma[q] = select(0.0, scale * dt * dx, dt > 0.0 && sigma[q] >= 0.0);
+            // Through the sigmoid into the colour MLP's output.
+            let d_rgb = scale * w * gc;
+            g[q][0] = vec4<f32>(d_rgb * col * (vec3<f32>(1.0) - col), 0.0);
         }
-        let sigma = trunc_exp(logit);
-        let dt = st.y;
-        let w = next_weight(sigma, dt, &tau);
-        var col = vec3<f32>(0.0);
-        if store {
-            col = vec3<f32>(sigmoid(rec_get(true, rc + c_out)), sigmoid(rec_get(true, rc + c_out + 1u)),
-                            sigmoid(rec_get(true, rc + c_out + 2u)));
-        } else {
-            color_input(&a, sh);
-            forward_recorded(true, cshape, params.color_base, rc, &a);
-            col = sigmoid3(a[0]);
-        }
-        // dL/dw_j: colour, depth and distortion.
-        let m = st.z;
-        let w_gt = w_tot - w_lt - w;
-        let wm_gt = wm_tot - wm_lt - w * m;
-        let below = m * w_lt - wm_lt;
-        let dw = lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / (3.0 * f32(k)) * w);
-        w_lt += w;
-        wm_lt += w * m;
-        let uj = dot(col, gc) + st.x * gd + dw;
-        prefix += w * uj;
-        let dx = exp(-tau) * uj - (total - prefix) - bg;
-        var scale = 1.0;
-        if params.grad_scaling != 0u {
-            scale = min(1.0, st.x * st.x);
-        }
-        let d_sigma = select(0.0, scale * dt * dx, dt > 0.0 && sigma >= 0.0);
-        let d_rgb = scale * w * gc;
-        // Sigmoid, then the colour MLP.
-        var g: Act;
-        for (var q = 0u; q < 16u; q += 1u) {
-            g[q] = vec4<f32>(0.0);
-        }
-        g[0] = vec4<f32>(d_rgb * col * (vec3<f32>(1.0) - col), 0.0);
-        backward_recorded(true, cshape, params.color_base, rc, &g);
+        backward_recorded(true, cshape, params.color_base, rc, valid, &g);
         // The density row's gradient: the colour input's first geo_dims entries, plus the
-        // density through trunc-exp (its gradient clamped like the value).
-        g[0].x += d_sigma * sigma;
-        backward_recorded(false, dshape, 0u, rd, &g);
-        encode_backward(x, &g);
+        // density through trunc-exp (its gradient clamped like the value). The SH part of the
+        // colour input's gradient is not read (the density MLP's output is geo_dims wide).
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            g[q][0].x += d_sigma[q] * sigma[q];
+        }
+        backward_recorded(false, dshape, 0u, rd, valid, &g);
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            if valid[q] {
+                var t = g[q];
+                encode_backward(xs[q], &t);
+            }
+        }
     }
 }

@@ -68,12 +68,21 @@ impl MlpConfig {
             .sum()
     }
 
-    /// Weight blocks of the weight-gradient pass: per layer 4-row blocks times (4-column
-    /// blocks + one bias column).
+    /// Weight blocks of the f16 record's weight-gradient pass: per layer 4-row blocks times
+    /// (4-column blocks + one bias column).
     fn wgrad_blocks(&self) -> u64 {
         self.dims
             .windows(2)
             .map(|w| (w[1].div_ceil(4) * (w[0].div_ceil(4) + 1)) as u64)
+            .sum()
+    }
+
+    /// Weight blocks of the f32 record's weight-gradient pass: per layer 4-row blocks times
+    /// (16-column blocks + one bias column).
+    fn wgrad_blocks_wide(&self) -> u64 {
+        self.dims
+            .windows(2)
+            .map(|w| (w[1].div_ceil(4) * (w[0].next_multiple_of(4).div_ceil(16) + 1)) as u64)
             .sum()
     }
 
@@ -244,7 +253,7 @@ impl Mlp {
             &self.wgrad,
             b.into_array(),
             &p,
-            c.wgrad_blocks() * self.groups as u64,
+            c.wgrad_blocks_wide() * self.groups as u64,
         )
     }
 
@@ -377,7 +386,7 @@ impl Mlp {
             &self.wgrad,
             b.into_array(),
             &p,
-            c.wgrad_blocks() * self.groups as u64,
+            c.wgrad_blocks_wide() * self.groups as u64,
         )
     }
 }

@@ -5,7 +5,8 @@
 //! forward pass to back-propagate through compositing, the heads, both MLPs and the hash grid
 //! (atomics into the table's gradient). Only the MLP weight gradient, a reduction over every
 //! sample of the batch, runs after it: the kernel writes each sample's layer inputs and
-//! pre-activation gradients, and `Mlp::weight_gradient` sums them.
+//! pre-activation gradients, and `Mlp::weight_gradient` sums them. Four samples of a ray go
+//! through the MLPs together, sharing each weight load.
 //!
 //! It computes what the standalone chain (rays, samples, `Field::forward`/`backward`,
 //! compositing and the loss kernels, see `trainer`) computes, without the per-sample buffers
@@ -58,7 +59,6 @@ pub struct FusedStep {
     saved_color: Buffer<f32>,
     rays: u32,
     samples: u32,
-    recompute: bool,
 }
 
 impl FusedStep {
@@ -74,17 +74,8 @@ impl FusedStep {
         check_sampling_range(cfg.space == "ndc", cfg.near, cfg.far)
     }
 
-    /// The kernel and its scratch for batches of `rays` rays with `samples` samples each. With
-    /// `recompute`, the backward pass re-runs both MLPs' forward pass per sample and writes the
-    /// weight-gradient records then; without, the forward pass writes them and the backward
-    /// reads the MLP outputs back from them.
-    pub fn new(
-        ctx: &Context,
-        field: &Field,
-        rays: u32,
-        samples: u32,
-        recompute: bool,
-    ) -> Result<FusedStep> {
+    /// The kernel and its scratch for batches of `rays` rays with `samples` samples each.
+    pub fn new(ctx: &Context, field: &Field, rays: u32, samples: u32) -> Result<FusedStep> {
         Self::supports(field)?;
         if rays == 0 || samples == 0 {
             return Err(GpuError::Usage(
@@ -112,7 +103,6 @@ impl FusedStep {
             )?,
             rays,
             samples,
-            recompute,
         })
     }
 
@@ -123,8 +113,10 @@ impl FusedStep {
 
     /// Records one step's forward and backward pass for the batch `pixels[rays]` (camera,
     /// pixel) with `targets`: writes `out` and adds the gradient of the batch loss (photometric,
-    /// depth and distortion) to `d_params` (same sections as `params`; zero it first for a
-    /// fresh gradient). `seed` jitters the strata as the standalone sampler does.
+    /// depth and distortion) with respect to the hash table to `d_params` (same sections as
+    /// `params`; zero it first for a fresh gradient), and the MLPs' records. Follow with
+    /// [`FusedStep::record_weight_gradients`] for the MLPs' share. `seed` jitters the strata as
+    /// the standalone sampler does.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn record<'a>(
         &'a self,
@@ -215,7 +207,7 @@ impl FusedStep {
             grad_scaling: u32::from(losses.grad_scaling),
             density_stride: d_mlp.saved_stride() as u32,
             color_stride: c_mlp.saved_stride() as u32,
-            recompute: u32::from(self.recompute),
+            _pad0: 0,
             occ_res: 0,
             occ_cascades: 0,
         };
@@ -242,8 +234,18 @@ impl FusedStep {
             saved_density: self.saved_density.binding(),
             saved_color: self.saved_color.binding(),
         };
-        rec.dispatch(&self.kernel, b.into_array(), &p, n)?;
-        let ns = n * self.samples as u64;
+        rec.dispatch(&self.kernel, b.into_array(), &p, n)
+    }
+
+    /// Records the MLP weight-gradient pass over the records of the last [`FusedStep::record`],
+    /// adding to `d_params`' MLP sections.
+    pub fn record_weight_gradients<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        field: &'a Field,
+        d_params: [Binding<'a>; 3],
+    ) -> Result<()> {
+        let ns = self.rays as u64 * self.samples as u64;
         field
             .density()
             .weight_gradient(rec, self.saved_density.binding(), d_params[1], ns)?;
