@@ -154,7 +154,8 @@ fn fused_march_matches_the_reference_and_the_standalone_chain() {
     let ctx = &engine().ctx;
     for (space, eye, bias, samples) in [
         ("ndc", [0.0, 0.0, 0.0], 0.0, 24),
-        ("world", [0.3, 0.2, 3.0], -4.0, 40),
+        // 37: the last group of four samples in the march is partial.
+        ("world", [0.3, 0.2, 3.0], -4.0, 37),
     ] {
         let cfg = model(space);
         let p = params(&cfg, 11, bias);

@@ -3,8 +3,10 @@
 // linear in t or in disparity), skips samples in cells the occupancy grid marks empty (points
 // outside the grid are evaluated), and evaluates the
 // field per sample in registers: contraction, every hash-grid level, the density MLP,
-// trunc-exp, SH4 of the world direction, and the colour MLP. It composites front to back and
-// writes only (rgb, opacity) and the expected depth. Nothing per sample touches memory.
+// trunc-exp, SH4 of the world direction, and the colour MLP, four samples at a time sharing
+// each weight load (common/mlp_block.wgsl's MLP_GROUP). It composites front to back, sample by
+// sample, and writes only (rgb, opacity) and the expected depth. Nothing per sample touches
+// memory.
 //
 // Two cuts trade accuracy for speed. Each is exact at 0 and bounded otherwise:
 //   min_weight: the colour MLP is skipped for a sample whose weight is <= min_weight, which
@@ -120,36 +122,73 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let sh = sh4(unit_dir(world[1]));
-    let g = params.geo_dims;
-    let inv_k = 1.0 / f32(params.samples);
+    let g4 = params.geo_dims >> 2u;
+    let k = params.samples;
+    let inv_k = 1.0 / f32(k);
     var tau = 0.0;
     var c = vec3<f32>(0.0);
     var depth = 0.0;
     var opacity = 0.0;
-    var a: Act;
-    for (var j = 0u; j < params.samples; j += 1u) {
-        let s0 = f32(j) * inv_k;
-        let s1 = f32(j + 1u) * inv_k;
-        let t = t_of(mix(s0, s1, 0.5));
-        let dt = t_of(s1) - t_of(s0);
-        let u = (ray[0] + t * ray[1] - params.center.xyz) * params.inv_radius;
-        if !occupied(u) {
+    var a: ActGroup;
+    let dshape = density_shape[0];
+    let cshape = color_shape[0];
+    // MLP_GROUP samples at a time through the MLPs (common/mlp_block.wgsl's register
+    // blocking), then compositing one by one in order, so the cuts act exactly as per sample.
+    var done = false;
+    let groups = (k + MLP_GROUP - 1u) / MLP_GROUP;
+    for (var gi = 0u; gi < groups && !done; gi += 1u) {
+        var live = vec4<bool>(false);
+        var t = vec4<f32>(0.0);
+        var dt = vec4<f32>(0.0);
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            let j = min(gi * MLP_GROUP + q, k - 1u);
+            let s0 = f32(j) * inv_k;
+            let s1 = f32(j + 1u) * inv_k;
+            t[q] = t_of(mix(s0, s1, 0.5));
+            dt[q] = t_of(s1) - t_of(s0);
+            let u = (ray[0] + t[q] * ray[1] - params.center.xyz) * params.inv_radius;
+            live[q] = gi * MLP_GROUP + q < k && occupied(u);
+            var e: Act;
+            encode(contract_unit(u, params.contraction), &e);
+            a[q] = e;
+        }
+        if !any(live) {
             continue;
         }
-        let sigma = density_at(u, &a);
-        let w = next_weight(sigma, dt, &tau);
-        if w > params.min_weight {
-            // Colour MLP input: the density row, then SH4 of the direction.
-            for (var k = 0u; k < 4u; k += 1u) {
-                a[(g >> 2u) + k] = vec4<f32>(sh[4u * k], sh[4u * k + 1u], sh[4u * k + 2u], sh[4u * k + 3u]);
+        mlp_forward_group(dshape, 0u, &a);
+        // Weights in order; the march stops after the sample that drops the transmittance
+        // below the cut.
+        var w = vec4<f32>(0.0);
+        var colour = false;
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            if !live[q] || done {
+                live[q] = false;
+                continue;
             }
-            mlp_forward(color_shape[0], params.color_base, &a);
-            c += w * vec3<f32>(sigmoid(a[0].x), sigmoid(a[0].y), sigmoid(a[0].z));
+            w[q] = next_weight(trunc_exp(a[q][0].x), dt[q], &tau);
+            colour = colour || w[q] > params.min_weight;
+            if exp(-tau) < params.min_transmittance {
+                done = true;
+            }
         }
-        depth += w * t;
-        opacity += w;
-        if exp(-tau) < params.min_transmittance {
-            break;
+        if colour {
+            // Colour MLP input: the density row, then SH4 of the direction.
+            for (var q = 0u; q < MLP_GROUP; q += 1u) {
+                for (var r = 0u; r < 4u; r += 1u) {
+                    a[q][g4 + r] = vec4<f32>(sh[4u * r], sh[4u * r + 1u], sh[4u * r + 2u], sh[4u * r + 3u]);
+                }
+            }
+            mlp_forward_group(cshape, params.color_base, &a);
+        }
+        for (var q = 0u; q < MLP_GROUP; q += 1u) {
+            if !live[q] {
+                continue;
+            }
+            if w[q] > params.min_weight {
+                c += w[q] * vec3<f32>(sigmoid(a[q][0].x), sigmoid(a[q][0].y), sigmoid(a[q][0].z));
+            }
+            depth += w[q] * t[q];
+            opacity += w[q];
         }
     }
     out_rgba[i] = vec4<f32>(c + exp(-tau) * params.background.xyz, opacity);
