@@ -22,8 +22,9 @@ struct WgradBlock {
     bias: bool,
 }
 
-// Weight block `blk` of MLP `s` (invalid past the last block).
-fn wgrad_block(s: MlpShape, blk: u32) -> WgradBlock {
+// Weight block `blk` of MLP `s` (invalid past the last block), with blocks of 4 rows x `cw`
+// columns (cw a multiple of 4).
+fn wgrad_block_cols(s: MlpShape, blk: u32, cw: u32) -> WgradBlock {
     var b: WgradBlock;
     b.valid = false;
     b.ni = 1u;
@@ -34,7 +35,7 @@ fn wgrad_block(s: MlpShape, blk: u32) -> WgradBlock {
     for (var l = 0u; l < s.layers; l += 1u) {
         let ni = mlp_dim(s, l);
         let no = mlp_dim(s, l + 1u);
-        let nb = (pad4(no) / 4u) * (pad4(ni) / 4u + 1u);
+        let nb = (pad4(no) / 4u) * ((pad4(ni) + cw - 1u) / cw + 1u);
         if !b.valid && blk < first + nb {
             b.valid = true;
             b.layer = l;
@@ -47,12 +48,17 @@ fn wgrad_block(s: MlpShape, blk: u32) -> WgradBlock {
         at += pad4(ni) + pad4(no);
         first += nb;
     }
-    let cols = pad4(b.ni) / 4u + 1u;
+    let cols = (pad4(b.ni) + cw - 1u) / cw + 1u;
     b.o0 = (local / cols) * 4u;
-    let j4 = local % cols;
-    b.bias = j4 + 1u == cols;
-    b.j0 = j4 * 4u;
+    let jc = local % cols;
+    b.bias = jc + 1u == cols;
+    b.j0 = jc * cw;
     return b;
+}
+
+// The f16 record's 4x4 blocks.
+fn wgrad_block(s: MlpShape, blk: u32) -> WgradBlock {
+    return wgrad_block_cols(s, blk, 4u);
 }
 
 // Adds a thread's 4x4 sums (acc[r][c]: row o0 + r, column j0 + c; column 0 for the bias) to
@@ -92,35 +98,7 @@ fn wgrad_flush(b: WgradBlock, blk: u32, lane: u32, acc_in: array<vec4<f32>, 4>) 
 // 64 FMAs per 5 loads instead of 16 per 2; on lavapipe each load of a varying address is a
 // per-lane loop, so loads dominate). The column block past the last one holds the biases.
 fn wgrad_block_wide(s: MlpShape, blk: u32) -> WgradBlock {
-    var b: WgradBlock;
-    b.valid = false;
-    b.ni = 1u;
-    b.no = 1u;
-    var local = 0u;
-    var first = 0u;
-    var at = 0u;
-    for (var l = 0u; l < s.layers; l += 1u) {
-        let ni = mlp_dim(s, l);
-        let no = mlp_dim(s, l + 1u);
-        let nb = (pad4(no) / 4u) * ((pad4(ni) + 15u) / 16u + 1u);
-        if !b.valid && blk < first + nb {
-            b.valid = true;
-            b.layer = l;
-            b.off = mlp_offset(s, l);
-            b.ni = ni;
-            b.no = no;
-            b.at = at;
-            local = blk - first;
-        }
-        at += pad4(ni) + pad4(no);
-        first += nb;
-    }
-    let cols = (pad4(b.ni) + 15u) / 16u + 1u;
-    b.o0 = (local / cols) * 4u;
-    let j16 = local % cols;
-    b.bias = j16 + 1u == cols;
-    b.j0 = j16 * 16u;
-    return b;
+    return wgrad_block_cols(s, blk, 16u);
 }
 
 // wgrad_flush for a wide block: acc[4 * r + v][c] is row o0 + r, column j0 + 4 v + c (column 0

@@ -5,6 +5,7 @@
 //   depth: lambda_d * confidence * (d - d*)^2 for rays with confidence > 0 (sparse points,
 //   MVS, completed depth); rays without a target have confidence 0.
 //!include common/dispatch.wgsl
+//!include common/ray_loss.wgsl
 
 struct Params {
     n_rays: u32,
@@ -32,28 +33,9 @@ fn ray_loss(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         return;
     }
     let inv_n = 1.0 / f32(params.n_rays);
-    let e = rendered_rgba[r].xyz - target_rgb[r].xyz;
-    var l = 0.0;
-    var g = vec3<f32>(0.0);
-    if params.kind == 0u {
-        l = dot(e, e) / 3.0;
-        g = 2.0 * e / 3.0;
-    } else {
-        let a = abs(e);
-        let delta = params.huber_delta;
-        let quad = a <= vec3<f32>(delta);
-        let lv = select(delta * (a - 0.5 * delta), 0.5 * e * e, quad);
-        l = (lv.x + lv.y + lv.z) / 3.0;
-        g = select(delta * sign(e), e, quad) / 3.0;
-    }
-    let td = target_depth[r];
-    var gd = 0.0;
-    if td.y > 0.0 {
-        let de = rendered_depth[r] - td.x;
-        l += params.depth_lambda * td.y * de * de;
-        gd = 2.0 * params.depth_lambda * td.y * de;
-    }
-    loss[r] = l * inv_n;
-    d_rgba[r] = vec4<f32>(g * inv_n, 0.0);
-    d_depth[r] = gd * inv_n;
+    let rl = photo_depth_loss(rendered_rgba[r].xyz, rendered_depth[r], target_rgb[r].xyz, target_depth[r],
+                              params.kind, params.huber_delta, params.depth_lambda);
+    loss[r] = rl.loss * inv_n;
+    d_rgba[r] = vec4<f32>(rl.d_rgb * inv_n, 0.0);
+    d_depth[r] = rl.d_depth * inv_n;
 }

@@ -39,6 +39,7 @@
 //!include common/sh.wgsl
 //!include common/volume.wgsl
 //!include common/field_eval.wgsl
+//!include common/ray_loss.wgsl
 
 struct Params {
     // Rays in the batch.
@@ -373,29 +374,11 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let inv_n = 1.0 / f32(params.n);
     let e = rgb_out - target_rgb[i].xyz;
     mse[i] = dot(e, e) / 3.0;
-    var l = 0.0;
-    var gc = vec3<f32>(0.0);
-    if params.loss_kind == 0u {
-        l = dot(e, e) / 3.0;
-        gc = 2.0 * e / 3.0;
-    } else {
-        let ae = abs(e);
-        let delta = params.center.w;
-        let quad = ae <= vec3<f32>(delta);
-        let lv = select(delta * (ae - 0.5 * delta), 0.5 * e * e, quad);
-        l = (lv.x + lv.y + lv.z) / 3.0;
-        gc = select(delta * sign(e), e, quad) / 3.0;
-    }
-    let td = target_depth[i];
-    var gd = 0.0;
-    if td.y > 0.0 {
-        let de = depth - td.x;
-        l += params.background.w * td.y * de * de;
-        gd = 2.0 * params.background.w * td.y * de;
-    }
-    loss[i] = l * inv_n;
-    gc *= inv_n;
-    gd *= inv_n;
+    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i].xyz, target_depth[i], params.loss_kind,
+                              params.center.w, params.background.w);
+    loss[i] = rl.loss * inv_n;
+    let gc = rl.d_rgb * inv_n;
+    let gd = rl.d_depth * inv_n;
     let lam = params.dist_lambda;
     dist_loss[i] = lam * dist;
     let w_tot = opacity;
