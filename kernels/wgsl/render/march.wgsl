@@ -4,9 +4,9 @@
 // outside the grid are evaluated), and evaluates the
 // field per sample in registers: contraction, every hash-grid level, the density MLP,
 // trunc-exp, SH4 of the world direction, and the colour MLP, four samples at a time sharing
-// each weight load (common/mlp_block.wgsl's MLP_GROUP). It composites front to back, sample by
-// sample, and writes only (rgb, opacity) and the expected depth. Nothing per sample touches
-// memory.
+// each weight load (common/mlp_block.wgsl's MLP_GROUP). Groups are compacted in registers: each
+// takes the next four samples in occupied cells. It composites front to back, sample by sample,
+// and writes only (rgb, opacity) and the expected depth. Nothing per sample touches memory.
 //
 // Two cuts trade accuracy for speed. Each is exact at 0 and bounded otherwise:
 //   min_weight: the colour MLP is skipped for a sample whose weight is <= min_weight, which
@@ -134,26 +134,46 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     let cshape = color_shape[0];
     // MLP_GROUP samples at a time through the MLPs (common/mlp_block.wgsl's register
     // blocking), then compositing one by one in order, so the cuts act exactly as per sample.
+    // Compaction in registers: a group takes the next MLP_GROUP samples in occupied cells, so
+    // samples in empty space cost no MLP work.
     var done = false;
-    let groups = (k + MLP_GROUP - 1u) / MLP_GROUP;
-    for (var gi = 0u; gi < groups && !done; gi += 1u) {
+    var next = 0u;
+    loop {
+        if done || next >= k {
+            break;
+        }
         var live = vec4<bool>(false);
         var t = vec4<f32>(0.0);
         var dt = vec4<f32>(0.0);
-        for (var q = 0u; q < MLP_GROUP; q += 1u) {
-            let j = min(gi * MLP_GROUP + q, k - 1u);
+        var n = 0u;
+        loop {
+            if n >= MLP_GROUP || next >= k {
+                break;
+            }
+            let j = next;
+            next += 1u;
             let s0 = f32(j) * inv_k;
             let s1 = f32(j + 1u) * inv_k;
-            t[q] = t_of(mix(s0, s1, 0.5));
-            dt[q] = t_of(s1) - t_of(s0);
-            let u = (ray[0] + t[q] * ray[1] - params.center.xyz) * params.inv_radius;
-            live[q] = gi * MLP_GROUP + q < k && occupied(u);
+            let tj = t_of(mix(s0, s1, 0.5));
+            let u = (ray[0] + tj * ray[1] - params.center.xyz) * params.inv_radius;
+            if !occupied(u) {
+                continue;
+            }
             var e: Act;
             encode(contract_unit(u, params.contraction), &e);
-            a[q] = e;
+            // Slot n, written through constant indices.
+            for (var q = 0u; q < MLP_GROUP; q += 1u) {
+                if q == n {
+                    a[q] = e;
+                    t[q] = tj;
+                    dt[q] = t_of(s1) - t_of(s0);
+                    live[q] = true;
+                }
+            }
+            n += 1u;
         }
-        if !any(live) {
-            continue;
+        if n == 0u {
+            break;
         }
         mlp_forward_group(dshape, 0u, &a);
         // Weights in order; the march stops after the sample that drops the transmittance
