@@ -959,7 +959,6 @@ impl Trainer {
     ) -> Result<()> {
         let ws = &self.ws;
         let n = ws.rays as u64;
-        let ns = n * ws.samples as u64;
         let seed = (self.cfg.seed as u32) ^ step.wrapping_mul(0x9e37_79b9);
         let p = kb::Params {
             n_rays: ws.rays,
@@ -977,16 +976,33 @@ impl Trainer {
         };
         rec.dispatch(&self.batch, b.into_array(), &p, n)?;
         mark(prof, rec, "batch (pixels, targets)")?;
-        if let Some(fused) = &self.fused {
-            self.record_fused(rec, fused, data, seed, prof)?;
-            self.record_stats(rec, prims, step)?;
-            mark(prof, rec, "loss and MSE stats")?;
-            if !update {
-                return Ok(());
-            }
-            self.record_adam(rec, step)?;
-            return mark(prof, rec, "adam + hash decay");
+        match &self.fused {
+            Some(fused) => self.record_fused(rec, fused, data, seed, prof)?,
+            None => self.record_standalone(rec, prims, data, step, seed, prof)?,
         }
+        self.record_stats(rec, prims, step)?;
+        mark(prof, rec, "loss and MSE stats")?;
+        if !update {
+            return Ok(());
+        }
+        self.record_adam(rec, step)?;
+        mark(prof, rec, "adam + hash decay")
+    }
+
+    /// Records the standalone chain's forward pass, losses and backward pass after the batch
+    /// is drawn (every sample in memory between kernels).
+    fn record_standalone<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        prims: &'a Prims,
+        data: &'a TrainData,
+        step: u32,
+        seed: u32,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let ws = &self.ws;
+        let n = ws.rays as u64;
+        let ns = n * ws.samples as u64;
         let nerf = &self.nerf;
         let skip = self.record_occupancy(rec, prims, step, seed)?;
         mark(prof, rec, "occupancy update")?;
@@ -1042,8 +1058,7 @@ impl Trainer {
             mse: ws.mse.binding(),
         };
         rec.dispatch(&self.ray_mse, b.into_array(), &mp, n)?;
-        self.record_stats(rec, prims, step)?;
-        mark(prof, rec, "losses, MSE, stats")?;
+        mark(prof, rec, "losses, MSE")?;
         // Backward.
         rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
         mark(prof, rec, "zero gradients")?;
@@ -1073,12 +1088,27 @@ impl Trainer {
             ns,
             ws.samples,
             prof,
-        )?;
-        if !update {
-            return Ok(());
+        )
+    }
+
+    /// Float offset of step `step`'s loss in the stat ring (its MSE sum is `SLOT` after it).
+    fn stat_slot(step: u32) -> usize {
+        ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT
+    }
+
+    /// The mean loss and MSE of steps `first .. first + count`, read from the stat ring.
+    fn read_stats(&self, first: u32, count: u32) -> Result<StepStats> {
+        let stats = self.stats.read()?;
+        let (mut loss, mut mse) = (0.0, 0.0);
+        for s in first..first + count {
+            let slot = Self::stat_slot(s);
+            loss += stats[slot] as f64;
+            mse += stats[slot + SLOT] as f64 / self.cfg.rays as f64;
         }
-        self.record_adam(rec, step)?;
-        mark(prof, rec, "adam + hash decay")
+        Ok(StepStats {
+            loss: loss / count as f64,
+            mse: mse / count as f64,
+        })
     }
 
     /// Records the reduction of the batch's per-ray loss and MSE into step `step`'s stat slot.
@@ -1090,7 +1120,7 @@ impl Trainer {
     ) -> Result<()> {
         let ws = &self.ws;
         let n = ws.rays as u64;
-        let slot = ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT;
+        let slot = Self::stat_slot(step);
         prims.reduce_sum(
             rec,
             &self.reduce,
@@ -1220,15 +1250,7 @@ impl Trainer {
             self.record_step(&mut rec, prims, data, step, false, &mut None)?;
             ctx.run(rec)?;
         }
-        let stats = self.stats.read()?;
-        let slot = ((step - 1) % STAT_SLOTS) as usize * 2 * SLOT;
-        Ok((
-            self.grads.read()?,
-            StepStats {
-                loss: stats[slot] as f64,
-                mse: stats[slot + SLOT] as f64 / self.cfg.rays as f64,
-            },
-        ))
+        Ok((self.grads.read()?, self.read_stats(step, 1)?))
     }
 
     /// Runs `count` steps (at most [`STAT_SLOTS`]) in one submission and returns their mean
@@ -1254,16 +1276,6 @@ impl Trainer {
             ctx.run(rec)?;
         }
         self.step += count;
-        let stats = self.stats.read()?;
-        let (mut loss, mut mse) = (0.0, 0.0);
-        for s in first..first + count {
-            let slot = ((s - 1) % STAT_SLOTS) as usize * 2 * SLOT;
-            loss += stats[slot] as f64;
-            mse += stats[slot + SLOT] as f64 / self.cfg.rays as f64;
-        }
-        Ok(StepStats {
-            loss: loss / count as f64,
-            mse: mse / count as f64,
-        })
+        self.read_stats(first, count)
     }
 }

@@ -1,6 +1,7 @@
 // The BaseNeRF field evaluated in registers by one thread (the fused kernels: render/march.wgsl,
 // render/visibility.wgsl). Textual include: the including file declares `params` with the
-// fields read here (features, levels, contraction, spacing, near, far, occ_res, occ_cascades)
+// fields read here (features, levels, contraction, spacing, near, far, occ_res, occ_cascades,
+// center, inv_radius)
 // and the bindings `level_info`, `table`, `table_hi` (a split table's second part, see
 // common/hash_grid.wgsl), `density_shape`, `occ_bits` and the uniform `mlp` block, and includes
 // common/{hash_grid,mlp_block,contract,heads,occupancy}.wgsl before this.
@@ -73,4 +74,21 @@ fn occupied(u: vec3<f32>) -> bool {
     }
     let cell = occ_cell(u, OccGrid(params.occ_res, params.occ_cascades));
     return cell == OCC_NONE || ((occ_bits[cell / 32u] >> (cell % 32u)) & 1u) != 0u;
+}
+
+// The colour MLP's input rows of a group: each slot's density-MLP output row (already in
+// a[k], geo_dims wide) followed by SH4 of the ray direction.
+fn color_input_group(a: ptr<function, ActGroup>, sh: array<f32, 16>) {
+    let ds = density_shape[0];
+    let g4 = mlp_dim(ds, ds.layers) >> 2u;
+    for (var k = 0u; k < MLP_GROUP; k += 1u) {
+        for (var r = 0u; r < 4u; r += 1u) {
+            (*a)[k][g4 + r] = vec4<f32>(sh[4u * r], sh[4u * r + 1u], sh[4u * r + 2u], sh[4u * r + 3u]);
+        }
+    }
+}
+
+// The scene-normalised point at distance t along ray (origin, direction).
+fn scene_point(ray: array<vec3<f32>, 2>, t: f32) -> vec3<f32> {
+    return (ray[0] + t * ray[1] - params.center.xyz) * params.inv_radius;
 }

@@ -16,3 +16,8 @@ fn sigmoid(v: f32) -> f32 {
     let e = exp(v);
     return e / (1.0 + e);
 }
+
+// sigmoid of the first three components (the colour MLP's output).
+fn sigmoid3(v: vec4<f32>) -> vec3<f32> {
+    return vec3<f32>(sigmoid(v.x), sigmoid(v.y), sigmoid(v.z));
+}

@@ -150,16 +150,20 @@ fn mlp_layer_back_group(w: u32, ni: u32, no: u32, d: ptr<function, ActGroup>, gi
     }
 }
 
+// mlp_activate for the group: a[k] <- z[k], with ReLU when `relu`.
+fn mlp_activate_group(z: ptr<function, ActGroup>, a: ptr<function, ActGroup>, relu: bool) {
+    for (var k = 0u; k < MLP_GROUP; k += 1u) {
+        for (var j = 0u; j < 16u; j += 1u) {
+            (*a)[k][j] = select((*z)[k][j], max((*z)[k][j], vec4<f32>(0.0)), relu);
+        }
+    }
+}
+
 // mlp_forward for the group, in place on a.
 fn mlp_forward_group(s: MlpShape, base: u32, a: ptr<function, ActGroup>) {
     var z: ActGroup;
     for (var l = 0u; l < s.layers; l += 1u) {
         mlp_layer_group(base + mlp_offset(s, l), mlp_dim(s, l), mlp_dim(s, l + 1u), a, &z);
-        let relu = l + 1u < s.layers;
-        for (var k = 0u; k < MLP_GROUP; k += 1u) {
-            for (var j = 0u; j < 16u; j += 1u) {
-                (*a)[k][j] = select(z[k][j], max(z[k][j], vec4<f32>(0.0)), relu);
-            }
-        }
+        mlp_activate_group(&z, a, l + 1u < s.layers);
     }
 }

@@ -55,10 +55,10 @@ struct Params {
     // Occupancy grid resolution and cascades; cascades = 0 disables skipping in the march.
     occ_res: u32,
     occ_cascades: u32,
-    // Hash-grid levels and features per level; floats per density-MLP output row.
+    // Hash-grid levels and features per level.
     levels: u32,
     features: u32,
-    geo_dims: u32,
+    _pad3: u32,
     min_weight: f32,
     min_transmittance: f32,
     // Scene centre (xyz).
@@ -122,7 +122,6 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let sh = sh4(unit_dir(world[1]));
-    let g4 = params.geo_dims >> 2u;
     let k = params.samples;
     let inv_k = 1.0 / f32(k);
     var tau = 0.0;
@@ -155,7 +154,7 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             let s0 = f32(j) * inv_k;
             let s1 = f32(j + 1u) * inv_k;
             let tj = t_of(mix(s0, s1, 0.5));
-            let u = (ray[0] + tj * ray[1] - params.center.xyz) * params.inv_radius;
+            let u = scene_point(ray, tj);
             if !occupied(u) {
                 continue;
             }
@@ -192,12 +191,7 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             }
         }
         if colour {
-            // Colour MLP input: the density row, then SH4 of the direction.
-            for (var q = 0u; q < MLP_GROUP; q += 1u) {
-                for (var r = 0u; r < 4u; r += 1u) {
-                    a[q][g4 + r] = vec4<f32>(sh[4u * r], sh[4u * r + 1u], sh[4u * r + 2u], sh[4u * r + 3u]);
-                }
-            }
+            color_input_group(&a, sh);
             mlp_forward_group(cshape, params.color_base, &a);
         }
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
@@ -205,7 +199,7 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
                 continue;
             }
             if w[q] > params.min_weight {
-                c += w[q] * vec3<f32>(sigmoid(a[q][0].x), sigmoid(a[q][0].y), sigmoid(a[q][0].z));
+                c += w[q] * sigmoid3(a[q][0]);
             }
             depth += w[q] * t[q];
             opacity += w[q];

@@ -158,12 +158,7 @@ fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid
             }
         }
         at += vec4<u32>(pad4(no));
-        let relu = l + 1u < s.layers;
-        for (var k = 0u; k < MLP_GROUP; k += 1u) {
-            for (var j = 0u; j < 16u; j += 1u) {
-                (*a)[k][j] = select(z[k][j], max(z[k][j], vec4<f32>(0.0)), relu);
-            }
-        }
+        mlp_activate_group(&z, a, l + 1u < s.layers);
     }
 }
 
@@ -264,16 +259,29 @@ fn stratum(ray: u32, j: u32) -> vec3<f32> {
     return vec3<f32>(t_of(s), t_of(s1) - t_of(s0), s);
 }
 
-// Writes the colour MLP's input row: the density row (already in a[0 .. geo_dims]) then SH4.
-fn color_input(a: ptr<function, Act>, sh: array<f32, 16>) {
-    let g4 = params.geo_dims >> 2u;
-    for (var k = 0u; k < 4u; k += 1u) {
-        (*a)[g4 + k] = vec4<f32>(sh[4u * k], sh[4u * k + 1u], sh[4u * k + 2u], sh[4u * k + 3u]);
-    }
+// The samples of group gi of ray i: validity, record offsets (density, colour), strata
+// (t, dt, s) and scene-normalised points. Slots past the last sample repeat it.
+struct Slots {
+    valid: vec4<bool>,
+    rd: vec4<u32>,
+    rc: vec4<u32>,
+    st: array<vec3<f32>, 4>,
+    u: array<vec3<f32>, 4>,
 }
 
-fn sigmoid3(v: vec4<f32>) -> vec3<f32> {
-    return vec3<f32>(sigmoid(v.x), sigmoid(v.y), sigmoid(v.z));
+fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>) -> Slots {
+    let k = params.samples;
+    var sl: Slots;
+    for (var q = 0u; q < MLP_GROUP; q += 1u) {
+        let j = gi * MLP_GROUP + q;
+        sl.valid[q] = j < k;
+        let jj = min(j, k - 1u);
+        sl.rd[q] = (i * k + jj) * params.density_stride;
+        sl.rc[q] = (i * k + jj) * params.color_stride;
+        sl.st[q] = stratum(i, jj);
+        sl.u[q] = scene_point(ray, sl.st[q].x);
+    }
+    return sl;
 }
 
 @compute @workgroup_size(64)
@@ -284,8 +292,6 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         return;
     }
     let k = params.samples;
-    let ds = params.density_stride;
-    let cs = params.color_stride;
     let pc = pixels[i];
     var valid = pc.x < params.n_cameras;
     var cam: GpuCamera;
@@ -301,8 +307,8 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         mse[i] = 0.0;
         dist_loss[i] = 0.0;
         for (var j = 0u; j < k; j += 1u) {
-            zero_record(false, (i * k + j) * ds, ds);
-            zero_record(true, (i * k + j) * cs, cs);
+            zero_record(false, (i * k + j) * params.density_stride, params.density_stride);
+            zero_record(true, (i * k + j) * params.color_stride, params.color_stride);
         }
         return;
     }
@@ -325,44 +331,33 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var a: ActGroup;
     let groups = (k + MLP_GROUP - 1u) / MLP_GROUP;
     for (var gi = 0u; gi < groups; gi += 1u) {
-        var valid = vec4<bool>(false);
-        var rd = vec4<u32>(0u);
-        var rc = vec4<u32>(0u);
-        var st: array<vec3<f32>, 4>;
+        let sl = group_slots(i, gi, ray);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
-            let j = gi * MLP_GROUP + q;
-            valid[q] = j < k;
-            let jj = min(j, k - 1u);
-            rd[q] = (i * k + jj) * ds;
-            rc[q] = (i * k + jj) * cs;
-            st[q] = stratum(i, jj);
-            let u = (ray[0] + st[q].x * ray[1] - params.center.xyz) * params.inv_radius;
             // (A pointer to a[q] cannot be a call argument in SPIR-V: copy through t.)
             var t: Act;
-            encode(contract_unit(u, params.contraction), &t);
+            encode(contract_unit(sl.u[q], params.contraction), &t);
             a[q] = t;
         }
-        forward_recorded(false, dshape, 0u, rd, valid, &a);
+        forward_recorded(false, dshape, 0u, sl.rd, sl.valid, &a);
         var sigma = vec4<f32>(0.0);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             sigma[q] = trunc_exp(a[q][0].x);
-            var t = a[q];
-            color_input(&t, sh);
-            a[q] = t;
         }
-        forward_recorded(true, cshape, params.color_base, rc, valid, &a);
+        color_input_group(&a, sh);
+        forward_recorded(true, cshape, params.color_base, sl.rc, sl.valid, &a);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
-            if !valid[q] {
+            if !sl.valid[q] {
                 continue;
             }
-            let w = next_weight(sigma[q], st[q].y, &tau);
+            let st = sl.st[q];
+            let w = next_weight(sigma[q], st.y, &tau);
             c += w * sigmoid3(a[q][0]);
-            depth += w * st[q].x;
+            depth += w * st.x;
             // Distortion: opacity and wm_tot are the running W_<j and WM_<j here.
-            let below = st[q].z * opacity - wm_tot;
+            let below = st.z * opacity - wm_tot;
             dist += 2.0 * w * below + w * w / (3.0 * f32(k));
             opacity += w;
-            wm_tot += w * st[q].z;
+            wm_tot += w * st.z;
         }
     }
     let t_end = exp(-tau);
@@ -396,33 +391,25 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var wm_lt = 0.0;
     var g: ActGroup;
     for (var gi = 0u; gi < groups; gi += 1u) {
-        var valid = vec4<bool>(false);
-        var rd = vec4<u32>(0u);
-        var rc = vec4<u32>(0u);
+        let sl = group_slots(i, gi, ray);
         var sigma = vec4<f32>(0.0);
         var d_sigma = vec4<f32>(0.0);
-        var xs: array<vec3<f32>, 4>;
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             for (var r = 0u; r < 16u; r += 1u) {
                 g[q][r] = vec4<f32>(0.0);
             }
-            let j = gi * MLP_GROUP + q;
-            valid[q] = j < k;
-            let jj = min(j, k - 1u);
-            rd[q] = (i * k + jj) * ds;
-            rc[q] = (i * k + jj) * cs;
-            let st = stratum(i, jj);
-            let u = (ray[0] + st.x * ray[1] - params.center.xyz) * params.inv_radius;
-            xs[q] = contract_unit(u, params.contraction);
-            if !valid[q] {
+            if !sl.valid[q] {
                 continue;
             }
-            sigma[q] = trunc_exp(rec_get(false, rd[q] + d_out));
+            let st = sl.st[q];
+            let rd = sl.rd[q];
+            let rc = sl.rc[q];
+            sigma[q] = trunc_exp(rec_get(false, rd + d_out));
             let dt = st.y;
             let w = next_weight(sigma[q], dt, &tau);
-            let col = vec3<f32>(sigmoid(rec_get(true, rc[q] + c_out)),
-                                sigmoid(rec_get(true, rc[q] + c_out + 1u)),
-                                sigmoid(rec_get(true, rc[q] + c_out + 2u)));
+            let col = vec3<f32>(sigmoid(rec_get(true, rc + c_out)),
+                                sigmoid(rec_get(true, rc + c_out + 1u)),
+                                sigmoid(rec_get(true, rc + c_out + 2u)));
             // dL/dw_j: colour, depth and distortion.
             let m = st.z;
             let w_gt = w_tot - w_lt - w;
@@ -443,18 +430,18 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             let d_rgb = scale * w * gc;
             g[q][0] = vec4<f32>(d_rgb * col * (vec3<f32>(1.0) - col), 0.0);
         }
-        backward_recorded(true, cshape, params.color_base, rc, valid, &g);
+        backward_recorded(true, cshape, params.color_base, sl.rc, sl.valid, &g);
         // The density row's gradient: the colour input's first geo_dims entries, plus the
         // density through trunc-exp (its gradient clamped like the value). The SH part of the
         // colour input's gradient is not read (the density MLP's output is geo_dims wide).
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             g[q][0].x += d_sigma[q] * sigma[q];
         }
-        backward_recorded(false, dshape, 0u, rd, valid, &g);
+        backward_recorded(false, dshape, 0u, sl.rd, sl.valid, &g);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
-            if valid[q] {
+            if sl.valid[q] {
                 var t = g[q];
-                encode_backward(xs[q], &t);
+                encode_backward(contract_unit(sl.u[q], params.contraction), &t);
             }
         }
     }

@@ -91,6 +91,24 @@ pub fn color_base(field: &Field) -> Result<usize> {
     Ok(base)
 }
 
+/// Records the copy of both MLPs' weights (`params[1]`, `params[2]`) into a uniform block of
+/// [`MLP_BLOCK_FLOATS`] floats: density at 0, colour after it. Returns the colour MLP's float
+/// offset, after [`color_base`]'s checks. Shared by the fused march and the fused training step.
+pub(crate) fn copy_mlp_block<'a>(
+    rec: &mut Recorder<'a>,
+    field: &Field,
+    params: &[Binding<'a>; 3],
+    block: &'a Buffer<f32>,
+) -> Result<u32> {
+    let base = color_base(field)?;
+    let cfg = field.config();
+    let dn = cfg.density_mlp().param_count() as u64 * 4;
+    let cn = cfg.color_mlp().param_count() as u64 * 4;
+    rec.copy(params[1], 0, block.binding(), 0, dn)?;
+    rec.copy(params[2], 0, block.binding(), base as u64 * 4, cn)?;
+    Ok(base as u32)
+}
+
 impl Marcher {
     /// Builds the kernels.
     pub fn new(ctx: &Context) -> Result<Marcher> {
@@ -109,13 +127,7 @@ impl Marcher {
         field: &'a Field,
         params: &[Binding<'a>; 3],
     ) -> Result<u32> {
-        let base = color_base(field)?;
-        let cfg = field.config();
-        let dn = cfg.density_mlp().param_count() as u64 * 4;
-        let cn = cfg.color_mlp().param_count() as u64 * 4;
-        rec.copy(params[1], 0, self.mlp_block.binding(), 0, dn)?;
-        rec.copy(params[2], 0, self.mlp_block.binding(), base as u64 * 4, cn)?;
-        Ok(base as u32)
+        copy_mlp_block(rec, field, params, &self.mlp_block)
     }
 
     fn params(field: &Field, samples: u32, background: [f32; 3]) -> Result<k::Params> {
@@ -140,7 +152,7 @@ impl Marcher {
             occ_cascades: 0,
             levels: cfg.levels,
             features: cfg.features,
-            geo_dims: cfg.geo_dims,
+            _pad3: 0,
             min_weight: 0.0,
             min_transmittance: 0.0,
             center: [scene.center[0], scene.center[1], scene.center[2], 0.0],

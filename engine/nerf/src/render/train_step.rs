@@ -19,7 +19,7 @@ use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recor
 use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
 use crate::render::loss::{LossConfig, RgbLoss, Targets};
-use crate::render::march::{check_sampling_range, color_base};
+use crate::render::march::{check_sampling_range, color_base, copy_mlp_block};
 
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
 /// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
@@ -160,24 +160,7 @@ impl FusedStep {
         }
         let ndc = cfg.space == "ndc";
         let scene = field.scene();
-        let d_mlp = cfg.density_mlp();
-        let c_mlp = cfg.color_mlp();
-        // Both MLPs into the uniform block: density at 0, colour after it.
-        let base = color_base(field)?;
-        rec.copy(
-            params[1],
-            0,
-            self.mlp_block.binding(),
-            0,
-            d_mlp.param_count() as u64 * 4,
-        )?;
-        rec.copy(
-            params[2],
-            0,
-            self.mlp_block.binding(),
-            base as u64 * 4,
-            c_mlp.param_count() as u64 * 4,
-        )?;
+        let base = copy_mlp_block(rec, field, &params, &self.mlp_block)?;
         let p = k::Params {
             n: self.rays,
             samples: self.samples,
@@ -194,7 +177,7 @@ impl FusedStep {
             seed: seed.unwrap_or(0),
             jitter: u32::from(seed.is_some()),
             n_cameras,
-            color_base: base as u32,
+            color_base: base,
             center: [scene.center[0], scene.center[1], scene.center[2], huber],
             background: [
                 background[0],
@@ -205,8 +188,8 @@ impl FusedStep {
             loss_kind,
             dist_lambda: losses.distortion,
             grad_scaling: u32::from(losses.grad_scaling),
-            density_stride: d_mlp.saved_stride() as u32,
-            color_stride: c_mlp.saved_stride() as u32,
+            density_stride: cfg.density_mlp().saved_stride() as u32,
+            color_stride: cfg.color_mlp().saved_stride() as u32,
             _pad0: 0,
             occ_res: 0,
             occ_cascades: 0,
