@@ -541,12 +541,18 @@ fn fused_step_gradient_matches_the_standalone_chain() {
         contraction: "l2".into(),
         ..tiny()
     };
+    // The last field: an occupancy grid of that many cells per axis (0: none), swept and
+    // thresholded in the step itself, whose strata then cover only occupied probe intervals.
     let cases = [
-        (tiny(), "l2", false, 1e-2f32),
-        (tiny(), "huber", true, 0.0),
-        (world, "l2", true, 5e-2),
+        (tiny(), "l2", false, 1e-2f32, 0),
+        (tiny(), "huber", true, 0.0, 0),
+        (world.clone(), "l2", true, 5e-2, 0),
+        (tiny(), "l2", true, 1e-2, 16),
+        (world, "huber", false, 5e-2, 12),
     ];
-    for (ci, (model, rgb_loss, grad_scaling, distortion)) in cases.into_iter().enumerate() {
+    for (ci, (model, rgb_loss, grad_scaling, distortion, occupancy_res)) in
+        cases.into_iter().enumerate()
+    {
         let mut rng = Rng::new(40 + ci as u64);
         let mut views = training_views(&spec, &loaded, &model).unwrap();
         // Depth targets on about a third of the pixels, in the ray space's units.
@@ -574,7 +580,7 @@ fn fused_step_gradient_matches_the_standalone_chain() {
         let run = |fused: bool| {
             let cfg = TrainConfig {
                 rays: 96,
-                samples: if ci == 2 { 10 } else { 12 },
+                samples: if ci % 2 == 0 { 10 } else { 12 },
                 rgb_loss: rgb_loss.into(),
                 huber_delta: 0.05,
                 depth_lambda: 0.2,
@@ -583,15 +589,27 @@ fn fused_step_gradient_matches_the_standalone_chain() {
                 seed: 9,
                 background: [0.2, 0.5, 0.9],
                 fused_step: fused,
+                occupancy_res,
+                occupancy_every: 1,
+                occupancy_warmup: 0,
+                occupancy_probes: 48,
+                occupancy_opacity: 0.99,
                 ..TrainConfig::default()
             };
             let nerf = Nerf::new(ctx, model.clone(), &params, cfg.background).unwrap();
             let mut t = Trainer::new(ctx, nerf, cfg, 3, None).unwrap();
             assert_eq!(t.is_fused(), fused, "{:?}", t.standalone_reason());
-            t.gradient(ctx, &e.prims, &data).unwrap()
+            let g = t.gradient(ctx, &e.prims, &data).unwrap();
+            (g, t.occupied_fraction().unwrap())
         };
-        let (g_fused, s_fused) = run(true);
-        let (g_std, s_std) = run(false);
+        let ((g_fused, s_fused), occ_fused) = run(true);
+        let ((g_std, s_std), occ_std) = run(false);
+        assert_eq!(occ_fused, occ_std, "case {ci}");
+        if occupancy_res > 0 {
+            // Some cells empty and some occupied, so the strata move.
+            let f = occ_fused.unwrap();
+            assert!(f > 0.02 && f < 0.9, "case {ci}: {f} of the cells occupied");
+        }
         let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * (1.0 + b.abs());
         assert!(
             close(s_fused.loss, s_std.loss) && close(s_fused.mse, s_std.mse),

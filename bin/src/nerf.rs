@@ -119,8 +119,8 @@ pub struct TrainArgs {
     occupancy_opacity: Option<f32>,
     /// Training step kernels: fused (one kernel from pixels to gradients plus the MLP
     /// weight-gradient reduction; the default where the model allows it) or standalone (one
-    /// kernel per stage, every sample in memory between them). precision f16 and
-    /// --occupancy-res always use standalone. May be given with --resume.
+    /// kernel per stage, every sample in memory between them). precision f16 always uses
+    /// standalone; both take --occupancy-res. May be given with --resume.
     #[arg(long, value_name = "KIND", value_parser = ["fused", "standalone"])]
     step: Option<String>,
     /// Steps between progress lines (1 to 64).
@@ -923,6 +923,14 @@ pub struct BenchTrainArgs {
     /// same-run reference of the fused step's speed).
     #[arg(long, value_name = "KIND", default_value = "both", value_parser = ["fused", "standalone", "both"])]
     step: String,
+    /// Train with an occupancy grid of this many cells per axis (0: none), in use from the
+    /// first step: each step then also runs its share of the grid's sweep, and the strata
+    /// cover only the rays' occupied probe intervals.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    occupancy_res: u32,
+    /// Steps per sweep of that grid.
+    #[arg(long, default_value_t = 16, value_name = "STEPS")]
+    occupancy_every: u32,
     /// Also write the results as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -973,6 +981,9 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             rays: a.rays,
             samples: a.samples,
             fused_step: fused,
+            occupancy_res: a.occupancy_res,
+            occupancy_every: a.occupancy_every,
+            occupancy_warmup: 0,
             ..TrainConfig::default()
         };
         let params = extranerf_nerf::model::init_params(&model, 0);
@@ -1008,6 +1019,17 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             a.samples,
             t.samples_per_step()
         );
+        let occupied = t.occupied_fraction()?;
+        if let (Some(f), Some(occ)) = (occupied, t.occupancy()) {
+            let g = occ.config();
+            println!(
+                "occupancy grid: {}^3 x {} cascade(s), a sweep every {} steps, {:.1}% of cells occupied after the run",
+                g.res,
+                g.cascades,
+                a.occupancy_every,
+                100.0 * f
+            );
+        }
         println!(
             "{label}: {:.1} ms wall per step ({} steps), {:.3e} samples/s; warm-up incl. kernel compilation {:.1} s",
             secs * 1e3 / a.steps as f64,
@@ -1033,6 +1055,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             "step_ms_wall": secs * 1e3 / a.steps as f64,
             "samples_per_s": sps,
             "warmup_s": warm_s,
+            "occupied_fraction": occupied,
             "stages_ms": stages.iter().map(|(n, ms)| serde_json::json!({"stage": n, "ms": ms})).collect::<Vec<_>>(),
         }));
     }

@@ -84,8 +84,8 @@ pub struct TrainConfig {
     pub occupancy_opacity: f32,
     /// Train with the fused step (one kernel from pixels to gradients, plus the MLP
     /// weight-gradient reduction; see [`FusedStep`]) where the model allows it; false, or a
-    /// model it does not support (precision f16, the occupancy grid, MLP shapes that do not fit
-    /// the uniform block), uses the standalone chain.
+    /// model it does not support (precision f16, MLP shapes that do not fit the uniform
+    /// block), uses the standalone chain.
     #[serde(default = "default_fused_step")]
     pub fused_step: bool,
 }
@@ -783,8 +783,6 @@ impl Trainer {
         let total = nerf.field.layout().total;
         let why_not = if !cfg.fused_step {
             Some("the standalone chain was asked for".to_string())
-        } else if cfg.occupancy_res > 0 {
-            Some("the fused step samples whole rays; the occupancy grid needs the standalone sampler".to_string())
         } else {
             FusedStep::supports(&nerf.field)
                 .err()
@@ -977,7 +975,7 @@ impl Trainer {
         rec.dispatch(&self.batch, b.into_array(), &p, n)?;
         mark(prof, rec, "batch (pixels, targets)")?;
         match &self.fused {
-            Some(fused) => self.record_fused(rec, fused, data, seed, prof)?,
+            Some(fused) => self.record_fused(rec, prims, fused, data, step, seed, prof)?,
             None => self.record_standalone(rec, prims, data, step, seed, prof)?,
         }
         self.record_stats(rec, prims, step)?;
@@ -1161,16 +1159,21 @@ impl Trainer {
     }
 
     /// Records the fused step's forward and backward pass after the batch is drawn.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
     fn record_fused<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
+        prims: &'a Prims,
         fused: &'a FusedStep,
         data: &'a TrainData,
+        step: u32,
         seed: u32,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let ws = &self.ws;
         let nerf = &self.nerf;
+        let skip = self.record_occupancy(rec, prims, step, seed)?;
+        mark(prof, rec, "occupancy update")?;
         rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
         mark(prof, rec, "zero gradients")?;
         let losses = StepLosses {
@@ -1193,6 +1196,7 @@ impl Trainer {
             },
             &losses,
             Some(seed),
+            skip.as_ref(),
             nerf.background,
             &StepOutputs {
                 rgba: ws.out_rgba.binding(),

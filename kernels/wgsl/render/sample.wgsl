@@ -9,10 +9,12 @@
 // per-ray count of strata over the occupied intervals only, as if the empty ones were cut out
 // of [0, 1]. A ray with no occupied interval samples all of it. With every interval occupied it
 // gives `stratified`'s samples. dt is the length in t of a stratum's occupied part; ds is its
-// share of s (the strata of one ray then tile the occupied part of s).
+// share of s (the strata of one ray then tile the occupied part of s). The strata are
+// common/occupied_strata.wgsl's, which the fused training step shares.
 //!include common/dispatch.wgsl
 //!include common/rng.wgsl
 //!include common/occupancy.wgsl
+//!include common/occupied_strata.wgsl
 
 struct Params {
     n_rays: u32,
@@ -40,14 +42,9 @@ var<immediate> params: Params;
 @group(0) @binding(6) var<storage, read_write> rays: array<vec2<u32>>;
 @group(0) @binding(7) var<storage, read> occ_bits: array<u32>;
 
-const MAX_PROBES: u32 = 256u;
-
 // Distance at normalised position s in [0, 1].
 fn t_of(s: f32, near: f32, far: f32) -> f32 {
-    if params.spacing == 1u {
-        return 1.0 / mix(1.0 / near, 1.0 / far, s);
-    }
-    return mix(near, far, s);
+    return strata_t(s, vec2<f32>(near, far), params.spacing);
 }
 
 @compute @workgroup_size(64)
@@ -91,40 +88,6 @@ fn write_sample(idx: u32, o: vec3<f32>, d: vec3<f32>, t: f32, dt: f32, s: f32, d
     s_ds[idx] = vec2<f32>(s, ds);
 }
 
-// Whether probe interval j's centre lies in an occupied cell (points outside the grid count as
-// occupied, as in the march).
-fn probe_occupied(j: u32, o: vec3<f32>, d: vec3<f32>, nf: vec2<f32>) -> bool {
-    let s = (f32(j) + 0.5) / f32(params.probes);
-    let u = (o + t_of(s, nf.x, nf.y) * d - params.centre.xyz) * params.centre.w;
-    let cell = occ_cell(u, OccGrid(params.occ_res, params.occ_cascades));
-    return cell == OCC_NONE || ((occ_bits[cell / 32u] >> (cell % 32u)) & 1u) != 0u;
-}
-
-// The probe interval of occupied rank q (0-based) in the ray's bit mask.
-fn probe_of_rank(mask: ptr<function, array<u32, 8>>, q: u32) -> u32 {
-    var left = q;
-    for (var w = 0u; w < 8u; w += 1u) {
-        let c = countOneBits((*mask)[w]);
-        if left < c {
-            var bits = (*mask)[w];
-            for (var b = 0u; b < left; b += 1u) {
-                // Clear the lowest set bit.
-                bits &= bits - 1u;
-            }
-            return 32u * w + firstTrailingBit(bits);
-        }
-        left -= c;
-    }
-    return MAX_PROBES - 1u;
-}
-
-// s at occupied measure c (in probe intervals, 0 <= c <= count) for the mask's occupied
-// intervals.
-fn s_at(mask: ptr<function, array<u32, 8>>, c: f32, count: u32) -> f32 {
-    let q = min(u32(floor(c)), count - 1u);
-    return (f32(probe_of_rank(mask, q)) + (c - f32(q))) / f32(params.probes);
-}
-
 @compute @workgroup_size(64)
 fn stratified_occupied(@builtin(workgroup_id) wid: vec3<u32>,
                        @builtin(num_workgroups) nwg: vec3<u32>,
@@ -134,43 +97,16 @@ fn stratified_occupied(@builtin(workgroup_id) wid: vec3<u32>,
         return;
     }
     let k = params.per_ray;
-    let m = params.probes;
     let nf = near_far[r];
     let o = origins[r].xyz;
     let d = directions[r].xyz;
     let first = r * k;
     rays[r] = vec2<u32>(first, k);
-    var mask: array<u32, 8>;
-    var count = 0u;
-    for (var j = 0u; j < m; j += 1u) {
-        if probe_occupied(j, o, d, nf) {
-            mask[j / 32u] |= 1u << (j % 32u);
-            count += 1u;
-        }
-    }
-    if count == 0u {
-        for (var j = 0u; j < m; j += 1u) {
-            mask[j / 32u] |= 1u << (j % 32u);
-        }
-        count = m;
-    }
-    let per = f32(count) / f32(k);
-    let pm = 1.0 / f32(m);
+    var mask = probe_mask(o, d, nf, params.spacing, params.probes, params.centre,
+                          OccGrid(params.occ_res, params.occ_cascades));
+    let ds = strata_ds(&mask, k, params.probes);
     for (var i = 0u; i < k; i += 1u) {
-        let c0 = f32(i) * per;
-        let c1 = f32(i + 1u) * per;
-        let s = s_at(&mask, mix(c0, c1, jitter(r, i)), count);
-        // The stratum's occupied pieces, one per probe interval it touches.
-        var dt = 0.0;
-        let q1 = min(u32(ceil(c1)), count);
-        for (var q = u32(floor(c0)); q < q1; q += 1u) {
-            let a = max(c0, f32(q));
-            let b = min(c1, f32(q + 1u));
-            if b > a {
-                let j = f32(probe_of_rank(&mask, q));
-                dt += t_of((j + b - f32(q)) * pm, nf.x, nf.y) - t_of((j + a - f32(q)) * pm, nf.x, nf.y);
-            }
-        }
-        write_sample(first + i, o, d, t_of(s, nf.x, nf.y), dt, s, per * pm);
+        let st = occupied_stratum(&mask, i, k, jitter(r, i), params.probes, nf, params.spacing);
+        write_sample(first + i, o, d, st.x, st.y, st.z, ds);
     }
 }

@@ -1,7 +1,8 @@
 // Fused training step: one thread per ray does the whole forward and backward pass between a
 // batch pixel and the parameter gradients, except the MLP weight-gradient reduction.
 //
-//   pass 1 (forward): ray (NDC or world), jittered stratified samples, per sample the
+//   pass 1 (forward): ray (NDC or world), jittered stratified samples (over the occupied part
+//     of the ray when an occupancy grid is given, as render/sample.wgsl), per sample the
 //     contraction, every hash-grid level, the density MLP, trunc-exp, SH4 and the colour MLP in
 //     registers; compositing, and the O(N) distortion sums.
 //   losses: RGB (L2 or Huber) and depth against the batch targets, as render/loss.wgsl; the
@@ -35,6 +36,7 @@
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
 //!include common/occupancy.wgsl
+//!include common/occupied_strata.wgsl
 //!include common/rng.wgsl
 //!include common/sh.wgsl
 //!include common/volume.wgsl
@@ -79,8 +81,10 @@ struct Params {
     // Floats per sample of the density and colour MLP records.
     density_stride: u32,
     color_stride: u32,
-    _pad0: u32,
-    // Read by common/field_eval.wgsl's `occupied`, which this kernel does not call.
+    // The occupancy grid (occ_cascades 0: none) and the probe intervals per ray: with a grid
+    // the strata cover only the intervals whose centres lie in occupied cells, as
+    // render/sample.wgsl's stratified_occupied places them (common/occupied_strata.wgsl).
+    probes: u32,
     occ_res: u32,
     occ_cascades: u32,
 }
@@ -246,15 +250,20 @@ fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
     }
 }
 
-// The stratum of sample j: (t, dt, s) with s the jittered normalised position.
-fn stratum(ray: u32, j: u32) -> vec3<f32> {
-    let inv_k = 1.0 / f32(params.samples);
-    let s0 = f32(j) * inv_k;
-    let s1 = f32(j + 1u) * inv_k;
+// The stratum of sample j: (t, dt, s) with s the jittered normalised position; with an
+// occupancy grid, spread over the ray's occupied probe intervals `mask`.
+fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
     var jit = 0.5;
     if params.jitter != 0u {
         jit = rand01(pcg_hash(params.seed ^ pcg_hash(ray)) + j);
     }
+    if params.occ_cascades != 0u {
+        return occupied_stratum(mask, j, params.samples, jit, params.probes,
+                                vec2<f32>(params.near, params.far), params.spacing);
+    }
+    let inv_k = 1.0 / f32(params.samples);
+    let s0 = f32(j) * inv_k;
+    let s1 = f32(j + 1u) * inv_k;
     let s = mix(s0, s1, jit);
     return vec3<f32>(t_of(s), t_of(s1) - t_of(s0), s);
 }
@@ -269,7 +278,7 @@ struct Slots {
     u: array<vec3<f32>, 4>,
 }
 
-fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>) -> Slots {
+fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>, mask: ptr<function, ProbeMask>) -> Slots {
     let k = params.samples;
     var sl: Slots;
     for (var q = 0u; q < MLP_GROUP; q += 1u) {
@@ -278,7 +287,7 @@ fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>) -> Slots {
         let jj = min(j, k - 1u);
         sl.rd[q] = (i * k + jj) * params.density_stride;
         sl.rc[q] = (i * k + jj) * params.color_stride;
-        sl.st[q] = stratum(i, jj);
+        sl.st[q] = stratum(i, jj, mask);
         sl.u[q] = scene_point(ray, sl.st[q].x);
     }
     return sl;
@@ -318,6 +327,15 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let sh = sh4(unit_dir(world[1]));
+    // The occupied probe intervals (with a grid) and each stratum's share of s.
+    var mask: ProbeMask;
+    var ds = 1.0 / f32(k);
+    if params.occ_cascades != 0u {
+        mask = probe_mask(ray[0], ray[1], vec2<f32>(params.near, params.far), params.spacing,
+                          params.probes, vec4<f32>(params.center.xyz, params.inv_radius),
+                          OccGrid(params.occ_res, params.occ_cascades));
+        ds = strata_ds(&mask, k, params.probes);
+    }
     let dshape = density_shape[0];
     let cshape = color_shape[0];
 
@@ -331,7 +349,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var a: ActGroup;
     let groups = (k + MLP_GROUP - 1u) / MLP_GROUP;
     for (var gi = 0u; gi < groups; gi += 1u) {
-        let sl = group_slots(i, gi, ray);
+        let sl = group_slots(i, gi, ray, &mask);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             // (A pointer to a[q] cannot be a call argument in SPIR-V: copy through t.)
             var t: Act;
@@ -355,7 +373,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             depth += w * st.x;
             // Distortion: opacity and wm_tot are the running W_<j and WM_<j here.
             let below = st.z * opacity - wm_tot;
-            dist += 2.0 * w * below + w * w / (3.0 * f32(k));
+            dist += 2.0 * w * below + w * w * ds / 3.0;
             opacity += w;
             wm_tot += w * st.z;
         }
@@ -391,7 +409,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var wm_lt = 0.0;
     var g: ActGroup;
     for (var gi = 0u; gi < groups; gi += 1u) {
-        let sl = group_slots(i, gi, ray);
+        let sl = group_slots(i, gi, ray, &mask);
         var sigma = vec4<f32>(0.0);
         var d_sigma = vec4<f32>(0.0);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
@@ -415,7 +433,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             let w_gt = w_tot - w_lt - w;
             let wm_gt = wm_tot - wm_lt - w * m;
             let below = m * w_lt - wm_lt;
-            let dw = lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / (3.0 * f32(k)) * w);
+            let dw = lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / 3.0 * w * ds);
             w_lt += w;
             wm_lt += w * m;
             let uj = dot(col, gc) + st.x * gd + dw;

@@ -11,7 +11,10 @@
 //! It computes what the standalone chain (rays, samples, `Field::forward`/`backward`,
 //! compositing and the loss kernels, see `trainer`) computes, without the per-sample buffers
 //! between kernels. It needs the fused march's MLP shapes ([`color_base`]) and the f32 MLP
-//! record, and it samples whole rays (no occupancy skipping).
+//! record. With an occupancy grid ([`SkipEmpty`]) it spreads each ray's strata over the
+//! ray's occupied probe intervals, as the standalone sampler's `stratified_occupied` does
+//! (`common/occupied_strata.wgsl`, shared by both): the same count per ray, none in empty
+//! space.
 
 use extranerf_gpu::kernels::render::train_step as k;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
@@ -20,6 +23,7 @@ use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
 use crate::render::loss::{LossConfig, RgbLoss, Targets};
 use crate::render::march::{check_sampling_range, color_base, copy_mlp_block};
+use crate::render::sample::{SkipEmpty, MAX_PROBES};
 
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
 /// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
@@ -55,6 +59,8 @@ pub struct StepLosses {
 pub struct FusedStep {
     kernel: Kernel,
     mlp_block: Buffer<f32>,
+    /// Bound as the occupancy bitfield without a grid (the kernel does not read it then).
+    no_bits: Buffer<u32>,
     saved_density: Buffer<f32>,
     saved_color: Buffer<f32>,
     rays: u32,
@@ -93,6 +99,7 @@ impl FusedStep {
         Ok(FusedStep {
             kernel: Kernel::new(ctx, &k::train_step::DESC)?,
             mlp_block: Buffer::new(ctx, "fused step MLP weights", BLOCK_FLOATS)?,
+            no_bits: Buffer::from_slice(ctx, "fused step: no occupancy bits", &[u32::MAX])?,
             saved_density: records(
                 field.config().density_mlp().saved_stride(),
                 "fused step density MLP records",
@@ -116,7 +123,8 @@ impl FusedStep {
     /// depth and distortion) with respect to the hash table to `d_params` (same sections as
     /// `params`; zero it first for a fresh gradient), and the MLPs' records. Follow with
     /// [`FusedStep::record_weight_gradients`] for the MLPs' share. `seed` jitters the strata as
-    /// the standalone sampler does.
+    /// the standalone sampler does; `skip` spreads the strata over occupied space (its scene
+    /// box must be the field's).
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn record<'a>(
         &'a self,
@@ -130,6 +138,7 @@ impl FusedStep {
         targets: &Targets<'a>,
         losses: &StepLosses,
         seed: Option<u32>,
+        skip: Option<&SkipEmpty<'a>>,
         background: [f32; 3],
         out: &StepOutputs<'a>,
     ) -> Result<()> {
@@ -160,6 +169,27 @@ impl FusedStep {
         }
         let ndc = cfg.space == "ndc";
         let scene = field.scene();
+        let (probes, occ_res, occ_cascades, occ_bits) = match skip {
+            None => (0, 0, 0, self.no_bits.binding()),
+            Some(skip) => {
+                if !(1..=MAX_PROBES).contains(&skip.probes) {
+                    return Err(GpuError::Usage(format!(
+                        "{} occupancy probes per ray: use 1 to {MAX_PROBES}",
+                        skip.probes
+                    )));
+                }
+                if skip.scene != *scene {
+                    return Err(GpuError::Usage(format!(
+                        "the fused step maps samples to the occupancy grid with the field's scene box {scene:?}, not {:?}",
+                        skip.scene
+                    )));
+                }
+                let g = skip.grid.config();
+                (g.res > 0 && g.cascades > 0)
+                    .then_some((skip.probes, g.res, g.cascades, skip.grid.bits().binding()))
+                    .ok_or_else(|| GpuError::Usage(format!("empty occupancy grid {g:?}")))?
+            }
+        };
         let base = copy_mlp_block(rec, field, &params, &self.mlp_block)?;
         let p = k::Params {
             n: self.rays,
@@ -190,9 +220,9 @@ impl FusedStep {
             grad_scaling: u32::from(losses.grad_scaling),
             density_stride: cfg.density_mlp().saved_stride() as u32,
             color_stride: cfg.color_mlp().saved_stride() as u32,
-            _pad0: 0,
-            occ_res: 0,
-            occ_cascades: 0,
+            probes,
+            occ_res,
+            occ_cascades,
         };
         let (table, table_hi) = field.grid().parts(params[0])?;
         let (d_table, d_table_hi) = field.grid().parts(d_params[0])?;
@@ -205,6 +235,7 @@ impl FusedStep {
             color_shape: field.color().shape().binding(),
             target_rgb: targets.rgb,
             target_depth: targets.depth,
+            occ_bits,
             out_rgba: out.rgba,
             out_depth: out.depth,
             loss: out.loss,
