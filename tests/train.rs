@@ -513,8 +513,9 @@ fn all_black_and_all_white_images_train_without_nan() {
 /// reduction) against the standalone chain, whose kernels the tests above check against the f64
 /// reference: the same batch loss, MSE and gradient of every parameter, in NDC and in contracted
 /// world space, with L2 and Huber, depth targets on some pixels, the distortion loss and
-/// gradient scaling; 12 samples per ray fill three MLP groups, and 10 (case 2) leave two slots
-/// of the last group empty.
+/// gradient scaling, and with occupancy grids swept and thresholded in the step (the strata then
+/// cover only occupied probe intervals); 12 samples per ray fill three MLP groups, and 10 (the
+/// even cases) leave two slots of the last group empty.
 #[test]
 fn fused_step_gradient_matches_the_standalone_chain() {
     use extranerf_nerf::demo::write_demo_scene;

@@ -923,9 +923,10 @@ pub struct BenchTrainArgs {
     /// same-run reference of the fused step's speed).
     #[arg(long, value_name = "KIND", default_value = "both", value_parser = ["fused", "standalone", "both"])]
     step: String,
-    /// Train with an occupancy grid of this many cells per axis (0: none), in use from the
-    /// first step: each step then also runs its share of the grid's sweep, and the strata
-    /// cover only the rays' occupied probe intervals.
+    /// Train with an occupancy grid of this many cells per axis (0: none), with no warm-up:
+    /// each step also runs its share of the grid's sweep, and once the first sweep has set
+    /// the bits (step --occupancy-every) the strata cover only the rays' occupied probe
+    /// intervals (every cell counts as occupied before).
     #[arg(long, default_value_t = 0, value_name = "N")]
     occupancy_res: u32,
     /// Steps per sweep of that grid.
