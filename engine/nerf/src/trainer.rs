@@ -974,9 +974,11 @@ impl Trainer {
         };
         rec.dispatch(&self.batch, b.into_array(), &p, n)?;
         mark(prof, rec, "batch (pixels, targets)")?;
+        let skip = self.record_occupancy(rec, prims, step, seed)?;
+        mark(prof, rec, "occupancy update")?;
         match &self.fused {
-            Some(fused) => self.record_fused(rec, prims, fused, data, step, seed, prof)?,
-            None => self.record_standalone(rec, prims, data, step, seed, prof)?,
+            Some(fused) => self.record_fused(rec, fused, data, seed, skip.as_ref(), prof)?,
+            None => self.record_standalone(rec, data, seed, skip.as_ref(), prof)?,
         }
         self.record_stats(rec, prims, step)?;
         mark(prof, rec, "loss and MSE stats")?;
@@ -988,22 +990,19 @@ impl Trainer {
     }
 
     /// Records the standalone chain's forward pass, losses and backward pass after the batch
-    /// is drawn (every sample in memory between kernels).
+    /// is drawn and the occupancy grid updated (every sample in memory between kernels).
     fn record_standalone<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
-        prims: &'a Prims,
         data: &'a TrainData,
-        step: u32,
         seed: u32,
+        skip: Option<&SkipEmpty<'a>>,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let ws = &self.ws;
         let n = ws.rays as u64;
         let ns = n * ws.samples as u64;
         let nerf = &self.nerf;
-        let skip = self.record_occupancy(rec, prims, step, seed)?;
-        mark(prof, rec, "occupancy update")?;
         nerf.record_forward(
             rec,
             ws,
@@ -1011,7 +1010,7 @@ impl Trainer {
             data.n_images,
             n,
             Some(seed),
-            skip.as_ref(),
+            skip,
             prof,
         )?;
         let samples = ws.samples(n);
@@ -1158,22 +1157,19 @@ impl Trainer {
         )
     }
 
-    /// Records the fused step's forward and backward pass after the batch is drawn.
-    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    /// Records the fused step's forward and backward pass after the batch is drawn and the
+    /// occupancy grid updated.
     fn record_fused<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
-        prims: &'a Prims,
         fused: &'a FusedStep,
         data: &'a TrainData,
-        step: u32,
         seed: u32,
+        skip: Option<&SkipEmpty<'a>>,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let ws = &self.ws;
         let nerf = &self.nerf;
-        let skip = self.record_occupancy(rec, prims, step, seed)?;
-        mark(prof, rec, "occupancy update")?;
         rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
         mark(prof, rec, "zero gradients")?;
         let losses = StepLosses {
@@ -1196,7 +1192,7 @@ impl Trainer {
             },
             &losses,
             Some(seed),
-            skip.as_ref(),
+            skip,
             nerf.background,
             &StepOutputs {
                 rgba: ws.out_rgba.binding(),

@@ -10,11 +10,11 @@
 // of [0, 1]. A ray with no occupied interval samples all of it. With every interval occupied it
 // gives `stratified`'s samples. dt is the length in t of a stratum's occupied part; ds is its
 // share of s (the strata of one ray then tile the occupied part of s). The strata are
-// common/occupied_strata.wgsl's, which the fused training step shares.
+// common/strata.wgsl's, which the fused training step shares.
 //!include common/dispatch.wgsl
 //!include common/rng.wgsl
 //!include common/occupancy.wgsl
-//!include common/occupied_strata.wgsl
+//!include common/strata.wgsl
 
 struct Params {
     n_rays: u32,
@@ -42,11 +42,6 @@ var<immediate> params: Params;
 @group(0) @binding(6) var<storage, read_write> rays: array<vec2<u32>>;
 @group(0) @binding(7) var<storage, read> occ_bits: array<u32>;
 
-// Distance at normalised position s in [0, 1].
-fn t_of(s: f32, near: f32, far: f32) -> f32 {
-    return strata_t(s, vec2<f32>(near, far), params.spacing);
-}
-
 @compute @workgroup_size(64)
 fn stratified(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
               @builtin(local_invocation_index) lid: u32) {
@@ -62,19 +57,15 @@ fn stratified(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     rays[r] = vec2<u32>(first, k);
     let inv_k = 1.0 / f32(k);
     for (var i = 0u; i < k; i += 1u) {
-        // Stratum edges and the jittered point inside it.
-        let s0 = f32(i) * inv_k;
-        let s1 = f32(i + 1u) * inv_k;
-        let s = mix(s0, s1, jitter(r, i));
-        let dt = t_of(s1, nf.x, nf.y) - t_of(s0, nf.x, nf.y);
-        write_sample(first + i, o, d, t_of(s, nf.x, nf.y), dt, s, inv_k);
+        let st = ray_stratum(i, k, jitter(r, i), nf, params.spacing);
+        write_sample(first + i, o, d, st.x, st.y, st.z, inv_k);
     }
 }
 
 // The position of sample i of ray r inside its stratum, in [0, 1).
 fn jitter(r: u32, i: u32) -> f32 {
     if params.jitter != 0u {
-        return rand01(pcg_hash(params.seed ^ pcg_hash(r)) + i);
+        return strata_jitter(params.seed, r, i);
     }
     return 0.5;
 }

@@ -36,8 +36,8 @@
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
 //!include common/occupancy.wgsl
-//!include common/occupied_strata.wgsl
 //!include common/rng.wgsl
+//!include common/strata.wgsl
 //!include common/sh.wgsl
 //!include common/volume.wgsl
 //!include common/field_eval.wgsl
@@ -83,7 +83,7 @@ struct Params {
     color_stride: u32,
     // The occupancy grid (occ_cascades 0: none) and the probe intervals per ray: with a grid
     // the strata cover only the intervals whose centres lie in occupied cells, as
-    // render/sample.wgsl's stratified_occupied places them (common/occupied_strata.wgsl).
+    // render/sample.wgsl's stratified_occupied places them (common/strata.wgsl).
     probes: u32,
     occ_res: u32,
     occ_cascades: u32,
@@ -255,17 +255,13 @@ fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
 fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
     var jit = 0.5;
     if params.jitter != 0u {
-        jit = rand01(pcg_hash(params.seed ^ pcg_hash(ray)) + j);
+        jit = strata_jitter(params.seed, ray, j);
     }
+    let nf = vec2<f32>(params.near, params.far);
     if params.occ_cascades != 0u {
-        return occupied_stratum(mask, j, params.samples, jit, params.probes,
-                                vec2<f32>(params.near, params.far), params.spacing);
+        return occupied_stratum(mask, j, params.samples, jit, params.probes, nf, params.spacing);
     }
-    let inv_k = 1.0 / f32(params.samples);
-    let s0 = f32(j) * inv_k;
-    let s1 = f32(j + 1u) * inv_k;
-    let s = mix(s0, s1, jit);
-    return vec3<f32>(t_of(s), t_of(s1) - t_of(s0), s);
+    return ray_stratum(j, params.samples, jit, nf, params.spacing);
 }
 
 // The samples of group gi of ray i: validity, record offsets (density, colour), strata

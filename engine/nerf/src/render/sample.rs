@@ -21,6 +21,19 @@ pub struct SkipEmpty<'a> {
     pub probes: u32,
 }
 
+impl SkipEmpty<'_> {
+    /// The probe count, when it is in range.
+    pub fn checked_probes(&self) -> Result<u32> {
+        if !(1..=MAX_PROBES).contains(&self.probes) {
+            return Err(GpuError::Usage(format!(
+                "{} occupancy probes per ray: use 1 to {MAX_PROBES}",
+                self.probes
+            )));
+        }
+        Ok(self.probes)
+    }
+}
+
 /// How samples are spaced between near and far.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Spacing {
@@ -101,17 +114,11 @@ impl Sampler {
             centre: [0.0; 4],
         };
         if let Some(skip) = skip {
-            if !(1..=MAX_PROBES).contains(&skip.probes) {
-                return Err(GpuError::Usage(format!(
-                    "{} occupancy probes per ray: use 1 to {MAX_PROBES}",
-                    skip.probes
-                )));
-            }
+            p.probes = skip.checked_probes()?;
             let g = skip.grid.config();
             let c = skip.scene.center;
             p.occ_res = g.res;
             p.occ_cascades = g.cascades;
-            p.probes = skip.probes;
             p.centre = [c[0], c[1], c[2], 1.0 / skip.scene.radius];
             let b = k::stratified_occupied::Bindings {
                 origins,

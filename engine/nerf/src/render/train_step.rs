@@ -13,7 +13,7 @@
 //! between kernels. It needs the fused march's MLP shapes ([`color_base`]) and the f32 MLP
 //! record. With an occupancy grid ([`SkipEmpty`]) it spreads each ray's strata over the
 //! ray's occupied probe intervals, as the standalone sampler's `stratified_occupied` does
-//! (`common/occupied_strata.wgsl`, shared by both): the same count per ray, none in empty
+//! (`common/strata.wgsl`, shared by both): the same count per ray, none in empty
 //! space.
 
 use extranerf_gpu::kernels::render::train_step as k;
@@ -23,7 +23,7 @@ use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
 use crate::render::loss::{LossConfig, RgbLoss, Targets};
 use crate::render::march::{check_sampling_range, color_base, copy_mlp_block};
-use crate::render::sample::{SkipEmpty, MAX_PROBES};
+use crate::render::sample::SkipEmpty;
 
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
 /// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
@@ -172,12 +172,7 @@ impl FusedStep {
         let (probes, occ_res, occ_cascades, occ_bits) = match skip {
             None => (0, 0, 0, self.no_bits.binding()),
             Some(skip) => {
-                if !(1..=MAX_PROBES).contains(&skip.probes) {
-                    return Err(GpuError::Usage(format!(
-                        "{} occupancy probes per ray: use 1 to {MAX_PROBES}",
-                        skip.probes
-                    )));
-                }
+                let probes = skip.checked_probes()?;
                 if skip.scene != *scene {
                     return Err(GpuError::Usage(format!(
                         "the fused step maps samples to the occupancy grid with the field's scene box {scene:?}, not {:?}",
@@ -185,9 +180,7 @@ impl FusedStep {
                     )));
                 }
                 let g = skip.grid.config();
-                (g.res > 0 && g.cascades > 0)
-                    .then_some((skip.probes, g.res, g.cascades, skip.grid.bits().binding()))
-                    .ok_or_else(|| GpuError::Usage(format!("empty occupancy grid {g:?}")))?
+                (probes, g.res, g.cascades, skip.grid.bits().binding())
             }
         };
         let base = copy_mlp_block(rec, field, &params, &self.mlp_block)?;

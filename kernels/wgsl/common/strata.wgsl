@@ -1,11 +1,14 @@
-// Occupancy-aware strata along a ray (render/sample.wgsl's stratified_occupied and the fused
-// training step, render/train_step.wgsl). The ray's normalised distance s in [0, 1] is cut
-// into `probes` equal intervals, each tested once, at its centre, against the occupancy grid;
-// the ray's k strata are then spread over the occupied intervals only, as if the empty ones
-// were cut out of [0, 1]. A ray with no occupied interval samples all of it. Points outside
-// the grid count as occupied, as in the march.
+// Stratified samples along a ray, shared by render/sample.wgsl and the fused training step
+// (render/train_step.wgsl): k strata over the ray's normalised distance s in [0, 1], each
+// sample jittered inside its stratum.
 //
-// Textual include after common/occupancy.wgsl; the including file declares `occ_bits`.
+// Occupancy-aware strata: s is cut into `probes` equal intervals, each tested once, at its
+// centre, against the occupancy grid; the ray's k strata are then spread over the occupied
+// intervals only, as if the empty ones were cut out of [0, 1]. A ray with no occupied interval
+// samples all of it. Points outside the grid count as occupied, as in the march.
+//
+// Textual include after common/rng.wgsl and common/occupancy.wgsl; the including file declares
+// `occ_bits`.
 
 const MAX_PROBES: u32 = 256u;
 
@@ -22,6 +25,21 @@ fn strata_t(s: f32, nf: vec2<f32>, spacing: u32) -> f32 {
         return 1.0 / mix(1.0 / nf.x, 1.0 / nf.y, s);
     }
     return mix(nf.x, nf.y, s);
+}
+
+// The position in [0, 1) of sample i of ray r inside its stratum for jitter seed `seed`.
+fn strata_jitter(seed: u32, r: u32, i: u32) -> f32 {
+    return rand01(pcg_hash(seed ^ pcg_hash(r)) + i);
+}
+
+// Stratum i of k over the whole ray, at position `jit` in [0, 1) inside it: (t, dt, s).
+// Each stratum's share of s is 1 / k.
+fn ray_stratum(i: u32, k: u32, jit: f32, nf: vec2<f32>, spacing: u32) -> vec3<f32> {
+    let inv_k = 1.0 / f32(k);
+    let s0 = f32(i) * inv_k;
+    let s1 = f32(i + 1u) * inv_k;
+    let s = mix(s0, s1, jit);
+    return vec3<f32>(strata_t(s, nf, spacing), strata_t(s1, nf, spacing) - strata_t(s0, nf, spacing), s);
 }
 
 // The probe mask of the ray o + t d (t between nf.x and nf.y); scene points are
