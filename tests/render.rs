@@ -6,7 +6,7 @@
 
 use extranerf_gpu::{Buffer, GpuError};
 use extranerf_nerf::reference::{composite_backward, composite_forward, distortion};
-use extranerf_nerf::render::composite::{Compositor, RayGrads, Samples};
+use extranerf_nerf::render::composite::{Background, Compositor, RayGrads, Samples};
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine};
 
@@ -129,124 +129,148 @@ fn composite_and_distortion_match_reference() {
         n_rays: nr as u64,
         n_samples: ns as u64,
     };
-    let mut rec = e.ctx.recorder("composite").unwrap();
-    comp.forward(&mut rec, &s, bg, out_rgba.binding(), out_depth.binding())
+    // A fixed background, then a random one per ray (the reference's ray_background).
+    for background in [Background::Fixed(bg), Background::Random(0x5eed_1234)] {
+        let mut rec = e.ctx.recorder("composite").unwrap();
+        comp.forward(
+            &mut rec,
+            &s,
+            background,
+            out_rgba.binding(),
+            out_depth.binding(),
+        )
         .unwrap();
-    comp.distortion(
-        &mut rec,
-        &s,
-        s_ds.binding(),
-        lambda,
-        loss.binding(),
-        d_weight.binding(),
-    )
-    .unwrap();
-    // Gradient scaling on: rays start at t in [0.2, 3], so samples below t = 1 are scaled.
-    let g = RayGrads {
-        d_rgba: g_rgba.binding(),
-        d_depth: g_depth.binding(),
-        d_weight: d_weight.binding(),
-        grad_scaling: true,
-    };
-    comp.backward(&mut rec, &s, bg, &g, d_sigma.binding(), d_rgb.binding())
+        comp.distortion(
+            &mut rec,
+            &s,
+            s_ds.binding(),
+            lambda,
+            loss.binding(),
+            d_weight.binding(),
+        )
         .unwrap();
-    e.ctx.run(rec).unwrap();
+        // Gradient scaling on: rays start at t in [0.2, 3], so samples below t = 1 are scaled.
+        let g = RayGrads {
+            d_rgba: g_rgba.binding(),
+            d_depth: g_depth.binding(),
+            d_weight: d_weight.binding(),
+            grad_scaling: true,
+        };
+        comp.backward(
+            &mut rec,
+            &s,
+            background,
+            &g,
+            d_sigma.binding(),
+            d_rgb.binding(),
+        )
+        .unwrap();
+        e.ctx.run(rec).unwrap();
 
-    let (rgba, depth, loss, dw) = (
-        out_rgba.read().unwrap(),
-        out_depth.read().unwrap(),
-        loss.read().unwrap(),
-        d_weight.read().unwrap(),
-    );
-    let (ds, drgb) = (d_sigma.read().unwrap(), d_rgb.read().unwrap());
-    for (r, &[first, count]) in b.rays.iter().enumerate() {
-        let range = first as usize..(first + count) as usize;
-        let (sg, col, tdt, sds) = (
-            &b.sigma[range.clone()],
-            &b.rgb[range.clone()],
-            &b.t_dt[range.clone()],
-            &b.s_ds[range.clone()],
+        let (rgba, depth, loss, dw) = (
+            out_rgba.read().unwrap(),
+            out_depth.read().unwrap(),
+            loss.read().unwrap(),
+            d_weight.read().unwrap(),
         );
-        let want = composite_forward(sg, col, tdt, bg);
-        let t_max = tdt.last().map_or(1.0, |v| v[0] as f64);
-        // Stated tolerances: 5e-5 on colour and opacity (f32 transmittance over up to 160
-        // samples), 5e-5 of the farthest sample on depth.
-        for k in 0..4 {
-            assert!(
-                (rgba[4 * r + k] as f64 - want[k]).abs() <= 5e-5,
-                "ray {r} channel {k}: {} vs {}",
-                rgba[4 * r + k],
-                want[k]
+        let (ds, drgb) = (d_sigma.read().unwrap(), d_rgb.read().unwrap());
+        for (r, &[first, count]) in b.rays.iter().enumerate() {
+            let bg = background.colour(r as u32);
+            let range = first as usize..(first + count) as usize;
+            let (sg, col, tdt, sds) = (
+                &b.sigma[range.clone()],
+                &b.rgb[range.clone()],
+                &b.t_dt[range.clone()],
+                &b.s_ds[range.clone()],
             );
-        }
-        assert!(
-            (depth[r] as f64 - want[4]).abs() <= 5e-5 * t_max,
-            "ray {r} depth: {} vs {}",
-            depth[r],
-            want[4]
-        );
-        let (l, gw) = distortion(sg, tdt, sds, lambda);
-        assert!(
-            (loss[r] as f64 - l).abs() <= 1e-4 * lambda as f64,
-            "ray {r} distortion: {} vs {l}",
-            loss[r]
-        );
-        for (i, &g) in gw.iter().enumerate() {
-            assert!(
-                (dw[first as usize + i] as f64 - g).abs() <= 1e-4 * lambda as f64,
-                "ray {r} sample {i} dL/dw: {} vs {g}",
-                dw[first as usize + i]
-            );
-        }
-        let dw_f32: Vec<f32> = dw[range.clone()].to_vec();
-        let (want_ds, want_drgb) =
-            composite_backward(sg, col, tdt, bg, d_rgba[r], d_depth[r], &dw_f32, true);
-        // |dL/dx| <= 2 max|u| + |background term|; 1e-4 of that bound, times dt.
-        let u_max = (0..sg.len())
-            .map(|i| {
-                (0..3)
-                    .map(|c| (col[i][c] * d_rgba[r][c]).abs())
-                    .sum::<f32>()
-                    + (tdt[i][0] * d_depth[r]).abs()
-                    + d_rgba[r][3].abs()
-                    + dw_f32[i].abs()
-            })
-            .fold(0.0f32, f32::max) as f64;
-        let bound = 2.0 * u_max
-            + (0..3)
-                .map(|c| (bg[c] * d_rgba[r][c]).abs() as f64)
-                .sum::<f64>();
-        for i in 0..sg.len() {
-            let s = first as usize + i;
-            let tol = 1e-4 * bound * tdt[i][1] as f64 + 1e-12;
-            assert!(
-                ds[s].is_finite() && (ds[s] as f64 - want_ds[i]).abs() <= tol,
-                "ray {r} sample {i} dL/dsigma: {} vs {} (tol {tol})",
-                ds[s],
-                want_ds[i]
-            );
-            for c in 0..3 {
+            let want = composite_forward(sg, col, tdt, bg);
+            let t_max = tdt.last().map_or(1.0, |v| v[0] as f64);
+            // Stated tolerances: 5e-5 on colour and opacity (f32 transmittance over up to 160
+            // samples), 5e-5 of the farthest sample on depth.
+            for k in 0..4 {
                 assert!(
-                    (drgb[4 * s + c] as f64 - want_drgb[i][c]).abs() <= 5e-5,
-                    "ray {r} sample {i} dL/drgb"
+                    (rgba[4 * r + k] as f64 - want[k]).abs() <= 5e-5,
+                    "ray {r} channel {k}: {} vs {}",
+                    rgba[4 * r + k],
+                    want[k]
                 );
             }
+            assert!(
+                (depth[r] as f64 - want[4]).abs() <= 5e-5 * t_max,
+                "ray {r} depth: {} vs {}",
+                depth[r],
+                want[4]
+            );
+            let (l, gw) = distortion(sg, tdt, sds, lambda);
+            assert!(
+                (loss[r] as f64 - l).abs() <= 1e-4 * lambda as f64,
+                "ray {r} distortion: {} vs {l}",
+                loss[r]
+            );
+            for (i, &g) in gw.iter().enumerate() {
+                assert!(
+                    (dw[first as usize + i] as f64 - g).abs() <= 1e-4 * lambda as f64,
+                    "ray {r} sample {i} dL/dw: {} vs {g}",
+                    dw[first as usize + i]
+                );
+            }
+            let dw_f32: Vec<f32> = dw[range.clone()].to_vec();
+            let (want_ds, want_drgb) =
+                composite_backward(sg, col, tdt, bg, d_rgba[r], d_depth[r], &dw_f32, true);
+            // |dL/dx| <= 2 max|u| + |background term|; 1e-4 of that bound, times dt.
+            let u_max = (0..sg.len())
+                .map(|i| {
+                    (0..3)
+                        .map(|c| (col[i][c] * d_rgba[r][c]).abs())
+                        .sum::<f32>()
+                        + (tdt[i][0] * d_depth[r]).abs()
+                        + d_rgba[r][3].abs()
+                        + dw_f32[i].abs()
+                })
+                .fold(0.0f32, f32::max) as f64;
+            let bound = 2.0 * u_max
+                + (0..3)
+                    .map(|c| (bg[c] * d_rgba[r][c]).abs() as f64)
+                    .sum::<f64>();
+            for i in 0..sg.len() {
+                let s = first as usize + i;
+                let tol = 1e-4 * bound * tdt[i][1] as f64 + 1e-12;
+                assert!(
+                    ds[s].is_finite() && (ds[s] as f64 - want_ds[i]).abs() <= tol,
+                    "ray {r} sample {i} dL/dsigma: {} vs {} (tol {tol})",
+                    ds[s],
+                    want_ds[i]
+                );
+                for c in 0..3 {
+                    assert!(
+                        (drgb[4 * s + c] as f64 - want_drgb[i][c]).abs() <= 5e-5,
+                        "ray {r} sample {i} dL/drgb"
+                    );
+                }
+            }
+        }
+        // The extremes at the front: empty ray shows the background; opaque ray shows its first
+        // sample; no NaN anywhere.
+        let bg = background.colour(0);
+        assert_eq!(&rgba[0..4], &[bg[0], bg[1], bg[2], 0.0]);
+        assert!((rgba[4 * 2 + 3] - 1.0).abs() < 1e-6);
+        for c in 0..3 {
+            assert!((rgba[4 * 2 + c] - b.rgb[b.rays[2][0] as usize][c]).abs() < 1e-6);
+        }
+        assert!(rgba
+            .iter()
+            .chain(&depth)
+            .chain(&ds)
+            .chain(&drgb)
+            .chain(&dw)
+            .all(|v| v.is_finite()));
+        if let Background::Random(_) = background {
+            // The per-ray colours differ and lie in [0, 1).
+            let (c0, c1) = (background.colour(0), background.colour(1));
+            assert_ne!(c0, c1);
+            assert!(c0.iter().chain(&c1).all(|v| (0.0..1.0).contains(v)));
         }
     }
-    // The extremes at the front: empty ray shows the background; opaque ray shows its first
-    // sample; no NaN anywhere.
-    assert_eq!(&rgba[0..4], &[bg[0], bg[1], bg[2], 0.0]);
-    assert!((rgba[4 * 2 + 3] - 1.0).abs() < 1e-6);
-    for c in 0..3 {
-        assert!((rgba[4 * 2 + c] - b.rgb[b.rays[2][0] as usize][c]).abs() < 1e-6);
-    }
-    assert!(rgba
-        .iter()
-        .chain(&depth)
-        .chain(&ds)
-        .chain(&drgb)
-        .chain(&dw)
-        .all(|v| v.is_finite()));
     assert_no_validation_messages(&e.ctx);
 }
 

@@ -514,8 +514,8 @@ fn all_black_and_all_white_images_train_without_nan() {
 /// reference: the same batch loss, MSE and gradient of every parameter, in NDC and in contracted
 /// world space, with L2 and Huber, depth targets on some pixels, the distortion loss and
 /// gradient scaling, and with occupancy grids swept and thresholded in the step (the strata then
-/// cover only occupied probe intervals); 12 samples per ray fill three MLP groups, and 10 (the
-/// even cases) leave two slots of the last group empty.
+/// cover only occupied probe intervals), with a fixed and a random background; 12 samples per
+/// ray fill three MLP groups, and 10 (the even cases) leave two slots of the last group empty.
 #[test]
 fn fused_step_gradient_matches_the_standalone_chain() {
     use extranerf_nerf::demo::write_demo_scene;
@@ -589,6 +589,8 @@ fn fused_step_gradient_matches_the_standalone_chain() {
                 grad_scaling,
                 seed: 9,
                 background: [0.2, 0.5, 0.9],
+                // Cases 1 and 4: a random background per ray.
+                random_background: ci % 3 == 1,
                 fused_step: fused,
                 occupancy_res,
                 occupancy_every: 1,

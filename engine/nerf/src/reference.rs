@@ -578,6 +578,16 @@ pub fn rand01(v: u32) -> f32 {
     (pcg_hash(v) >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
+/// The random background of batch ray `r` for seed `seed` (as `ray_background`).
+pub fn ray_background(seed: u32, r: u32) -> [f32; 3] {
+    let h = pcg_hash(seed ^ 0x6a09_e667 ^ pcg_hash(r ^ 0xbb67_ae85));
+    [
+        rand01(h),
+        rand01(h.wrapping_add(1)),
+        rand01(h.wrapping_add(2)),
+    ]
+}
+
 /// Occupancy cell of a scene-normalised point (f32 arithmetic as the kernel), or `None`
 /// outside the grid; the flag is true when the point lies within 1e-4 cells of a cell face,
 /// where fused and unfused f32 arithmetic may disagree.

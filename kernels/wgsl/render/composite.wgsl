@@ -3,14 +3,17 @@
 // functions (common/volume.wgsl). rays[r] = (first sample, sample count).
 //!include common/dispatch.wgsl
 //!include common/volume.wgsl
+//!include common/rng.wgsl
 
 struct Params {
     n_rays: u32,
     // Floaters No More (Philip & Deschaintre 2023): 1 scales each sample's gradients by
     // min(1, t^2), damping the near-camera floaters that few views constrain.
     grad_scaling: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // Non-zero: each ray's background is random (common/rng.wgsl's ray_background from
+    // `bg_seed`), not `background`.
+    random_bg: u32,
+    bg_seed: u32,
     // Background colour (rgb, w unused), added with the ray's final transmittance.
     background: vec4<f32>,
 }
@@ -52,7 +55,8 @@ fn composite_fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
         opacity += w;
     }
     let t_end = exp(-tau);
-    out_rgba[r] = vec4<f32>(c + t_end * params.background.xyz, opacity);
+    let bgc = ray_background(params.background.xyz, params.random_bg, params.bg_seed, r);
+    out_rgba[r] = vec4<f32>(c + t_end * bgc, opacity);
     out_depth[r] = depth;
 }
 
@@ -76,7 +80,8 @@ fn composite_bwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
         let u = dot(rgb[s].xyz, g.xyz) + t_dt[s].x * gd + g.w + d_weight[s];
         total += w * u;
     }
-    let bg = exp(-tau) * dot(params.background.xyz, g.xyz);
+    let bgc = ray_background(params.background.xyz, params.random_bg, params.bg_seed, r);
+    let bg = exp(-tau) * dot(bgc, g.xyz);
     // Second pass: suffix sums as total minus the running prefix.
     tau = 0.0;
     var prefix = 0.0;

@@ -62,9 +62,11 @@ struct Params {
     levels: u32,
     features: u32,
     geo_dims: u32,
-    // Jitter seed of the strata (render/sample.wgsl's); jitter 0 puts samples at midpoints.
+    // Seed of the strata's jitter (render/sample.wgsl's) and of random backgrounds.
     seed: u32,
-    jitter: u32,
+    // Bit 0: jitter the strata (else samples sit at midpoints); bit 1: each ray's background
+    // is random (common/rng.wgsl's ray_background from `seed`), not `background.xyz`.
+    flags: u32,
     n_cameras: u32,
     // Float offset of the colour MLP in the uniform weight block.
     color_base: u32,
@@ -254,7 +256,7 @@ fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
 // occupancy grid, spread over the ray's occupied probe intervals `mask`.
 fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
     var jit = 0.5;
-    if params.jitter != 0u {
+    if (params.flags & 1u) != 0u {
         jit = strata_jitter(params.seed, ray, j);
     }
     let nf = vec2<f32>(params.near, params.far);
@@ -375,7 +377,8 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         }
     }
     let t_end = exp(-tau);
-    let rgb_out = c + t_end * params.background.xyz;
+    let bgc = ray_background(params.background.xyz, params.flags & 2u, params.seed, i);
+    let rgb_out = c + t_end * bgc;
     out_rgba[i] = vec4<f32>(rgb_out, opacity);
     out_depth[i] = depth;
 
@@ -393,7 +396,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let w_tot = opacity;
     // sum_j w_j dL/dw_j: colour, depth and (the distortion loss being quadratic in w) 2 L.
     let total = dot(c, gc) + depth * gd + 2.0 * lam * dist;
-    let bg = t_end * dot(params.background.xyz, gc);
+    let bg = t_end * dot(bgc, gc);
 
     // Pass 2: per sample its forward values again (the MLPs' outputs from the records), the
     // compositing gradient in order, then the group's backward through both MLPs.

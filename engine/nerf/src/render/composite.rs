@@ -54,6 +54,35 @@ fn n32(n: u64) -> Result<u32> {
     extranerf_gpu::count_u32(n, "rays")
 }
 
+/// The colour behind each ray, added with its final transmittance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Background {
+    /// One colour for every ray.
+    Fixed([f32; 3]),
+    /// A colour per ray, uniform in [0, 1)^3, from this seed and the ray's index in its batch
+    /// ([`crate::reference::ray_background`]); training with it keeps a ray from passing for a
+    /// dark or light surface by staying transparent.
+    Random(u32),
+}
+
+impl Background {
+    /// The kernels' (colour, random flag, seed).
+    pub fn parts(self) -> ([f32; 3], u32, u32) {
+        match self {
+            Background::Fixed(c) => (c, 0, 0),
+            Background::Random(seed) => ([0.0; 3], 1, seed),
+        }
+    }
+
+    /// The colour behind batch ray `r`.
+    pub fn colour(self, r: u32) -> [f32; 3] {
+        match self {
+            Background::Fixed(c) => c,
+            Background::Random(seed) => crate::reference::ray_background(seed, r),
+        }
+    }
+}
+
 impl Compositor {
     /// Builds the kernels.
     pub fn new(ctx: &Context) -> Result<Compositor> {
@@ -64,13 +93,14 @@ impl Compositor {
         })
     }
 
-    fn params(n_rays: u64, background: [f32; 3], grad_scaling: bool) -> Result<k::Params> {
+    fn params(n_rays: u64, background: Background, grad_scaling: bool) -> Result<k::Params> {
+        let (colour, random_bg, bg_seed) = background.parts();
         Ok(k::Params {
             n_rays: n32(n_rays)?,
             grad_scaling: u32::from(grad_scaling),
-            _pad1: 0,
-            _pad2: 0,
-            background: [background[0], background[1], background[2], 0.0],
+            random_bg,
+            bg_seed,
+            background: [colour[0], colour[1], colour[2], 0.0],
         })
     }
 
@@ -80,7 +110,7 @@ impl Compositor {
         &'a self,
         rec: &mut Recorder<'a>,
         s: &Samples<'a>,
-        background: [f32; 3],
+        background: Background,
         out_rgba: Binding<'a>,
         out_depth: Binding<'a>,
     ) -> Result<()> {
@@ -108,7 +138,7 @@ impl Compositor {
         &'a self,
         rec: &mut Recorder<'a>,
         s: &Samples<'a>,
-        background: [f32; 3],
+        background: Background,
         g: &RayGrads<'a>,
         d_sigma: Binding<'a>,
         d_rgb: Binding<'a>,

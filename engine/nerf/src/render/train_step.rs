@@ -21,6 +21,7 @@ use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recor
 
 use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
+use crate::render::composite::Background;
 use crate::render::loss::{LossConfig, RgbLoss, Targets};
 use crate::render::march::{check_sampling_range, color_base, copy_mlp_block};
 use crate::render::sample::SkipEmpty;
@@ -124,7 +125,7 @@ impl FusedStep {
     /// `params`; zero it first for a fresh gradient), and the MLPs' records. Follow with
     /// [`FusedStep::record_weight_gradients`] for the MLPs' share. `seed` jitters the strata as
     /// the standalone sampler does; `skip` spreads the strata over occupied space (its scene
-    /// box must be the field's).
+    /// box must be the field's); a random `background` must use the same seed as the jitter.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn record<'a>(
         &'a self,
@@ -139,7 +140,7 @@ impl FusedStep {
         losses: &StepLosses,
         seed: Option<u32>,
         skip: Option<&SkipEmpty<'a>>,
-        background: [f32; 3],
+        background: Background,
         out: &StepOutputs<'a>,
     ) -> Result<()> {
         let n = self.rays as u64;
@@ -184,6 +185,17 @@ impl FusedStep {
             }
         };
         let base = copy_mlp_block(rec, field, &params, &self.mlp_block)?;
+        let (background, random_bg, bg_seed) = background.parts();
+        // One seed jitters the strata and draws random backgrounds.
+        let seed = match (seed, random_bg) {
+            (Some(j), 1) if j != bg_seed => {
+                return Err(GpuError::Usage(format!(
+                    "the fused step draws its strata and random backgrounds from one seed: {j} and {bg_seed} given"
+                )))
+            }
+            (Some(j), _) => Some(j),
+            (None, _) => None,
+        };
         let p = k::Params {
             n: self.rays,
             samples: self.samples,
@@ -197,8 +209,8 @@ impl FusedStep {
             levels: cfg.levels,
             features: cfg.features,
             geo_dims: cfg.geo_dims,
-            seed: seed.unwrap_or(0),
-            jitter: u32::from(seed.is_some()),
+            seed: seed.unwrap_or(bg_seed),
+            flags: u32::from(seed.is_some()) | (random_bg << 1),
             n_cameras,
             color_base: base,
             center: [scene.center[0], scene.center[1], scene.center[2], huber],

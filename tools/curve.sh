@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# One convergence curve: trains with `train --eval-every`, which renders the held-out views every
+# few steps and appends their mean PSNR, SSIM, LPIPS-alex and opacity, with the training seconds
+# so far (evaluations left out), to RUN/curve.jsonl; the curve, the config and the log are then
+# copied to results/curves/SCENE/NAME.*.
+#
+# Usage: tools/curve.sh SCENE NAME EVAL_EVERY [train flags...]
+#   SCENE: fern17 (fern 8x, few-shot 17: the standard LLFF hold-out of views 0, 8, 16),
+#          fernx  (fern 8x, extrapolation split: 6 central views, 8 farthest held out),
+#          demo   (the demo's procedural scene: 6-camera rig, 8 views outside it).
+#   The flags go to `extranerf train` after the scene's own (for example --budget 900, or
+#   --steps 3000 --rays 256). tools/curves.sh runs the committed set.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+[ $# -ge 3 ] || { sed -n 2,13p "$0"; exit 2; }
+scene="$1"; name="$2"; every="$3"; shift 3
+data="${EXTRANERF_DATA:-../shared/data}"
+bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
+cargo build --release -p extranerf >&2
+case "$scene" in
+    fern17) args=(--scene "$data/llff/fern" --split fewshot --fewshot-views 17) ;;
+    fernx) args=(--scene "$data/llff/fern" --split extrapolation) ;;
+    demo)
+        # The demo writes its scene (ray traced in code) under runs/curve_demo_scene/scene.
+        if [ ! -f runs/curve_demo_scene/scene/poses_bounds.npy ]; then
+            "$bin" demo --out runs/curve_demo_scene --steps 1 >&2
+        fi
+        args=(--scene runs/curve_demo_scene/scene --split extrapolation --factor 1) ;;
+    *) echo "unknown scene $scene: use fern17, fernx or demo" >&2; exit 2 ;;
+esac
+run="runs/curve_${scene}_${name}"
+rm -rf "$run"
+mkdir -p runs "results/curves/$scene"
+"$bin" train "${args[@]}" --out "$run" --eval-every "$every" --log-every 50 "$@" 2>&1 | tee "$run.log"
+cp "$run/curve.jsonl" "results/curves/$scene/$name.jsonl"
+cp "$run/config.json" "results/curves/$scene/$name.config.json"
+cp "$run.log" "results/curves/$scene/$name.log"
