@@ -23,8 +23,11 @@ if [ "$what" = screen ] || [ "$what" = all ]; then
     $c fern17 r256_black 500 --rays 256 --steps 2000 "${old[@]}"
 fi
 if [ "$what" = budget ] || [ "$what" = all ]; then
-    # The new defaults under the 7-minute budget.
+    # The new defaults under the 7-minute budget and its 15-minute target.
     $c fern17 budget420 1000 --budget 420
+    $c fern17 budget900 1000 --budget 900
+    "${CARGO_TARGET_DIR:-target}/release/extranerf" eval runs/curve_fern17_budget900 --views train \
+        --lpips-nets alex --out results/curves/fern17/budget900.train_views.json
 fi
 if [ "$what" = demo ] || [ "$what" = all ]; then
     d=(--steps 300 --rays 512 --samples 24 --levels 8 --log2-table 15 --max-res 512 --width 32)

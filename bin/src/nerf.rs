@@ -599,6 +599,22 @@ pub fn train_loop(
     Ok(())
 }
 
+/// The view indices of a comma-separated `list` (such as 0,8,16) for a scene of `n` views;
+/// errors name `flag` and the words it also takes (`words`).
+fn view_indices(list: &str, n: usize, flag: &str, words: &str) -> anyhow::Result<Vec<usize>> {
+    let mut v = Vec::new();
+    for item in list.split(',') {
+        let i: usize = item.trim().parse().map_err(|_| {
+            anyhow::anyhow!("{flag} {list}: use {words} or view indices like 0,8,16")
+        })?;
+        if i >= n {
+            bail!("{flag}: view {i} does not exist (the scene has {n})");
+        }
+        v.push(i);
+    }
+    Ok(v)
+}
+
 /// Held-out evaluations during training (`train --eval-every`): each renders the chosen views
 /// with the fused march at the training samples per ray and appends one line to `curve.jsonl`.
 struct HeldOut {
@@ -618,20 +634,7 @@ impl HeldOut {
         let indices: Vec<usize> = if which == "test" {
             loaded.split.test.clone()
         } else {
-            let mut v = Vec::new();
-            for item in which.split(',') {
-                let i: usize = item.trim().parse().map_err(|_| {
-                    anyhow::anyhow!("--eval-views {which}: use test or view indices like 0,8,16")
-                })?;
-                if i >= loaded.scene.cameras.len() {
-                    bail!(
-                        "--eval-views: view {i} does not exist (the scene has {})",
-                        loaded.scene.cameras.len()
-                    );
-                }
-                v.push(i);
-            }
-            v
+            view_indices(which, loaded.scene.cameras.len(), "--eval-views", "test")?
         };
         if indices.is_empty() {
             bail!("--eval-every: the split holds no held-out view to evaluate");
@@ -897,22 +900,15 @@ fn render_views(
             .chain(&loaded.split.train)
             .map(|&i| (i, role(i)))
             .collect(),
-        list => {
-            let mut v = Vec::new();
-            for item in list.split(',') {
-                let i: usize = item.trim().parse().map_err(|_| {
-                    anyhow::anyhow!("--views {list}: use test, train, all or view indices like 0,4")
-                })?;
-                if i >= loaded.scene.cameras.len() {
-                    bail!(
-                        "--views: view {i} does not exist (the scene has {})",
-                        loaded.scene.cameras.len()
-                    );
-                }
-                v.push((i, role(i)));
-            }
-            v
-        }
+        list => view_indices(
+            list,
+            loaded.scene.cameras.len(),
+            "--views",
+            "test, train, all",
+        )?
+        .into_iter()
+        .map(|i| (i, role(i)))
+        .collect(),
     };
     let mut nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
     let samples = samples.unwrap_or(cfg.train.samples);
