@@ -26,6 +26,7 @@ if [ "$what" = budget ] || [ "$what" = all ]; then
     # The new defaults under the 7-minute budget and its 15-minute target.
     $c fern17 budget420 1000 --budget 420
     $c fern17 budget900 1000 --budget 900
+    $c fernx budget600 2000 --budget 600
     "${CARGO_TARGET_DIR:-target}/release/extranerf" eval runs/curve_fern17_budget900 --views train \
         --lpips-nets alex --out results/curves/fern17/budget900.train_views.json
 fi
@@ -34,4 +35,4 @@ if [ "$what" = demo ] || [ "$what" = all ]; then
     $c demo s300_black 100 "${d[@]}" "${old[@]}"
     $c demo s300_random 100 "${d[@]}" --background random --lr-end 3e-4
 fi
-for s in fern17 demo; do tools/plot_curves.py "$s"; done
+for s in fern17 fernx demo; do tools/plot_curves.py "$s"; done
