@@ -645,8 +645,7 @@ impl HeldOut {
             let truth = extranerf_nerf::data::load_image(&cam.image)?;
             views.push((i, cam, truth.rgb));
         }
-        let dir = default_lpips_dir();
-        let lpips = match lpips_alex(Some(&dir)) {
+        let lpips = match lpips_alex(None) {
             Ok(l) => Some(l),
             Err(e) => {
                 eprintln!("--eval-every: no LPIPS in the curve ({e:#})");

@@ -187,15 +187,13 @@ impl FusedStep {
         let base = copy_mlp_block(rec, field, &params, &self.mlp_block)?;
         let (background, random_bg, bg_seed) = background.parts();
         // One seed jitters the strata and draws random backgrounds.
-        let seed = match (seed, random_bg) {
-            (Some(j), 1) if j != bg_seed => {
+        if let (Some(j), 1) = (seed, random_bg) {
+            if j != bg_seed {
                 return Err(GpuError::Usage(format!(
                     "the fused step draws its strata and random backgrounds from one seed: {j} and {bg_seed} given"
-                )))
+                )));
             }
-            (Some(j), _) => Some(j),
-            (None, _) => None,
-        };
+        }
         let p = k::Params {
             n: self.rays,
             samples: self.samples,
