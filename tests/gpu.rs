@@ -252,6 +252,7 @@ fn uniform_block_bindings_are_checked() {
         chunk: 1,
         saved_stride: 0,
         groups: 16,
+        lut: [0, 1, 2, 3],
     };
     let mut rec = e.ctx.recorder("uniform checks").unwrap();
     for (block, what) in [

@@ -5,6 +5,15 @@
 // an offset that is not a constant is a per-lane loop with branches: measured about 3x slower
 // for a 64-wide MLP on Mesa 25.0.
 //
+// Weight addresses are passed through `mlp_uni(x, bits)`, which the including file defines:
+// either x itself, or x (< 2^bits) rebuilt from an identity table in the push constants. Mesa's
+// gallivm (25.0) treats a value as uniform across the lanes only when it derives from constants
+// and push constants alone, and loads a uniform block entry at a uniform offset once, as a
+// scalar, instead of lane by lane; a loop counter or a value read from a storage buffer is
+// treated as varying even when every lane holds the same. The weight offsets here derive from
+// both, so the table lookup (one lane-by-lane push-constant load per 2 bits) turns each row's
+// 4 x (inputs / 4) lane-by-lane loads into scalar ones.
+//
 // Requirements, which the host checks: every layer's input width and weight offset is a
 // multiple of 4 (W rows are read as vec4s), and every width is at most 64. The inner loops have
 // a constant trip count (16 vec4s), so lavapipe unrolls them (it unrolls up to 32 iterations).
@@ -23,14 +32,17 @@ fn act_get(a: ptr<function, Act>, j: u32) -> f32 {
 }
 
 // Pre-activations of one layer: z[0 .. no] = W a + b, with W at float offset w of the block.
-fn mlp_layer(w: u32, ni: u32, no: u32, a: ptr<function, Act>, z: ptr<function, Act>) {
+fn mlp_layer(w_in: u32, ni_in: u32, no_in: u32, a: ptr<function, Act>, z: ptr<function, Act>) {
+    let w = mlp_uni(w_in, 16u);
+    let ni = mlp_uni(ni_in, 8u);
+    let no = mlp_uni(no_in, 8u);
     let n4 = ni >> 2u;
     let no4 = (no + 3u) >> 2u;
     for (var o4 = 0u; o4 < no4; o4 += 1u) {
         var r = vec4<f32>(0.0);
         for (var q = 0u; q < 4u; q += 1u) {
             // Rows past the last output repeat it (their results are never read).
-            let o = min(o4 * 4u + q, no - 1u);
+            let o = mlp_uni(min(o4 * 4u + q, no - 1u), 8u);
             let row = (w + o * ni) >> 2u;
             var acc = 0.0;
             for (var j = 0u; j < 16u; j += 1u) {
@@ -62,14 +74,16 @@ fn mlp_forward(s: MlpShape, base: u32, a: ptr<function, Act>) {
 }
 
 // gi[0 .. ni] = W^T d for the layer at float offset w (d: gradient of its pre-activations).
-fn mlp_layer_back(w: u32, ni: u32, no: u32, d: ptr<function, Act>, gi: ptr<function, Act>) {
+fn mlp_layer_back(w_in: u32, ni_in: u32, no: u32, d: ptr<function, Act>, gi: ptr<function, Act>) {
+    let w = mlp_uni(w_in, 16u);
+    let ni = mlp_uni(ni_in, 8u);
     let n4 = ni >> 2u;
     for (var j = 0u; j < 16u; j += 1u) {
         (*gi)[j] = vec4<f32>(0.0);
     }
     for (var o = 0u; o < no; o += 1u) {
         let dv = act_get(d, o);
-        let row = (w + o * ni) >> 2u;
+        let row = (w + mlp_uni(o, 8u) * ni) >> 2u;
         for (var j = 0u; j < 16u; j += 1u) {
             if j < n4 {
                 (*gi)[j] += mlp[row + j] * dv;
@@ -87,7 +101,11 @@ const MLP_GROUP: u32 = 4u;
 alias ActGroup = array<Act, 4>;
 
 // mlp_layer for the group: z[k][0 .. no] = W a[k] + b.
-fn mlp_layer_group(w: u32, ni: u32, no: u32, a: ptr<function, ActGroup>, z: ptr<function, ActGroup>) {
+fn mlp_layer_group(w_in: u32, ni_in: u32, no_in: u32, a: ptr<function, ActGroup>,
+                   z: ptr<function, ActGroup>) {
+    let w = mlp_uni(w_in, 16u);
+    let ni = mlp_uni(ni_in, 8u);
+    let no = mlp_uni(no_in, 8u);
     let n4 = ni >> 2u;
     let no4 = (no + 3u) >> 2u;
     for (var o4 = 0u; o4 < no4; o4 += 1u) {
@@ -97,7 +115,7 @@ fn mlp_layer_group(w: u32, ni: u32, no: u32, a: ptr<function, ActGroup>, z: ptr<
         var r3 = vec4<f32>(0.0);
         for (var q = 0u; q < 4u; q += 1u) {
             // Rows past the last output repeat it (their results are never read).
-            let o = min(o4 * 4u + q, no - 1u);
+            let o = mlp_uni(min(o4 * 4u + q, no - 1u), 8u);
             let row = (w + o * ni) >> 2u;
             var acc = vec4<f32>(0.0);
             for (var j = 0u; j < 16u; j += 1u) {
@@ -122,7 +140,10 @@ fn mlp_layer_group(w: u32, ni: u32, no: u32, a: ptr<function, ActGroup>, z: ptr<
 }
 
 // mlp_layer_back for the group: gi[k][0 .. ni] = W^T d[k].
-fn mlp_layer_back_group(w: u32, ni: u32, no: u32, d: ptr<function, ActGroup>, gi: ptr<function, ActGroup>) {
+fn mlp_layer_back_group(w_in: u32, ni_in: u32, no: u32, d: ptr<function, ActGroup>,
+                        gi: ptr<function, ActGroup>) {
+    let w = mlp_uni(w_in, 16u);
+    let ni = mlp_uni(ni_in, 8u);
     let n4 = ni >> 2u;
     for (var j = 0u; j < 16u; j += 1u) {
         (*gi)[0][j] = vec4<f32>(0.0);
@@ -137,7 +158,7 @@ fn mlp_layer_back_group(w: u32, ni: u32, no: u32, d: ptr<function, ActGroup>, gi
         let d1 = (*d)[1][o4][oc];
         let d2 = (*d)[2][o4][oc];
         let d3 = (*d)[3][o4][oc];
-        let row = (w + o * ni) >> 2u;
+        let row = (w + mlp_uni(o, 8u) * ni) >> 2u;
         for (var j = 0u; j < 16u; j += 1u) {
             if j < n4 {
                 let wv = mlp[row + j];

@@ -30,6 +30,7 @@
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
+//!include common/uniform_lut.wgsl
 //!include common/occupancy.wgsl
 //!include common/rng.wgsl
 //!include common/sh.wgsl
@@ -58,7 +59,8 @@ struct Params {
     // Hash-grid levels and features per level.
     levels: u32,
     features: u32,
-    _pad3: u32,
+    // Float offset of the colour MLP in the uniform weight block (the density MLP is at 0).
+    color_base: u32,
     min_weight: f32,
     min_transmittance: f32,
     // Scene centre (xyz).
@@ -70,11 +72,8 @@ struct Params {
     seed: u32,
     decay: f32,
     n_cameras: u32,
-    // Float offset of the colour MLP in the uniform weight block (the density MLP is at 0).
-    color_base: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    lut: vec4<u32>,
 }
 var<immediate> params: Params;
 

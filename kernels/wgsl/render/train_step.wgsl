@@ -35,6 +35,7 @@
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
+//!include common/uniform_lut.wgsl
 //!include common/occupancy.wgsl
 //!include common/rng.wgsl
 //!include common/strata.wgsl
@@ -50,38 +51,34 @@ struct Params {
     samples: u32,
     // 0: linear in t, 1: linear in disparity.
     spacing: u32,
-    // Non-zero: march in NDC (near plane at `ndc_near`).
-    ndc: u32,
     near: f32,
     far: f32,
+    // NDC's near plane (with flag bit 2).
     ndc_near: f32,
     // Contraction mode (common/contract.wgsl) and 1 / scene radius.
     contraction: u32,
     inv_radius: f32,
-    // Hash-grid levels and features per level; floats per density-MLP output row.
+    // Hash-grid levels and features per level.
     levels: u32,
     features: u32,
-    geo_dims: u32,
     // Seed of the strata's jitter (render/sample.wgsl's) and of random backgrounds.
     seed: u32,
     // Bit 0: jitter the strata (else samples sit at midpoints); bit 1: each ray's background
-    // is random (common/rng.wgsl's ray_background from `seed`), not `background.xyz`.
+    // is random (common/rng.wgsl's ray_background from `seed`), not `background.xyz`; bit 2:
+    // march in NDC; bit 3: Huber photometric loss (else L2); bit 4: Floaters No More gradient
+    // scaling, min(1, t^2) per sample.
     flags: u32,
     n_cameras: u32,
     // Float offset of the colour MLP in the uniform weight block.
     color_base: u32,
+    // Distortion-loss weight over the batch size (0: off).
+    dist_lambda: f32,
+    // Floats per sample of the density and colour MLP records.
+    density_stride: u32,
     // Scene centre (xyz); w: the Huber threshold.
     center: vec4<f32>,
     // Background colour (xyz); w: the depth-loss weight.
     background: vec4<f32>,
-    // 0: L2, 1: Huber.
-    loss_kind: u32,
-    // Distortion-loss weight over the batch size (0: off).
-    dist_lambda: f32,
-    // 1: Floaters No More gradient scaling, min(1, t^2) per sample.
-    grad_scaling: u32,
-    // Floats per sample of the density and colour MLP records.
-    density_stride: u32,
     color_stride: u32,
     // The occupancy grid (occ_cascades 0: none) and the probe intervals per ray: with a grid
     // the strata cover only the intervals whose centres lie in occupied cells, as
@@ -89,6 +86,8 @@ struct Params {
     probes: u32,
     occ_res: u32,
     occ_cascades: u32,
+    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    lut: vec4<u32>,
 }
 var<immediate> params: Params;
 
@@ -115,31 +114,39 @@ var<immediate> params: Params;
 // The hash table's gradient (both parts of a split table), added to with atomics.
 @group(0) @binding(16) var<storage, read_write> d_table: array<atomic<f32>>;
 @group(0) @binding(17) var<storage, read_write> d_table_hi: array<atomic<f32>>;
-// Per sample s = ray * samples + j: the density MLP's record at s * density_stride and the
-// colour MLP's at s * color_stride.
-@group(0) @binding(18) var<storage, read_write> saved_density: array<f32>;
-@group(0) @binding(19) var<storage, read_write> saved_color: array<f32>;
+// Per sample s = ray * samples + j: the density MLP's record at float s * density_stride and
+// the colour MLP's at s * color_stride. Both strides and every segment of a record are
+// multiples of 4 floats, so the records are read and written as vec4s: on lavapipe each access
+// at a varying address is a loop over the lanes, and a vec4 costs about what one float does.
+@group(0) @binding(18) var<storage, read_write> saved_density: array<vec4<f32>>;
+@group(0) @binding(19) var<storage, read_write> saved_color: array<vec4<f32>>;
 
-// Entry e of the colour (or density) MLP's records; a branch, so each binding is only indexed
-// within its own range.
-fn rec_set(color: bool, e: u32, v: f32) {
+// The vec4 at float e (a multiple of 4) of the colour (or density) MLP's records; a branch, so
+// each binding is only indexed within its own range.
+fn rec_set(color: bool, e: u32, v: vec4<f32>) {
     if color {
-        saved_color[e] = v;
+        saved_color[e >> 2u] = v;
     } else {
-        saved_density[e] = v;
+        saved_density[e >> 2u] = v;
     }
 }
 
-fn rec_get(color: bool, e: u32) -> f32 {
+fn rec_get(color: bool, e: u32) -> vec4<f32> {
     if color {
-        return saved_color[e];
+        return saved_color[e >> 2u];
     }
-    return saved_density[e];
+    return saved_density[e >> 2u];
+}
+
+// v with the entries at 4 j4 + c >= n zeroed (the padding of a record segment n wide).
+fn below(v: vec4<f32>, j4: u32, n: u32) -> vec4<f32> {
+    return select(vec4<f32>(0.0), v, vec4<u32>(4u * j4) + vec4<u32>(0u, 1u, 2u, 3u) < vec4<u32>(n));
 }
 
 // The forward pass of MLP `s` (weights at float `base` of the block) on the group a, writing
-// each valid slot's layer inputs and pre-activations into its record at at[k] (mlp_bwd_data's
-// layout).
+// each valid slot's layer inputs and its output layer's pre-activations into its record at at[k]
+// (mlp_bwd_data's layout; the hidden layers' pre-activation segments are left for the backward
+// pass to fill with their gradients).
 fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid: vec4<bool>,
                     a: ptr<function, ActGroup>) {
     var z: ActGroup;
@@ -149,17 +156,21 @@ fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid
         let no = mlp_dim(s, l + 1u);
         for (var k = 0u; k < MLP_GROUP; k += 1u) {
             if valid[k] {
-                for (var j = 0u; j < ni; j += 1u) {
-                    rec_set(color, at[k] + j, (*a)[k][j >> 2u][j & 3u]);
+                for (var j4 = 0u; 4u * j4 < ni; j4 += 1u) {
+                    rec_set(color, at[k] + 4u * j4, below((*a)[k][j4], j4, ni));
                 }
             }
         }
         at += vec4<u32>(pad4(ni));
         mlp_layer_group(base + mlp_offset(s, l), ni, no, a, &z);
-        for (var k = 0u; k < MLP_GROUP; k += 1u) {
-            if valid[k] {
-                for (var o = 0u; o < no; o += 1u) {
-                    rec_set(color, at[k] + o, z[k][o >> 2u][o & 3u]);
+        // Only the output layer's pre-activations are stored: a hidden layer's are read back
+        // as the next layer's input, their ReLU, which is positive exactly where they are.
+        if l + 1u == s.layers {
+            for (var k = 0u; k < MLP_GROUP; k += 1u) {
+                if valid[k] {
+                    for (var o4 = 0u; 4u * o4 < no; o4 += 1u) {
+                        rec_set(color, at[k] + 4u * o4, below(z[k][o4], o4, no));
+                    }
                 }
             }
         }
@@ -169,8 +180,8 @@ fn forward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid
 }
 
 // Back-propagates g[k] (dL/d output) through MLP `s` after forward_recorded at at_in: g[k]
-// becomes dL/d input, and each valid record's pre-activations become their gradients (ReLU' on
-// hidden layers). Invalid slots must come in with g[k] = 0.
+// becomes dL/d input, and each valid record's pre-activation segments hold their gradients
+// (ReLU' on hidden layers). Invalid slots must come in with g[k] = 0.
 fn backward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, valid: vec4<bool>,
                      g: ptr<function, ActGroup>) {
     var z: ActGroup;
@@ -189,11 +200,15 @@ fn backward_recorded(color: bool, s: MlpShape, base: u32, at_in: vec4<u32>, vali
                 z[k][q] = vec4<f32>(0.0);
             }
             if valid[k] {
-                for (var o = 0u; o < no; o += 1u) {
-                    let go = (*g)[k][o >> 2u][o & 3u];
-                    let d = select(select(0.0, go, rec_get(color, at[k] + o) > 0.0), go, last);
-                    rec_set(color, at[k] + o, d);
-                    z[k][o >> 2u][o & 3u] = d;
+                for (var o4 = 0u; 4u * o4 < no; o4 += 1u) {
+                    let go = (*g)[k][o4];
+                    // ReLU' of a hidden layer from the next layer's input (its ReLU); the
+                    // output layer passes go through (its own pre-activations are read).
+                    let act = rec_get(color, select(at[k] + pad4(no), at[k], last) + 4u * o4);
+                    let d = below(select(select(vec4<f32>(0.0), go, act > vec4<f32>(0.0)), go, last),
+                                  o4, no);
+                    rec_set(color, at[k] + 4u * o4, d);
+                    z[k][o4] = d;
                 }
             }
         }
@@ -214,10 +229,11 @@ fn output_at(s: MlpShape) -> u32 {
     return at;
 }
 
-// A record of zeros, so the weight-gradient pass adds nothing for this sample.
+// A record of zeros (words a multiple of 4), so the weight-gradient pass adds nothing for this
+// sample.
 fn zero_record(color: bool, at: u32, words: u32) {
-    for (var k = 0u; k < words; k += 1u) {
-        rec_set(color, at + k, 0.0);
+    for (var k = 0u; k < words; k += 4u) {
+        rec_set(color, at + k, vec4<f32>(0.0));
     }
 }
 
@@ -321,7 +337,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     }
     let world = camera_ray(cam, pixel_centre(cam, pc.y));
     var ray = world;
-    if params.ndc != 0u {
+    if (params.flags & 4u) != 0u {
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let sh = sh4(unit_dir(world[1]));
@@ -386,7 +402,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let inv_n = 1.0 / f32(params.n);
     let e = rgb_out - target_rgb[i].xyz;
     mse[i] = dot(e, e) / 3.0;
-    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i].xyz, target_depth[i], params.loss_kind,
+    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i].xyz, target_depth[i], (params.flags >> 3u) & 1u,
                               params.center.w, params.background.w);
     loss[i] = rl.loss * inv_n;
     let gc = rl.d_rgb * inv_n;
@@ -421,12 +437,10 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             let st = sl.st[q];
             let rd = sl.rd[q];
             let rc = sl.rc[q];
-            sigma[q] = trunc_exp(rec_get(false, rd + d_out));
+            sigma[q] = trunc_exp(rec_get(false, rd + d_out).x);
             let dt = st.y;
             let w = next_weight(sigma[q], dt, &tau);
-            let col = vec3<f32>(sigmoid(rec_get(true, rc + c_out)),
-                                sigmoid(rec_get(true, rc + c_out + 1u)),
-                                sigmoid(rec_get(true, rc + c_out + 2u)));
+            let col = sigmoid3(rec_get(true, rc + c_out));
             // dL/dw_j: colour, depth and distortion.
             let m = st.z;
             let w_gt = w_tot - w_lt - w;
@@ -439,7 +453,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             prefix += w * uj;
             let dx = exp(-tau) * uj - (total - prefix) - bg;
             var scale = 1.0;
-            if params.grad_scaling != 0u {
+            if (params.flags & 16u) != 0u {
                 scale = min(1.0, st.x * st.x);
             }
             d_sigma[q] = select(0.0, scale * dt * dx, dt > 0.0 && sigma[q] >= 0.0);

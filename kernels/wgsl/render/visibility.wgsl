@@ -102,6 +102,12 @@ struct Params {
 }
 var<immediate> params: Params;
 
+// common/mlp_block.wgsl's weight offsets as they are (no identity table in these push
+// constants; see common/uniform_lut.wgsl).
+fn mlp_uni(x: u32, bits: u32) -> u32 {
+    return x;
+}
+
 @group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
 // (camera, pixel = y * width + x) per thread.
 @group(0) @binding(1) var<storage, read> pixels: array<vec2<u32>>;

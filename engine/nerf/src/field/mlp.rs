@@ -274,6 +274,7 @@ impl Mlp {
                 self.saved_words() as u32
             },
             groups: self.groups,
+            lut: crate::render::march::UNIFORM_LUT,
         })
     }
 

@@ -51,6 +51,11 @@ impl MarchCuts {
 
 use crate::field::mlp::BLOCK_FLOATS as MLP_BLOCK_FLOATS;
 
+/// The identity table the fused kernels' push constants carry as `lut`
+/// (`kernels/wgsl/common/uniform_lut.wgsl`: weight offsets rebuilt from it count as uniform
+/// across lanes on lavapipe, so their loads run once per SIMD group instead of once per lane).
+pub const UNIFORM_LUT: [u32; 4] = [0, 1, 2, 3];
+
 /// The fused kernels' sampling range: world space is linear in disparity, so it needs
 /// 0 < near < far (NDC takes any range).
 pub(crate) fn check_sampling_range(ndc: bool, near: f32, far: f32) -> Result<()> {
@@ -152,7 +157,7 @@ impl Marcher {
             occ_cascades: 0,
             levels: cfg.levels,
             features: cfg.features,
-            _pad3: 0,
+            color_base: 0,
             min_weight: 0.0,
             min_transmittance: 0.0,
             center: [scene.center[0], scene.center[1], scene.center[2], 0.0],
@@ -161,10 +166,7 @@ impl Marcher {
             seed: 0,
             decay: 0.0,
             n_cameras: 0,
-            color_base: 0,
-            _pad0: 0,
-            _pad1: 0,
-            _pad2: 0,
+            lut: UNIFORM_LUT,
         })
     }
 

@@ -23,7 +23,7 @@ use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
 use crate::render::composite::Background;
 use crate::render::loss::{LossConfig, RgbLoss, Targets};
-use crate::render::march::{check_sampling_range, color_base, copy_mlp_block};
+use crate::render::march::{check_sampling_range, color_base, copy_mlp_block, UNIFORM_LUT};
 use crate::render::sample::SkipEmpty;
 
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
@@ -198,7 +198,6 @@ impl FusedStep {
             n: self.rays,
             samples: self.samples,
             spacing: u32::from(!ndc),
-            ndc: u32::from(ndc),
             near: cfg.near,
             far: cfg.far,
             ndc_near: 1.0,
@@ -206,11 +205,16 @@ impl FusedStep {
             inv_radius: 1.0 / scene.radius,
             levels: cfg.levels,
             features: cfg.features,
-            geo_dims: cfg.geo_dims,
             seed: seed.unwrap_or(bg_seed),
-            flags: u32::from(seed.is_some()) | (random_bg << 1),
+            flags: u32::from(seed.is_some())
+                | (random_bg << 1)
+                | (u32::from(ndc) << 2)
+                | (loss_kind << 3)
+                | (u32::from(losses.grad_scaling) << 4),
             n_cameras,
             color_base: base,
+            dist_lambda: losses.distortion,
+            density_stride: cfg.density_mlp().saved_stride() as u32,
             center: [scene.center[0], scene.center[1], scene.center[2], huber],
             background: [
                 background[0],
@@ -218,14 +222,11 @@ impl FusedStep {
                 background[2],
                 losses.loss.depth_lambda,
             ],
-            loss_kind,
-            dist_lambda: losses.distortion,
-            grad_scaling: u32::from(losses.grad_scaling),
-            density_stride: cfg.density_mlp().saved_stride() as u32,
             color_stride: cfg.color_mlp().saved_stride() as u32,
             probes,
             occ_res,
             occ_cascades,
+            lut: UNIFORM_LUT,
         };
         let (table, table_hi) = field.grid().parts(params[0])?;
         let (d_table, d_table_hi) = field.grid().parts(d_params[0])?;
