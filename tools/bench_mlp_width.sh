@@ -4,11 +4,11 @@
 # rounds (the MLPs' multiply-adds and weight loads scale with the width squared, the hash grid,
 # compositing and records much less). Writes OUT/bench.txt and OUT/summary.md (per width the
 # GPU milliseconds of the fused kernel, the weight gradients and Adam per round, and the best).
-# Usage: tools/bench_mlp_width.sh [ROUNDS] [OUT]   (default 3, results/step_records_lavapipe)
+# Usage: tools/bench_mlp_width.sh [ROUNDS] [OUT]   (default 3, results/step_pairs_lavapipe)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rounds="${1:-3}"
-out="${2:-results/step_records_lavapipe}"
+out="${2:-results/step_pairs_lavapipe}"
 bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
 cargo build --release -p extranerf >&2
 mkdir -p "$out"

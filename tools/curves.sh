@@ -27,6 +27,7 @@ if [ "$what" = budget ] || [ "$what" = all ]; then
     $c fern17 budget420 1000 --budget 420
     $c fern17 budget900 1000 --budget 900
     $c fernx budget600 2000 --budget 600
+    $c fernx budget900 2000 --budget 900
     "${CARGO_TARGET_DIR:-target}/release/extranerf" eval runs/curve_fern17_budget900 --views train \
         --lpips-nets alex --out results/curves/fern17/budget900.train_views.json
 fi
