@@ -54,6 +54,7 @@
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
+//!include common/uniform_lut.wgsl
 //!include common/occupancy.wgsl
 //!include common/volume.wgsl
 //!include common/field_eval.wgsl
@@ -69,8 +70,10 @@ struct Params {
     vis_samples: u32,
     // 0: linear in t, 1: linear in disparity.
     spacing: u32,
-    // Non-zero: the field lives in NDC (near plane at `ndc_near`).
-    ndc: u32,
+    // Bit 0: the field lives in NDC (near plane at `ndc_near`); bit 1: the density is
+    // `n_shapes` analytic shapes, not the trained field; bit 2: look transmittances up in the
+    // volume (its size per camera below).
+    flags: u32,
     near: f32,
     far: f32,
     ndc_near: f32,
@@ -89,24 +92,14 @@ struct Params {
     n_train: u32,
     train_mask: u32,
     rank: u32,
-    // 0: the trained field; 1: `n_shapes` analytic shapes.
-    source: u32,
     n_shapes: u32,
-    // 1: look transmittances up in the volume; its size per camera.
-    volume: u32,
     vol_w: u32,
     vol_h: u32,
     vol_depth: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    lut: vec4<u32>,
 }
 var<immediate> params: Params;
-
-// common/mlp_block.wgsl's weight offsets as they are (no identity table in these push
-// constants; see common/uniform_lut.wgsl).
-fn mlp_uni(x: u32, bits: u32) -> u32 {
-    return x;
-}
 
 @group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
 // (camera, pixel = y * width + x) per thread.
@@ -159,7 +152,7 @@ fn density(x: vec3<f32>, a: ptr<function, Act>) -> f32 {
     if !occupied(u) {
         return 0.0;
     }
-    if params.source == 1u {
+    if (params.flags & 2u) != 0u {
         return analytic_density(x);
     }
     return density_at(u, a);
@@ -167,7 +160,7 @@ fn density(x: vec3<f32>, a: ptr<function, Act>) -> f32 {
 
 // World position of a point of the field's space, using the NDC frame of camera `cam`.
 fn to_world(x: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
-    if params.ndc == 0u {
+    if (params.flags & 1u) == 0u {
         return x;
     }
     let a = ndc_scale(cam);
@@ -176,7 +169,7 @@ fn to_world(x: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
 }
 
 fn to_field(p: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
-    if params.ndc == 0u {
+    if (params.flags & 1u) == 0u {
         return p;
     }
     let a = ndc_scale(cam);
@@ -208,7 +201,7 @@ fn volume_lookup(k: u32, p: vec3<f32>, at: vec3<f32>) -> f32 {
         return 1.0;
     }
     var t = q.z;
-    if params.ndc != 0u {
+    if (params.flags & 1u) != 0u {
         t = 1.0 + params.ndc_near / p.z;
     }
     let s = clamp(s_of(t), 0.0, 1.0);
@@ -241,7 +234,7 @@ fn transmittance(x: vec3<f32>, p: vec3<f32>, c: GpuCamera, frame: GpuCamera, flo
     let centre = camera_centre(c);
     var end = centre;
     var scale = 1.0;
-    if params.ndc != 0u {
+    if (params.flags & 1u) != 0u {
         // Clip at the NDC near plane z = -ndc_near (the camera centres lie behind it).
         let zn = -params.ndc_near;
         if centre.z > zn {
@@ -298,7 +291,7 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     }
     let world = camera_ray(cam, pixel_centre(cam, pc.y));
     var ray = world;
-    if params.ndc != 0u {
+    if (params.flags & 1u) != 0u {
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let inv_k = 1.0 / f32(params.samples);
@@ -341,7 +334,7 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                 continue;
             }
             var tr = 0.0;
-            if params.volume != 0u {
+            if (params.flags & 4u) != 0u {
                 tr = volume_lookup(k, p_prev, p);
                 evals += 1.0;
                 if tr < params.min_transmittance {
@@ -395,7 +388,7 @@ fn transmittance_volume(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_work
     let px = vec2<f32>((f32(cell % w) + 0.5) / f32(w) * f32(c.size.x), (f32(cell / w) + 0.5) / f32(h) * f32(c.size.y));
     let world = camera_ray(c, px);
     var ray = world;
-    if params.ndc != 0u {
+    if (params.flags & 1u) != 0u {
         ray = ndc_ray(c, world[0], world[1], params.ndc_near);
     }
     let inv_d = 1.0 / f32(d);

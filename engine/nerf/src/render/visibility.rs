@@ -15,7 +15,7 @@ use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recor
 use crate::data::Camera;
 use crate::field::mlp::BLOCK_FLOATS;
 use crate::model::Field;
-use crate::render::march::check_sampling_range;
+use crate::render::march::{check_sampling_range, UNIFORM_LUT};
 use crate::render::occupancy::Occupancy;
 use crate::render::rays::{gpu_camera, GpuCamera};
 
@@ -385,7 +385,7 @@ impl Visibility {
             samples: 1,
             vis_samples: 1,
             spacing: 0,
-            ndc: 0,
+            flags: 0,
             near: 0.0,
             far: 0.0,
             ndc_near: 1.0,
@@ -402,14 +402,11 @@ impl Visibility {
             n_train: 0,
             train_mask: 0,
             rank: 1,
-            source: 0,
             n_shapes: 0,
-            volume: 0,
             vol_w: 1,
             vol_h: 1,
             vol_depth: 1,
-            _pad0: 0,
-            _pad1: 0,
+            lut: UNIFORM_LUT,
         };
         let b = match *density {
             Density::Field {
@@ -429,7 +426,7 @@ impl Visibility {
                 let ndc = c.space == "ndc";
                 check_sampling_range(ndc, c.near, c.far)?;
                 let scene = field.scene();
-                p.ndc = u32::from(ndc);
+                p.flags |= u32::from(ndc);
                 p.spacing = u32::from(!ndc);
                 p.near = c.near;
                 p.far = c.far;
@@ -465,9 +462,9 @@ impl Visibility {
             }
             Density::Analytic(a) => {
                 check_sampling_range(a.ndc, a.near, a.far)?;
-                p.source = 1;
+                p.flags |= 2;
                 p.n_shapes = a.shapes.len() as u32;
-                p.ndc = u32::from(a.ndc);
+                p.flags |= u32::from(a.ndc);
                 p.spacing = u32::from(!a.ndc);
                 p.near = a.near;
                 p.far = a.far;
@@ -580,7 +577,7 @@ impl Visibility {
                         v.cameras
                     )));
                 }
-                p.volume = 1;
+                p.flags |= 4;
                 [p.vol_w, p.vol_h, p.vol_depth] = v.size;
                 v.buffer.binding()
             }
