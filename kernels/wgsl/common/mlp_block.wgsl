@@ -5,11 +5,11 @@
 // an offset that is not a constant is a per-lane loop with branches: measured about 3x slower
 // for a 64-wide MLP on Mesa 25.0.
 //
-// Weight addresses are passed through `mlp_uni(x, bits)`, which the including file defines:
-// either x itself, or x (< 2^bits) rebuilt from an identity table in the push constants. Mesa's
-// gallivm (25.0) treats a value as uniform across the lanes only when it derives from constants
-// and push constants alone, and loads a uniform block entry at a uniform offset once, as a
-// scalar, instead of lane by lane; a loop counter or a value read from a storage buffer is
+// Weight addresses are passed through `mlp_uni(x, bits)` (below), which rebuilds x from an
+// identity table that the including file's push constants hold as `params.lut` = (0, 1, 2, 3).
+// Mesa's gallivm (25.0) treats a value as uniform across the lanes only when it derives from
+// constants and push constants alone, and loads a uniform block entry at a uniform offset once,
+// as a scalar, instead of lane by lane; a loop counter or a value read from a storage buffer is
 // treated as varying even when every lane holds the same. The weight offsets here derive from
 // both, so the table lookup (one lane-by-lane push-constant load per 2 bits) turns each row's
 // 4 x (inputs / 4) lane-by-lane loads into scalar ones.
@@ -19,6 +19,18 @@
 // a constant trip count (16 vec4s), so lavapipe unrolls them (it unrolls up to 32 iterations).
 // The activations, 16 vec4s, are then read at constant indices and stay in registers.
 //!include common/mlp.wgsl
+
+// x (< 2^bits, bits even) rebuilt two bits at a time from push-constant loads of `params.lut`.
+// A push-constant load counts as uniform whatever its index (nir_src_is_always_uniform), so the
+// result, equal to x, lets a uniform-block load at an offset built from it run once as a
+// scalar. x must be the same in every active lane (true of every offset here).
+fn mlp_uni(x: u32, bits: u32) -> u32 {
+    var r = 0u;
+    for (var b = 0u; b < bits; b += 2u) {
+        r |= params.lut[(x >> b) & 3u] << b;
+    }
+    return r;
+}
 
 // Activations of one point: a[j / 4][j % 4] is activation j (at most 64).
 alias Act = array<vec4<f32>, 16>;

@@ -6,7 +6,6 @@
 //!include common/dispatch.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
-//!include common/uniform_lut.wgsl
 //!include common/mlp_wgrad.wgsl
 
 struct Params {
@@ -18,7 +17,7 @@ struct Params {
     saved_stride: u32,
     // mlp_wgrad: point groups per weight block (a multiple of the subgroup size).
     groups: u32,
-    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
     lut: vec4<u32>,
 }
 var<immediate> params: Params;

@@ -16,7 +16,6 @@
 // their offsets. Needs the uniform-block shape (common/mlp_block.wgsl; the host checks).
 //!include common/dispatch.wgsl
 //!include common/mlp_block.wgsl
-//!include common/uniform_lut.wgsl
 //!include common/mlp_wgrad.wgsl
 
 // The same block as mlp.wgsl; saved_stride counts units of 4 f16 values per point here.
@@ -25,7 +24,7 @@ struct Params {
     chunk: u32,
     saved_stride: u32,
     groups: u32,
-    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
     lut: vec4<u32>,
 }
 var<immediate> params: Params;

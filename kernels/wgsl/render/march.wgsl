@@ -30,7 +30,6 @@
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
-//!include common/uniform_lut.wgsl
 //!include common/occupancy.wgsl
 //!include common/rng.wgsl
 //!include common/sh.wgsl
@@ -72,7 +71,7 @@ struct Params {
     seed: u32,
     decay: f32,
     n_cameras: u32,
-    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
     lut: vec4<u32>,
 }
 var<immediate> params: Params;

@@ -35,7 +35,6 @@
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
-//!include common/uniform_lut.wgsl
 //!include common/occupancy.wgsl
 //!include common/rng.wgsl
 //!include common/strata.wgsl
@@ -86,10 +85,17 @@ struct Params {
     probes: u32,
     occ_res: u32,
     occ_cascades: u32,
-    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
     lut: vec4<u32>,
 }
 var<immediate> params: Params;
+
+// Bits of params.flags (render/train_step.rs has the host twins).
+const STEP_JITTER: u32 = 1u;
+const STEP_RANDOM_BG: u32 = 2u;
+const STEP_NDC: u32 = 4u;
+const STEP_HUBER: u32 = 8u;
+const STEP_GRAD_SCALING: u32 = 16u;
 
 @group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
 // (camera, pixel = y * width + x) per ray.
@@ -272,7 +278,7 @@ fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
 // occupancy grid, spread over the ray's occupied probe intervals `mask`.
 fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
     var jit = 0.5;
-    if (params.flags & 1u) != 0u {
+    if (params.flags & STEP_JITTER) != 0u {
         jit = strata_jitter(params.seed, ray, j);
     }
     let nf = vec2<f32>(params.near, params.far);
@@ -337,7 +343,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     }
     let world = camera_ray(cam, pixel_centre(cam, pc.y));
     var ray = world;
-    if (params.flags & 4u) != 0u {
+    if (params.flags & STEP_NDC) != 0u {
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let sh = sh4(unit_dir(world[1]));
@@ -393,7 +399,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         }
     }
     let t_end = exp(-tau);
-    let bgc = ray_background(params.background.xyz, params.flags & 2u, params.seed, i);
+    let bgc = ray_background(params.background.xyz, params.flags & STEP_RANDOM_BG, params.seed, i);
     let rgb_out = c + t_end * bgc;
     out_rgba[i] = vec4<f32>(rgb_out, opacity);
     out_depth[i] = depth;
@@ -402,7 +408,8 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let inv_n = 1.0 / f32(params.n);
     let e = rgb_out - target_rgb[i].xyz;
     mse[i] = dot(e, e) / 3.0;
-    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i].xyz, target_depth[i], (params.flags >> 3u) & 1u,
+    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i].xyz, target_depth[i],
+                              u32((params.flags & STEP_HUBER) != 0u),
                               params.center.w, params.background.w);
     loss[i] = rl.loss * inv_n;
     let gc = rl.d_rgb * inv_n;
@@ -453,7 +460,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             prefix += w * uj;
             let dx = exp(-tau) * uj - (total - prefix) - bg;
             var scale = 1.0;
-            if (params.flags & 16u) != 0u {
+            if (params.flags & STEP_GRAD_SCALING) != 0u {
                 scale = min(1.0, st.x * st.x);
             }
             d_sigma[q] = select(0.0, scale * dt * dx, dt > 0.0 && sigma[q] >= 0.0);

@@ -54,7 +54,6 @@
 //!include common/hash_grid.wgsl
 //!include common/mlp.wgsl
 //!include common/mlp_block.wgsl
-//!include common/uniform_lut.wgsl
 //!include common/occupancy.wgsl
 //!include common/volume.wgsl
 //!include common/field_eval.wgsl
@@ -96,10 +95,20 @@ struct Params {
     vol_w: u32,
     vol_h: u32,
     vol_depth: u32,
-    // (0, 1, 2, 3): common/uniform_lut.wgsl's identity table.
+    // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
     lut: vec4<u32>,
 }
 var<immediate> params: Params;
+
+// Bits of params.flags (render/visibility.rs has the host twins).
+const VIS_NDC: u32 = 1u;
+const VIS_ANALYTIC: u32 = 2u;
+const VIS_VOLUME: u32 = 4u;
+
+// Whether the field lives in NDC.
+fn in_ndc() -> bool {
+    return (params.flags & VIS_NDC) != 0u;
+}
 
 @group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
 // (camera, pixel = y * width + x) per thread.
@@ -152,7 +161,7 @@ fn density(x: vec3<f32>, a: ptr<function, Act>) -> f32 {
     if !occupied(u) {
         return 0.0;
     }
-    if (params.flags & 2u) != 0u {
+    if (params.flags & VIS_ANALYTIC) != 0u {
         return analytic_density(x);
     }
     return density_at(u, a);
@@ -160,7 +169,7 @@ fn density(x: vec3<f32>, a: ptr<function, Act>) -> f32 {
 
 // World position of a point of the field's space, using the NDC frame of camera `cam`.
 fn to_world(x: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
-    if (params.flags & 1u) == 0u {
+    if !in_ndc() {
         return x;
     }
     let a = ndc_scale(cam);
@@ -169,7 +178,7 @@ fn to_world(x: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
 }
 
 fn to_field(p: vec3<f32>, cam: GpuCamera) -> vec3<f32> {
-    if (params.flags & 1u) == 0u {
+    if !in_ndc() {
         return p;
     }
     let a = ndc_scale(cam);
@@ -201,7 +210,7 @@ fn volume_lookup(k: u32, p: vec3<f32>, at: vec3<f32>) -> f32 {
         return 1.0;
     }
     var t = q.z;
-    if (params.flags & 1u) != 0u {
+    if in_ndc() {
         t = 1.0 + params.ndc_near / p.z;
     }
     let s = clamp(s_of(t), 0.0, 1.0);
@@ -234,7 +243,7 @@ fn transmittance(x: vec3<f32>, p: vec3<f32>, c: GpuCamera, frame: GpuCamera, flo
     let centre = camera_centre(c);
     var end = centre;
     var scale = 1.0;
-    if (params.flags & 1u) != 0u {
+    if in_ndc() {
         // Clip at the NDC near plane z = -ndc_near (the camera centres lie behind it).
         let zn = -params.ndc_near;
         if centre.z > zn {
@@ -291,7 +300,7 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     }
     let world = camera_ray(cam, pixel_centre(cam, pc.y));
     var ray = world;
-    if (params.flags & 1u) != 0u {
+    if in_ndc() {
         ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
     }
     let inv_k = 1.0 / f32(params.samples);
@@ -334,7 +343,7 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                 continue;
             }
             var tr = 0.0;
-            if (params.flags & 4u) != 0u {
+            if (params.flags & VIS_VOLUME) != 0u {
                 tr = volume_lookup(k, p_prev, p);
                 evals += 1.0;
                 if tr < params.min_transmittance {
@@ -388,7 +397,7 @@ fn transmittance_volume(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_work
     let px = vec2<f32>((f32(cell % w) + 0.5) / f32(w) * f32(c.size.x), (f32(cell / w) + 0.5) / f32(h) * f32(c.size.y));
     let world = camera_ray(c, px);
     var ray = world;
-    if (params.flags & 1u) != 0u {
+    if in_ndc() {
         ray = ndc_ray(c, world[0], world[1], params.ndc_near);
     }
     let inv_d = 1.0 / f32(d);

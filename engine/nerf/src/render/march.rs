@@ -51,9 +51,10 @@ impl MarchCuts {
 
 use crate::field::mlp::BLOCK_FLOATS as MLP_BLOCK_FLOATS;
 
-/// The identity table the fused kernels' push constants carry as `lut`
-/// (`kernels/wgsl/common/uniform_lut.wgsl`: weight offsets rebuilt from it count as uniform
-/// across lanes on lavapipe, so their loads run once per SIMD group instead of once per lane).
+/// The identity table that the push constants of every kernel evaluating MLPs from the uniform
+/// weight block carry as `lut` (`mlp_uni` in `kernels/wgsl/common/mlp_block.wgsl`: weight
+/// offsets rebuilt from it count as uniform across lanes on lavapipe, so their loads run once
+/// per SIMD group instead of once per lane).
 pub const UNIFORM_LUT: [u32; 4] = [0, 1, 2, 3];
 
 /// The fused kernels' sampling range: world space is linear in disparity, so it needs

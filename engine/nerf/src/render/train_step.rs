@@ -26,6 +26,13 @@ use crate::render::loss::{LossConfig, RgbLoss, Targets};
 use crate::render::march::{check_sampling_range, color_base, copy_mlp_block, UNIFORM_LUT};
 use crate::render::sample::SkipEmpty;
 
+/// Bits of the fused step's `flags` (`STEP_*` in `kernels/wgsl/render/train_step.wgsl`).
+const STEP_JITTER: u32 = 1;
+const STEP_RANDOM_BG: u32 = 2;
+const STEP_NDC: u32 = 4;
+const STEP_HUBER: u32 = 8;
+const STEP_GRAD_SCALING: u32 = 16;
+
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
 /// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
 /// (mean of the channels) and the distortion loss.
@@ -158,9 +165,9 @@ impl FusedStep {
         out.mse.check_fits(n, 4, "fused step MSE output")?;
         out.dist_loss
             .check_fits(n, 4, "fused step distortion output")?;
-        let (loss_kind, huber) = match losses.loss.rgb {
+        let (loss_flag, huber) = match losses.loss.rgb {
             RgbLoss::L2 => (0, 0.0),
-            RgbLoss::Huber(d) => (1, d),
+            RgbLoss::Huber(d) => (STEP_HUBER, d),
         };
         let ok = |v: f32| v.is_finite() && v >= 0.0;
         if !(ok(losses.distortion) && ok(losses.loss.depth_lambda) && ok(huber)) {
@@ -194,6 +201,7 @@ impl FusedStep {
                 )));
             }
         }
+        let bit = |on: bool, b: u32| if on { b } else { 0 };
         let p = k::Params {
             n: self.rays,
             samples: self.samples,
@@ -206,11 +214,11 @@ impl FusedStep {
             levels: cfg.levels,
             features: cfg.features,
             seed: seed.unwrap_or(bg_seed),
-            flags: u32::from(seed.is_some())
-                | (random_bg << 1)
-                | (u32::from(ndc) << 2)
-                | (loss_kind << 3)
-                | (u32::from(losses.grad_scaling) << 4),
+            flags: bit(seed.is_some(), STEP_JITTER)
+                | bit(random_bg != 0, STEP_RANDOM_BG)
+                | bit(ndc, STEP_NDC)
+                | loss_flag
+                | bit(losses.grad_scaling, STEP_GRAD_SCALING),
             n_cameras,
             color_base: base,
             dist_lambda: losses.distortion,

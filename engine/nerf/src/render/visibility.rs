@@ -19,6 +19,12 @@ use crate::render::march::{check_sampling_range, UNIFORM_LUT};
 use crate::render::occupancy::Occupancy;
 use crate::render::rays::{gpu_camera, GpuCamera};
 
+/// Bits of the visibility kernel's `flags` (`VIS_*` in `kernels/wgsl/render/visibility.wgsl`):
+/// the field lives in NDC, the density is analytic shapes, transmittances come from volumes.
+const VIS_NDC: u32 = 1;
+const VIS_ANALYTIC: u32 = 2;
+const VIS_VOLUME: u32 = 4;
+
 /// 4-byte words of one `GpuCamera`.
 const CAMERA_WORDS: u64 = (std::mem::size_of::<GpuCamera>() / 4) as u64;
 
@@ -426,7 +432,9 @@ impl Visibility {
                 let ndc = c.space == "ndc";
                 check_sampling_range(ndc, c.near, c.far)?;
                 let scene = field.scene();
-                p.flags |= u32::from(ndc);
+                if ndc {
+                    p.flags |= VIS_NDC;
+                }
                 p.spacing = u32::from(!ndc);
                 p.near = c.near;
                 p.far = c.far;
@@ -462,9 +470,11 @@ impl Visibility {
             }
             Density::Analytic(a) => {
                 check_sampling_range(a.ndc, a.near, a.far)?;
-                p.flags |= 2;
+                p.flags |= VIS_ANALYTIC;
                 p.n_shapes = a.shapes.len() as u32;
-                p.flags |= u32::from(a.ndc);
+                if a.ndc {
+                    p.flags |= VIS_NDC;
+                }
                 p.spacing = u32::from(!a.ndc);
                 p.near = a.near;
                 p.far = a.far;
@@ -577,7 +587,7 @@ impl Visibility {
                         v.cameras
                     )));
                 }
-                p.flags |= 4;
+                p.flags |= VIS_VOLUME;
                 [p.vol_w, p.vol_h, p.vol_depth] = v.size;
                 v.buffer.binding()
             }
