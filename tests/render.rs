@@ -429,17 +429,26 @@ fn ray_losses_match_reference() {
         })
         .collect();
     let depth: Vec<f32> = (0..n).map(|_| rng.uniform(1.0, 10.0)).collect();
-    // All-black and all-white targets included.
+    // All-black and all-white targets included; signed colour weights: 1, partial, L1
+    // (negative) and none.
     let target: Vec<[f32; 4]> = (0..n)
-        .map(|i| match i % 10 {
-            0 => [0.0; 4],
-            1 => [1.0, 1.0, 1.0, 0.0],
-            _ => [
-                rng.uniform(0.0, 1.0),
-                rng.uniform(0.0, 1.0),
-                rng.uniform(0.0, 1.0),
-                0.0,
-            ],
+        .map(|i| {
+            let w = match i % 4 {
+                0 => 1.0,
+                1 => rng.uniform(0.0, 2.0),
+                2 => -rng.uniform(0.0, 2.0),
+                _ => 0.0,
+            };
+            match i % 10 {
+                0 => [0.0, 0.0, 0.0, w],
+                1 => [1.0, 1.0, 1.0, w],
+                _ => [
+                    rng.uniform(0.0, 1.0),
+                    rng.uniform(0.0, 1.0),
+                    rng.uniform(0.0, 1.0),
+                    w,
+                ],
+            }
         })
         .collect();
     let tdepth: Vec<[f32; 2]> = (0..n)

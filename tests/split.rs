@@ -55,7 +55,13 @@ fn run(ctx: &Context, views: &[View]) -> (Vec<f64>, Vec<f32>, Vec<f32>, bool) {
         .collect();
     let (rgb, _, _) = t
         .nerf()
-        .render_with(ctx, &views[0].0, 4096, 8, March::Fused(MarchCuts::EXACT))
+        .render_with(
+            ctx,
+            &views[0].camera,
+            4096,
+            8,
+            March::Fused(MarchCuts::EXACT),
+        )
         .unwrap();
     assert_no_validation_messages(ctx);
     (mse, t.nerf().params().read().unwrap(), rgb, split)

@@ -155,7 +155,7 @@ fn coincident_cameras_train_and_give_finite_visibility_and_stereo() {
         8.0,
     )
     .unwrap();
-    let cam = views[0].0.clone();
+    let cam = views[0].camera.clone();
     let v = Visibility::new(ctx).unwrap();
     let d = Density::Analytic(&field);
     let cfg = |rank| VisibilityConfig {
@@ -180,9 +180,9 @@ fn coincident_cameras_train_and_give_finite_visibility_and_stereo() {
     let grey: Vec<Vec<f32>> = views
         .iter()
         .take(2)
-        .map(|v| extranerf_nerf::mvs::grey(&v.1.rgb))
+        .map(|v| extranerf_nerf::mvs::grey(&v.image.rgb))
         .collect();
-    let cams = vec![views[0].0.clone(), views[0].0.clone()];
+    let cams = vec![views[0].camera.clone(), views[0].camera.clone()];
     let grey = vec![grey[0].clone(), grey[0].clone()];
     let out = Mvs::new(ctx)
         .unwrap()

@@ -319,7 +319,14 @@ fn training_on_fern_raises_psnr_and_renders() {
     assert_eq!(views.len(), 6);
     let depth_targets = views
         .iter()
-        .map(|v| v.2.as_ref().unwrap().iter().filter(|d| d[1] > 0.0).count())
+        .map(|v| {
+            v.depth
+                .as_ref()
+                .unwrap()
+                .iter()
+                .filter(|d| d[1] > 0.0)
+                .count()
+        })
         .sum::<usize>();
     assert!(depth_targets > 1000, "{depth_targets} sparse depth targets");
     let cfg = TrainConfig {
@@ -347,8 +354,8 @@ fn training_on_fern_raises_psnr_and_renders() {
     assert!(last.loss.is_finite() && last.psnr() > first.psnr() + 2.0);
     assert!(last.psnr() > 14.0, "training PSNR {:.2} dB", last.psnr());
     // A quarter-size render of a training view is finite and resembles it.
-    let mut cam = views[0].0.clone();
-    let img = &views[0].1;
+    let mut cam = views[0].camera.clone();
+    let img = &views[0].image;
     let (w, h) = (cam.width / 4, cam.height / 4);
     cam.width = w;
     cam.height = h;
@@ -434,8 +441,8 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
     let views = training_views(&spec, &loaded, &model).unwrap();
     // LLFF rescale: the nearest bound (1.5) becomes 1 / 0.75.
     let scale = 1.0 / (1.5 * 0.75);
-    for (cam, _, d) in &views {
-        let d = d.as_ref().unwrap();
+    for v in &views {
+        let (cam, d) = (&v.camera, v.depth.as_ref().unwrap());
         assert_eq!(d[0], [0.0, 0.0]);
         assert_eq!(d[1], [0.0, 0.0]);
         let (x, y) = (17u32, 9u32);
@@ -455,7 +462,7 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
     // Without the folder, no targets (the demo has no sparse points).
     spec.depth_dir = None;
     let views = training_views(&spec, &loaded, &model).unwrap();
-    assert!(views.iter().all(|v| v.2.is_none()));
+    assert!(views.iter().all(|v| v.depth.is_none()));
 }
 
 #[test]
@@ -480,7 +487,7 @@ fn all_black_and_all_white_images_train_without_nan() {
     for value in [0.0f32, 1.0] {
         let mut views = training_views(&spec, &loaded, &model).unwrap();
         for v in &mut views {
-            v.1.rgb.iter_mut().for_each(|c| *c = value);
+            v.image.rgb.iter_mut().for_each(|c| *c = value);
         }
         let cfg = TrainConfig {
             steps: 20,
@@ -515,12 +522,14 @@ fn all_black_and_all_white_images_train_without_nan() {
 /// world space, with L2 and Huber, depth targets on some pixels, the distortion loss and
 /// gradient scaling, and with occupancy grids swept and thresholded in the step (the strata then
 /// cover only occupied probe intervals), with a fixed and a random background; 12 samples per
-/// ray fill three MLP groups, and 10 (the even cases) leave two slots of the last group empty.
+/// ray fill three MLP groups, and 10 (the even cases) leave two slots of the last group empty;
+/// cases 1 to 4 weight each pixel's colour (some weights 0) and make every second view virtual
+/// (L1), drawn for a set fraction of the rays in cases 2 and 4.
 #[test]
 fn fused_step_gradient_matches_the_standalone_chain() {
     use extranerf_nerf::demo::write_demo_scene;
     use extranerf_nerf::run::{training_views, SceneSpec};
-    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer};
+    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, ViewKind, ViewSampling};
     let e = engine();
     let ctx = &e.ctx;
     let dir = scratch_dir("fused-step");
@@ -559,7 +568,7 @@ fn fused_step_gradient_matches_the_standalone_chain() {
         // Depth targets on about a third of the pixels, in the ray space's units.
         let (lo, hi) = (model.near + 0.1, model.far * 0.8);
         for v in &mut views {
-            let n = v.1.rgb.len() / 3;
+            let n = v.image.rgb.len() / 3;
             let d: Vec<[f32; 2]> = (0..n)
                 .map(|_| {
                     let conf = if rng.uniform(0.0, 1.0) < 0.33 {
@@ -570,14 +579,38 @@ fn fused_step_gradient_matches_the_standalone_chain() {
                     [rng.uniform(lo, hi), conf]
                 })
                 .collect();
-            v.2 = Some(d);
+            v.depth = Some(d);
         }
+        // Cases 1 to 4: per-pixel colour weights (a fifth of them 0) and every second view
+        // virtual (its colour loss L1), drawn for 40% of the rays in cases 2 and 4.
+        if ci > 0 {
+            for (vi, v) in views.iter_mut().enumerate() {
+                let w: Vec<f32> = (0..v.pixels())
+                    .map(|_| {
+                        if rng.uniform(0.0, 1.0) < 0.2 {
+                            0.0
+                        } else {
+                            rng.uniform(0.0, 2.0)
+                        }
+                    })
+                    .collect();
+                v.weight = Some(w);
+                if vi % 2 == 1 {
+                    v.kind = ViewKind::Virtual;
+                }
+            }
+        }
+        let sampling = if ci % 2 == 0 && ci > 0 {
+            ViewSampling::VirtualFraction(0.4)
+        } else {
+            ViewSampling::Uniform
+        };
         let mut params = init_params(&model, 5);
         let lay = ParamLayout::new(&model);
         for v in &mut params[lay.table.0..lay.table.0 + lay.table.1] {
             *v = rng.uniform(-1.0, 1.0);
         }
-        let data = TrainData::new(ctx, &views).unwrap();
+        let data = TrainData::with_sampling(ctx, &views, sampling).unwrap();
         let run = |fused: bool| {
             let cfg = TrainConfig {
                 rays: 96,
@@ -635,5 +668,154 @@ fn fused_step_gradient_matches_the_standalone_chain() {
             assert!(nonzero >= 8, "case {ci} section {si}: {nonzero} nonzero");
         }
     }
+    assert_no_validation_messages(ctx);
+}
+
+/// Pixels whose colour weight is 0 give no gradient at all when nothing else is supervised (no
+/// depth, distortion or background term reaches the field), in the fused step and the
+/// standalone chain alike; the same views with weights give a gradient (so the check can fail),
+/// and weights that are negative, not finite or of the wrong count are refused with the view
+/// named.
+#[test]
+fn zero_colour_weights_give_zero_gradient_and_bad_weights_are_refused() {
+    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, ViewKind};
+    use extranerf_tests::demo_training_views;
+    let e = engine();
+    let ctx = &e.ctx;
+    let model = tiny();
+    let mut views = demo_training_views("zero-weights", &model);
+    let params = init_params(&model, 7);
+    for (vi, v) in views.iter_mut().enumerate() {
+        if vi % 2 == 1 {
+            v.kind = ViewKind::Virtual;
+        }
+    }
+    let gradient = |views: &[extranerf_nerf::trainer::View], fused: bool| {
+        let data = TrainData::new(ctx, views).unwrap();
+        let cfg = TrainConfig {
+            rays: 128,
+            samples: 8,
+            depth_lambda: 0.0,
+            distortion_lambda: 0.0,
+            fused_step: fused,
+            ..TrainConfig::default()
+        };
+        let nerf = Nerf::new(ctx, model.clone(), &params, cfg.background).unwrap();
+        let mut t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
+        assert_eq!(t.is_fused(), fused);
+        t.gradient(ctx, &e.prims, &data).unwrap()
+    };
+    for fused in [true, false] {
+        let (g, s) = gradient(&views, fused);
+        assert!(
+            g.iter().any(|v| *v != 0.0) && s.loss > 0.0,
+            "weighted: a gradient"
+        );
+        let mut zero = views.clone();
+        for v in &mut zero {
+            v.weight = Some(vec![0.0; v.pixels()]);
+        }
+        let (g, s) = gradient(&zero, fused);
+        assert_eq!(s.loss, 0.0, "fused {fused}");
+        assert!(
+            g.iter().all(|v| *v == 0.0),
+            "fused {fused}: {} nonzero gradient entries",
+            g.iter().filter(|v| **v != 0.0).count()
+        );
+    }
+    for (bad, why) in [
+        (vec![-1.0f32], "must be finite and >= 0"),
+        (vec![f32::NAN], "must be finite and >= 0"),
+        (vec![], "colour weights for"),
+    ] {
+        let mut v = views.clone();
+        let n = v[1].pixels();
+        v[1].weight = Some(if bad.is_empty() {
+            vec![1.0; n - 1]
+        } else {
+            let mut w = vec![1.0; n];
+            w[5] = bad[0];
+            w
+        });
+        let err = TrainData::new(ctx, &v).unwrap_err().to_string();
+        assert!(err.contains("view 1") && err.contains(why), "{err}");
+    }
+    assert_no_validation_messages(ctx);
+}
+
+/// The batch kernel draws views with the configured probabilities: virtual views for the set
+/// fraction of the rays, each kind spread evenly, and every pixel's target carries its view's
+/// signed colour weight. Over 2^16 rays each view's count is within 5 standard deviations of its
+/// expectation (a binomial bound that a wrong table, off by a few percent, fails).
+#[test]
+fn batches_draw_virtual_views_at_the_configured_fraction() {
+    use extranerf_nerf::trainer::{
+        colour_weight, image_cdf, Nerf, TrainConfig, TrainData, Trainer, ViewKind, ViewSampling,
+    };
+    use extranerf_tests::demo_training_views;
+    let e = engine();
+    let ctx = &e.ctx;
+    let model = tiny();
+    let mut views = demo_training_views("view-sampling", &model);
+    assert!(views.len() >= 4);
+    // Views 0 and 2 virtual, the rest captured; view 3 weighted 0.25 everywhere.
+    for vi in [0, 2] {
+        views[vi].kind = ViewKind::Virtual;
+    }
+    views[3].weight = Some(vec![0.25; views[3].pixels()]);
+    let rays = 1u32 << 16;
+    let cfg = TrainConfig {
+        rays,
+        samples: 4,
+        ..TrainConfig::default()
+    };
+    let nerf = Nerf::new(ctx, model.clone(), &init_params(&model, 1), cfg.background).unwrap();
+    let t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
+    for (sampling, virtual_share) in [
+        (ViewSampling::VirtualFraction(0.3), 0.3),
+        (ViewSampling::VirtualFraction(0.0), 0.0),
+        (ViewSampling::VirtualFraction(1.0), 1.0),
+        (ViewSampling::Uniform, 2.0 / views.len() as f64),
+    ] {
+        let data = TrainData::with_sampling(ctx, &views, sampling).unwrap();
+        let p = sampling.probabilities(&views).unwrap();
+        assert!((p.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        let batch = t.draw_batch(ctx, &data, 3).unwrap();
+        let mut count = vec![0u64; views.len()];
+        for (px, tg) in batch.pixels.iter().zip(&batch.targets) {
+            let v = &views[px[0] as usize];
+            assert!((px[1] as usize) < v.pixels());
+            let i = px[1] as usize;
+            assert_eq!(
+                tg[..3],
+                v.image.rgb[3 * i..3 * i + 3],
+                "the pixel's colour is the target"
+            );
+            let w = v.weight.as_ref().map_or(1.0, |w| w[i]);
+            assert_eq!(tg[3], colour_weight(v.kind, w));
+            count[px[0] as usize] += 1;
+        }
+        let virt: u64 = [0, 2].iter().map(|&i| count[i]).sum();
+        let n = rays as f64;
+        let sd = (n * virtual_share * (1.0 - virtual_share)).sqrt();
+        assert!(
+            (virt as f64 - n * virtual_share).abs() <= 5.0 * sd + 1e-9,
+            "{sampling:?}: {virt} of {rays} rays from virtual views"
+        );
+        for (i, (&c, &pi)) in count.iter().zip(&p).enumerate() {
+            let sd = (n * pi * (1.0 - pi)).sqrt();
+            assert!(
+                (c as f64 - n * pi).abs() <= 5.0 * sd + 1e-9,
+                "{sampling:?} view {i}: {c} rays where {pi} of {rays} are expected"
+            );
+        }
+    }
+    // The fixed-point table: shares in order, the last bound 2^24, empty shares for zeros.
+    let cdf = image_cdf(&[0.5, 0.0, 0.25, 0.25, 0.0]).unwrap();
+    assert_eq!(cdf, vec![1 << 23, 1 << 23, 3 << 22, 1 << 24, 1 << 24]);
+    assert!(image_cdf(&[0.0, 0.0]).is_err());
+    assert!(ViewSampling::VirtualFraction(1.5)
+        .probabilities(&views)
+        .is_err());
     assert_no_validation_messages(ctx);
 }

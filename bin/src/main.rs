@@ -10,6 +10,7 @@ mod bench;
 mod diffusion;
 mod mvs;
 mod nerf;
+mod report;
 mod tradeoff;
 mod visibility;
 

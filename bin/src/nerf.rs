@@ -1,20 +1,24 @@
 //! `extranerf train`, `render` and `eval`.
 
-use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context as _};
+use extranerf_extrapolate::driver::{
+    default_lpips_dir, fit_budget, train_loop, view_indices, TrainRun,
+};
 use extranerf_gpu::Context;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::run::{
-    load_checkpoint, model_for_scene, save_checkpoint, training_views, write_depth_exr, write_png,
-    Checkpoint, RunConfig, SceneSpec,
+    load_checkpoint, model_for_scene, training_views, write_depth_exr, write_png, RunConfig,
+    SceneSpec,
 };
 use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer, STAT_SLOTS};
 use extranerf_prims::Prims;
+
+use crate::report::Console;
 
 /// Arguments of `extranerf train`.
 #[derive(clap::Args, Debug)]
@@ -50,9 +54,11 @@ pub struct TrainArgs {
     /// from the scene.
     #[arg(long)]
     no_auto: bool,
-    /// Training time budget in seconds: a 20-step probe measures samples/s and
-    /// the number of steps is set to what fits (at most 50000; with fewer than 400 the table and
-    /// levels are reduced first). Explicit --steps wins.
+    /// Training time budget in seconds (held-out evaluations not counted): a 20-step probe
+    /// measures samples/s and sets the steps that fit (at most 50000; with fewer than 400 the
+    /// table and levels are reduced first), and the steps and the learning-rate schedule are
+    /// re-fitted to the clock as the run goes, so it ends when the budget is spent. Explicit
+    /// --steps wins.
     #[arg(long, value_name = "SECONDS")]
     budget: Option<f64>,
     /// Rays per step [default: 256].
@@ -299,6 +305,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
                 &mut cfg,
                 budget,
                 a.log2_table.is_none() && a.levels.is_none(),
+                &mut Console::new(),
             )?;
         }
         (cfg, 0, None, None)
@@ -318,407 +325,13 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         checkpoint_every: a.checkpoint_every,
         eval_every: a.eval_every,
         eval_views: a.eval_views.clone(),
-    };
-    train_loop(ctx, &cfg, &run, params, moments)
-}
-
-/// A trainer for `cfg` from freshly initialised parameters, and its training views on the
-/// device (after checking the settings).
-pub fn fresh_trainer(
-    ctx: &Context,
-    cfg: &RunConfig,
-    loaded: &extranerf_nerf::run::LoadedScene,
-) -> anyhow::Result<(Trainer, TrainData)> {
-    cfg.model.validate()?;
-    cfg.train.validate()?;
-    let views = training_views(&cfg.scene, loaded, &cfg.model)?;
-    let params = extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed);
-    let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
-    let data = TrainData::new(ctx, &views)?;
-    Ok((Trainer::new(ctx, nerf, cfg.train.clone(), 0, None)?, data))
-}
-
-/// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed.
-pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig) -> anyhow::Result<f64> {
-    let loaded = cfg.scene.load()?;
-    let (mut trainer, data) = fresh_trainer(ctx, cfg, &loaded)?;
-    let prims = Prims::new(ctx)?;
-    trainer.run_steps(ctx, &prims, &data, 5)?;
-    let t = Instant::now();
-    trainer.run_steps(ctx, &prims, &data, 20)?;
-    Ok(20.0 * trainer.samples_per_step() as f64 / t.elapsed().as_secs_f64())
-}
-
-/// Below this many steps `--budget` shrinks the model first. On fern a smaller table or fewer
-/// levels cost about as much PSNR as the steps they buy (results/tradeoff_fern_lavapipe). With a
-/// 60 s budget, shrinking to 2^15 x 8 levels for 865 steps scored 17.50 dB / LPIPS 0.865, and
-/// keeping the auto model for 744 steps 17.54 dB / 0.850.
-const MIN_BUDGET_STEPS: u32 = 400;
-
-/// The most steps `--budget` sets. It used to stop at the paper's 5000, which at 256 rays per
-/// step ends long before a 15-minute budget on fern (about 0.12 s per step on two cores).
-const MAX_BUDGET_STEPS: f64 = 50000.0;
-
-/// `--budget`: sets the steps to what a measured probe says fits in `budget` seconds (at most
-/// 50000). Below 400 steps, and when `shrink` (no explicit table or level flags), the table and
-/// levels are reduced first, down to 2^15 and 8 levels.
-fn fit_budget(ctx: &Context, cfg: &mut RunConfig, budget: f64, shrink: bool) -> anyhow::Result<()> {
-    if !(budget > 0.0 && budget.is_finite()) {
-        bail!("--budget {budget}: give a positive number of seconds");
-    }
-    loop {
-        let sps = probe_samples_per_s(ctx, cfg)?;
-        let per_step = cfg.train.rays as f64 * cfg.train.samples as f64;
-        // 5% margin: the probe's first steps run a little faster than a whole run.
-        let fit = (0.95 * budget * sps / per_step).floor();
-        let steps = fit.clamp(1.0, MAX_BUDGET_STEPS) as u32;
-        let m = &cfg.model;
-        if steps < MIN_BUDGET_STEPS && shrink && (m.log2_table > 15 || m.levels > 8) {
-            // Only what is above its floor shrinks.
-            let table = if m.log2_table > 15 {
-                m.log2_table - 1
-            } else {
-                m.log2_table
-            };
-            let levels = if m.levels > 8 {
-                (m.levels - 2).max(8)
-            } else {
-                m.levels
-            };
-            eprintln!(
-                "budget {budget:.0} s: {sps:.3e} samples/s fits {fit:.0} steps with table 2^{} and {} levels; reducing to 2^{table} and {levels} levels",
-                m.log2_table,
-                m.levels,
-            );
-            cfg.model.log2_table = table;
-            cfg.model.levels = levels;
-            continue;
-        }
-        eprintln!(
-            "budget {budget:.0} s: measured {sps:.3e} samples/s with {} rays x {} samples per step: {steps} steps{}",
-            cfg.train.rays,
-            cfg.train.samples,
-            if fit > MAX_BUDGET_STEPS {
-                " (the most --budget takes; the budget allows more)"
-            } else {
-                ""
-            }
-        );
-        cfg.train.steps = steps;
-        cfg.train.decay_steps = steps;
-        return Ok(());
-    }
-}
-
-/// Where and how a training loop runs.
-pub struct TrainRun {
-    /// Run folder.
-    pub out: PathBuf,
-    /// Steps already done (resume).
-    pub start: u32,
-    /// Steps between progress lines.
-    pub log_every: u32,
-    /// Steps between checkpoints.
-    pub checkpoint_every: u32,
-    /// Steps between held-out evaluations into `curve.jsonl` (0: none).
-    pub eval_every: u32,
-    /// Which views those evaluations render ("test" or indices).
-    pub eval_views: String,
-}
-
-/// Trains `cfg` from `params` (None: initialise) and `moments`, logging and checkpointing.
-pub fn train_loop(
-    ctx: &Context,
-    cfg: &RunConfig,
-    a: &TrainRun,
-    params: Option<Vec<f32>>,
-    moments: Option<(Vec<f32>, Vec<f32>)>,
-) -> anyhow::Result<()> {
-    let start = a.start;
-    cfg.model.validate()?;
-    cfg.train.validate()?;
-    let loaded = cfg.scene.load()?;
-    let views = training_views(&cfg.scene, &loaded, &cfg.model)?;
-    let depth_targets: usize = views
-        .iter()
-        .filter_map(|v| v.2.as_ref())
-        .map(|d| d.iter().filter(|p| p[1] > 0.0).count())
-        .sum();
-    eprintln!(
-        "scene {}: {} views, training on {:?}, testing on {:?}; {} depth targets; space {}",
-        cfg.scene.dir.display(),
-        loaded.scene.cameras.len(),
-        loaded.split.train,
-        loaded.split.test,
-        depth_targets,
-        cfg.model.space
-    );
-    let params =
-        params.unwrap_or_else(|| extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed));
-    let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
-    let data = TrainData::new(ctx, &views)?;
-    let prims = Prims::new(ctx)?;
-    let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
-    let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), start, moments)?;
-    eprintln!(
-        "model: hash grid {}x{}x2^{} (N {}..{}, {}), MLPs {:?} and {:?}, {} parameters; {} rays x {} samples per step",
-        cfg.model.levels,
-        cfg.model.features,
-        cfg.model.log2_table,
-        cfg.model.min_res,
-        cfg.model.max_res,
-        cfg.model.precision,
-        cfg.model.density_mlp().dims,
-        cfg.model.color_mlp().dims,
-        trainer.nerf().field().layout().total,
-        cfg.train.rays,
-        cfg.train.samples
-    );
-    match trainer.standalone_reason() {
-        None => eprintln!(
-            "training step: fused kernel (pixels to gradients) + MLP weight-gradient reduction"
-        ),
-        Some(why) => eprintln!("training step: standalone kernels ({why})"),
-    }
-    if let Some(occ) = trainer.occupancy() {
-        let g = occ.config();
-        eprintln!(
-            "skipping empty space: occupancy grid {}^3 x {} cascade(s), a sweep every {} steps, {} probes per ray, from step {}",
-            g.res,
-            g.cascades,
-            cfg.train.occupancy_every,
-            cfg.train.occupancy_probes,
-            cfg.train.occupancy_warmup + 1
-        );
-    }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let mut log = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(a.out.join("progress.jsonl"))
-        .with_context(|| format!("opening {}", a.out.join("progress.jsonl").display()))?;
-    let save = |t: &Trainer| -> anyhow::Result<()> {
-        let params = t.nerf().params().read()?;
-        let moments = t.moments()?;
-        save_checkpoint(
-            &a.out,
-            &Checkpoint {
-                config: cfg.clone(),
-                step: t.step(),
-                params,
-                moments: Some(moments),
-            },
-        )?;
-        Ok(())
-    };
-    let mut curve = if a.eval_every > 0 {
-        Some(HeldOut::new(&loaded, &a.eval_views, &a.out, start)?)
-    } else {
-        None
-    };
-    let tty = std::io::stderr().is_terminal();
-    let t0 = Instant::now();
-    // Seconds spent in held-out evaluations, left out of the training time.
-    let mut eval_secs = 0.0;
-    let total = cfg.train.steps;
-    while trainer.step() < total {
-        let to_ckpt = a.checkpoint_every - trainer.step() % a.checkpoint_every;
-        let to_eval = if a.eval_every > 0 {
-            a.eval_every - trainer.step() % a.eval_every
+        budget: if a.resume || a.steps.is_some() {
+            None
         } else {
-            u32::MAX
-        };
-        let count = a
-            .log_every
-            .min(total - trainer.step())
-            .min(to_ckpt)
-            .min(to_eval);
-        let stats = trainer.run_steps(ctx, &prims, &data, count)?;
-        if !(stats.loss.is_finite() && stats.mse.is_finite()) {
-            bail!(
-                "the loss became {} at step {}; the last checkpoint in {} is intact",
-                stats.loss,
-                trainer.step(),
-                a.out.display()
-            );
-        }
-        let done = trainer.step() - start;
-        let secs = t0.elapsed().as_secs_f64() - eval_secs;
-        let sps = done as f64 * trainer.samples_per_step() as f64 / secs;
-        let eta = secs / done as f64 * (total - trainer.step()) as f64;
-        let line = format!(
-            "step {:>5}/{total}  loss {:.5}  psnr {:6.2} dB  {:.3e} samples/s  {:.1} s elapsed  ETA {:.0} s",
-            trainer.step(),
-            stats.loss,
-            stats.psnr(),
-            sps,
-            secs,
-            eta
-        );
-        if tty {
-            eprint!("\r{line}");
-        } else {
-            eprintln!("{line}");
-        }
-        writeln!(
-            log,
-            "{}",
-            serde_json::json!({"step": trainer.step(), "loss": stats.loss, "mse": stats.mse, "psnr": stats.psnr(), "samples_per_s": sps, "elapsed_s": secs})
-        )?;
-        if trainer.step() % a.checkpoint_every == 0 || trainer.step() == total {
-            save(&trainer)?;
-        }
-        if let Some(c) = &mut curve {
-            if trainer.step() % a.eval_every == 0 || trainer.step() == total {
-                let te = Instant::now();
-                if tty {
-                    eprintln!();
-                }
-                c.evaluate(ctx, &trainer, &stats, secs)?;
-                eval_secs += te.elapsed().as_secs_f64();
-            }
-        }
-    }
-    if tty {
-        eprintln!();
-    }
-    let secs = t0.elapsed().as_secs_f64() - eval_secs;
-    eprintln!(
-        "trained {} steps in {:.1} s ({:.3e} samples/s); checkpoint in {}",
-        trainer.step() - start,
-        secs,
-        (trainer.step() - start) as f64 * trainer.samples_per_step() as f64 / secs.max(1e-9),
-        a.out.display()
-    );
-    if let Some(f) = trainer.occupied_fraction()? {
-        eprintln!(
-            "occupancy grid: {:.1}% of cells occupied at the end",
-            100.0 * f
-        );
-    }
-    Ok(())
-}
-
-/// The view indices of a comma-separated `list` (such as 0,8,16) for a scene of `n` views;
-/// errors name `flag` and the words it also takes (`words`).
-fn view_indices(list: &str, n: usize, flag: &str, words: &str) -> anyhow::Result<Vec<usize>> {
-    let mut v = Vec::new();
-    for item in list.split(',') {
-        let i: usize = item.trim().parse().map_err(|_| {
-            anyhow::anyhow!("{flag} {list}: use {words} or view indices like 0,8,16")
-        })?;
-        if i >= n {
-            bail!("{flag}: view {i} does not exist (the scene has {n})");
-        }
-        v.push(i);
-    }
-    Ok(v)
-}
-
-/// Held-out evaluations during training (`train --eval-every`): each renders the chosen views
-/// with the fused march at the training samples per ray and appends one line to `curve.jsonl`.
-struct HeldOut {
-    views: Vec<(usize, extranerf_nerf::data::Camera, Vec<f32>)>,
-    lpips: Option<Lpips>,
-    log: std::fs::File,
-    path: PathBuf,
-}
-
-impl HeldOut {
-    fn new(
-        loaded: &extranerf_nerf::run::LoadedScene,
-        which: &str,
-        out: &Path,
-        start: u32,
-    ) -> anyhow::Result<HeldOut> {
-        let indices: Vec<usize> = if which == "test" {
-            loaded.split.test.clone()
-        } else {
-            view_indices(which, loaded.scene.cameras.len(), "--eval-views", "test")?
-        };
-        if indices.is_empty() {
-            bail!("--eval-every: the split holds no held-out view to evaluate");
-        }
-        let mut views = Vec::new();
-        for i in indices {
-            let cam = loaded.scene.cameras[i].clone();
-            let truth = extranerf_nerf::data::load_image(&cam.image)?;
-            views.push((i, cam, truth.rgb));
-        }
-        let lpips = match lpips_alex(None) {
-            Ok(l) => Some(l),
-            Err(e) => {
-                eprintln!("--eval-every: no LPIPS in the curve ({e:#})");
-                None
-            }
-        };
-        std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-        let path = out.join("curve.jsonl");
-        if start == 0 && path.exists() {
-            std::fs::remove_file(&path).with_context(|| format!("replacing {}", path.display()))?;
-        }
-        let log = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .with_context(|| format!("opening {}", path.display()))?;
-        Ok(HeldOut {
-            views,
-            lpips,
-            log,
-            path,
-        })
-    }
-
-    /// Renders the views from the trainer's current field and appends their means.
-    fn evaluate(
-        &mut self,
-        ctx: &Context,
-        trainer: &Trainer,
-        stats: &extranerf_nerf::trainer::StepStats,
-        train_secs: f64,
-    ) -> anyhow::Result<()> {
-        let samples = trainer.config().samples;
-        let (mut p, mut s, mut l, mut o) = (0.0, 0.0, 0.0, 0.0);
-        for (_, cam, truth) in &self.views {
-            let (rgb, _, opacity) = trainer.nerf().render_with(
-                ctx,
-                cam,
-                8192,
-                samples,
-                March::Fused(MarchCuts::EXACT),
-            )?;
-            p += psnr(&rgb, truth)?;
-            s += ssim(&rgb, truth, cam.width, cam.height)?;
-            if let Some(lp) = &self.lpips {
-                l += lp.distance(&rgb, truth, cam.width, cam.height)?;
-            }
-            o += opacity.iter().map(|&v| v as f64).sum::<f64>() / opacity.len().max(1) as f64;
-        }
-        let n = self.views.len() as f64;
-        let line = serde_json::json!({
-            "step": trainer.step(),
-            "train_seconds": train_secs,
-            "test_psnr": p / n,
-            "test_ssim": s / n,
-            "test_lpips_alex": self.lpips.as_ref().map(|_| l / n),
-            "test_opacity": o / n,
-            "batch_psnr": stats.psnr(),
-            "views": self.views.iter().map(|v| v.0).collect::<Vec<_>>(),
-        });
-        eprintln!(
-            "held-out at step {} ({train_secs:.1} s of training): PSNR {:.2} SSIM {:.3} LPIPS-alex {} opacity {:.3}",
-            trainer.step(),
-            p / n,
-            s / n,
-            self.lpips
-                .as_ref()
-                .map_or("-".to_string(), |_| format!("{:.3}", l / n)),
-            o / n
-        );
-        writeln!(self.log, "{line}").with_context(|| format!("writing {}", self.path.display()))?;
-        Ok(())
-    }
+            a.budget
+        },
+    };
+    train_loop(ctx, &cfg, &run, params, moments, &mut Console::new())
 }
 
 /// How `render` and `eval` evaluate the field (`Default` equals the command-line defaults).
@@ -963,21 +576,6 @@ pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
     })?;
     eprintln!("wrote {}", out.display());
     Ok(())
-}
-
-/// Where LPIPS weights are looked for by default: `$EXTRANERF_MODELS/lpips`, else
-/// `../shared/models/lpips` (the project's shared folder beside the checkout).
-pub fn default_lpips_dir() -> PathBuf {
-    std::env::var_os("EXTRANERF_MODELS")
-        .map(|m| PathBuf::from(m).join("lpips"))
-        .unwrap_or_else(|| PathBuf::from("../shared/models/lpips"))
-}
-
-/// The AlexNet LPIPS from `dir` (default [`default_lpips_dir`]), the error naming the folder.
-pub fn lpips_alex(dir: Option<&std::path::Path>) -> anyhow::Result<Lpips> {
-    let dir = dir.map(PathBuf::from).unwrap_or_else(default_lpips_dir);
-    Lpips::load(&dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex)
-        .with_context(|| format!("LPIPS weights in {} (--lpips)", dir.display()))
 }
 
 /// Arguments of `extranerf eval`.
@@ -1378,9 +976,11 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             checkpoint_every: a.steps.max(1),
             eval_every: 0,
             eval_views: "test".into(),
+            budget: None,
         },
         None,
         None,
+        &mut Console::new(),
     )?;
     let lpips_dir = default_lpips_dir();
     let nets = if lpips_dir.join("lpips_alex_v0.1.safetensors").exists() {

@@ -348,7 +348,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         depth_dir: None,
     };
     let loaded = spec.load()?;
-    let lpips = crate::nerf::lpips_alex(a.lpips.as_deref())?;
+    let lpips = extranerf_extrapolate::driver::lpips_alex(a.lpips.as_deref())?;
     // Held-out views and their ground truth at the scoring resolution, loaded once.
     let mut tests = Vec::new();
     for &i in &loaded.split.test {
@@ -520,7 +520,7 @@ fn run_point(
     tests: &[(extranerf_nerf::data::Camera, Vec<f32>, u32, u32)],
     lpips: &Lpips,
 ) -> anyhow::Result<(f64, f64, f64, f64, f64, f64)> {
-    let (mut trainer, data) = crate::nerf::fresh_trainer(ctx, cfg, loaded)?;
+    let (mut trainer, data) = extranerf_extrapolate::driver::fresh_trainer(ctx, cfg, loaded)?;
     let mut peak = ctx.allocated_bytes()?.0;
     let t = Instant::now();
     while trainer.step() < cfg.train.steps {

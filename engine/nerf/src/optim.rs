@@ -99,6 +99,18 @@ pub struct Adam {
 }
 
 impl Adam {
+    /// Sets the steps of the learning-rate decay (a time budget re-fitting its steps as it
+    /// runs); the moments are kept.
+    pub fn set_decay_steps(&mut self, steps: u32) -> Result<()> {
+        if steps == 0 {
+            return Err(GpuError::Usage(
+                "the learning-rate decay needs a positive number of steps".into(),
+            ));
+        }
+        self.config.decay_steps = steps;
+        Ok(())
+    }
+
     /// Zeroed moments for `n` parameters.
     pub fn new(ctx: &Context, n: u64, config: AdamConfig) -> Result<Adam> {
         config.validate()?;

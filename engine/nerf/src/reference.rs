@@ -509,6 +509,8 @@ pub fn ndc_ray(
 }
 
 /// Per-ray loss (before the 1/n of the batch mean) and its gradients (d_rgb, d_depth), in f64.
+/// `target[3]` is the signed colour weight (common/ray_loss.wgsl): w >= 0 scales the configured
+/// loss, w < 0 means L1 scaled by -w.
 pub fn ray_loss(
     rendered: [f32; 4],
     depth: f32,
@@ -518,30 +520,40 @@ pub fn ray_loss(
 ) -> (f64, [f64; 3], f64) {
     use crate::render::loss::RgbLoss;
     let e = [0, 1, 2].map(|c| rendered[c] as f64 - target[c] as f64);
-    let (mut l, g) = match cfg.rgb {
-        RgbLoss::L2 => (
-            e.iter().map(|v| v * v).sum::<f64>() / 3.0,
-            e.map(|v| 2.0 * v / 3.0),
-        ),
-        RgbLoss::Huber(d) => {
-            let d = d as f64;
-            let l = e
-                .iter()
-                .map(|v| {
-                    if v.abs() <= d {
-                        0.5 * v * v
-                    } else {
-                        d * (v.abs() - 0.5 * d)
-                    }
-                })
-                .sum::<f64>()
-                / 3.0;
-            (
-                l,
-                e.map(|v| if v.abs() <= d { v } else { d * v.signum() } / 3.0),
-            )
+    let w = (target[3] as f64).abs();
+    let (l, g) = if target[3] < 0.0 {
+        (
+            e.iter().map(|v| v.abs()).sum::<f64>() / 3.0,
+            e.map(|v| if v == 0.0 { 0.0 } else { v.signum() } / 3.0),
+        )
+    } else {
+        match cfg.rgb {
+            RgbLoss::L2 => (
+                e.iter().map(|v| v * v).sum::<f64>() / 3.0,
+                e.map(|v| 2.0 * v / 3.0),
+            ),
+            RgbLoss::Huber(d) => {
+                let d = d as f64;
+                let l = e
+                    .iter()
+                    .map(|v| {
+                        if v.abs() <= d {
+                            0.5 * v * v
+                        } else {
+                            d * (v.abs() - 0.5 * d)
+                        }
+                    })
+                    .sum::<f64>()
+                    / 3.0;
+                (
+                    l,
+                    e.map(|v| if v.abs() <= d { v } else { d * v.signum() } / 3.0),
+                )
+            }
         }
     };
+    let mut l = w * l;
+    let g = g.map(|v| w * v);
     let mut gd = 0.0;
     if target_depth[1] > 0.0 {
         let de = depth as f64 - target_depth[0] as f64;
@@ -1581,7 +1593,17 @@ mod tests {
     #[test]
     fn loss_gradients_match_finite_differences() {
         use crate::render::loss::{LossConfig, RgbLoss};
-        for rgb in [RgbLoss::L2, RgbLoss::Huber(0.1)] {
+        // Colour weights: the configured loss at full and partial weight, L1 (negative) and
+        // none (zero, which must leave no colour gradient).
+        for (rgb, w) in [
+            (RgbLoss::L2, 1.0f32),
+            (RgbLoss::L2, 0.4),
+            (RgbLoss::Huber(0.1), 1.0),
+            (RgbLoss::Huber(0.1), 0.4),
+            (RgbLoss::L2, -0.7),
+            (RgbLoss::Huber(0.1), -1.0),
+            (RgbLoss::L2, 0.0),
+        ] {
             let cfg = LossConfig {
                 rgb,
                 depth_lambda: 0.3,
@@ -1589,7 +1611,7 @@ mod tests {
             let (r, d, t, td) = (
                 [0.9f32, 0.2, 0.55, 1.0],
                 2.5f32,
-                [0.1f32, 0.25, 0.5, 0.0],
+                [0.1f32, 0.25, 0.5, w],
                 [2.0f32, 0.7],
             );
             let (_, g, gd) = ray_loss(r, d, t, td, &cfg);
@@ -1602,9 +1624,10 @@ mod tests {
                     / (2.0 * h as f64);
                 assert!(
                     (fd - g[c]).abs() < 1e-4,
-                    "{rgb:?} channel {c}: {fd} vs {}",
+                    "{rgb:?} weight {w} channel {c}: {fd} vs {}",
                     g[c]
                 );
+                assert_eq!(g[c] == 0.0, w == 0.0, "{rgb:?} weight {w} channel {c}");
             }
             let fd = (ray_loss(r, d + h, t, td, &cfg).0 - ray_loss(r, d - h, t, td, &cfg).0)
                 / (2.0 * h as f64);
@@ -1615,6 +1638,20 @@ mod tests {
                 "no target, no depth gradient"
             );
         }
+        // L1 is |e| summed over the channels / 3, times the weight.
+        let cfg = LossConfig {
+            rgb: RgbLoss::L2,
+            depth_lambda: 0.0,
+        };
+        let l1 = ray_loss(
+            [0.9, 0.2, 0.55, 1.0],
+            0.0,
+            [0.1, 0.25, 0.5, -0.5],
+            [0.0; 2],
+            &cfg,
+        )
+        .0;
+        assert!((l1 - 0.5 * (0.8 + 0.05 + 0.05) / 3.0).abs() < 1e-7, "{l1}");
         let hg = HashGridConfig {
             levels: 3,
             features: 2,

@@ -247,7 +247,7 @@ pub fn training_views(
         } else {
             None
         };
-        views.push((cam, img, depth));
+        views.push(View::captured(cam, img, depth));
     }
     Ok(views)
 }

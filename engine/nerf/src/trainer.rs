@@ -221,31 +221,172 @@ impl TrainConfig {
     }
 }
 
-/// One training view: camera, image, optional per-pixel `(depth, confidence)` target.
-pub type View = (Camera, Image, Option<Vec<[f32; 2]>>);
+/// Where a training view comes from, which decides its colour loss.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ViewKind {
+    /// A photograph: the configured colour loss (L2 or Huber), scaled by the pixel's weight.
+    Captured,
+    /// A virtual view (an inpainted render): L1 on colour scaled by the pixel's weight, as
+    /// ExtraNeRF supervises with its w(t)-weighted L1.
+    Virtual,
+}
 
-/// The training views on the device: cameras, packed pixels and depth targets.
+/// One training view.
+#[derive(Clone, Debug)]
+pub struct View {
+    pub camera: Camera,
+    pub image: Image,
+    /// Per-pixel `(depth, confidence)` target in the ray space's units (view depth in world
+    /// space, t in NDC); confidence 0 = no target.
+    pub depth: Option<Vec<[f32; 2]>>,
+    /// Per-pixel colour weight (finite, >= 0; 0 = the pixel's colour is not supervised);
+    /// None = 1 everywhere.
+    pub weight: Option<Vec<f32>>,
+    pub kind: ViewKind,
+}
+
+impl View {
+    /// A photograph with every pixel's colour weighted 1.
+    pub fn captured(camera: Camera, image: Image, depth: Option<Vec<[f32; 2]>>) -> View {
+        View {
+            camera,
+            image,
+            depth,
+            weight: None,
+            kind: ViewKind::Captured,
+        }
+    }
+
+    /// Pixels of the view.
+    pub fn pixels(&self) -> usize {
+        self.image.width as usize * self.image.height as usize
+    }
+}
+
+/// The signed colour weight that a training pixel carries in its fourth channel (the kernels'
+/// encoding, common/ray_loss.wgsl): `w` for captured views, `-w` for virtual views (L1).
+pub fn colour_weight(kind: ViewKind, w: f32) -> f32 {
+    match kind {
+        ViewKind::Captured => w,
+        ViewKind::Virtual => -w,
+    }
+}
+
+/// How a batch's rays are spread over the training views.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ViewSampling {
+    /// Every view equally likely (then every pixel of it).
+    Uniform,
+    /// This fraction of the rays from virtual views, the rest from captured ones, each kind
+    /// spread evenly over its views (all rays from the kind present when only one is).
+    VirtualFraction(f32),
+}
+
+impl ViewSampling {
+    /// Each view's probability of being drawn for a ray (summing to 1).
+    pub fn probabilities(&self, views: &[View]) -> Result<Vec<f64>> {
+        let n = views.len();
+        let virt = views.iter().filter(|v| v.kind == ViewKind::Virtual).count();
+        let capt = n - virt;
+        match *self {
+            ViewSampling::Uniform => Ok(vec![1.0 / n as f64; n]),
+            ViewSampling::VirtualFraction(f) => {
+                if !(0.0..=1.0).contains(&f) {
+                    return Err(GpuError::Usage(format!(
+                        "the fraction of rays from virtual views is {f}; give one from 0 to 1"
+                    )));
+                }
+                let f = match (capt, virt) {
+                    (_, 0) => 0.0,
+                    (0, _) => 1.0,
+                    _ => f as f64,
+                };
+                Ok(views
+                    .iter()
+                    .map(|v| match v.kind {
+                        ViewKind::Captured => (1.0 - f) / capt as f64,
+                        ViewKind::Virtual => f / virt as f64,
+                    })
+                    .collect())
+            }
+        }
+    }
+}
+
+/// A batch as the batch kernel drew it ([`Trainer::draw_batch`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DrawnBatch {
+    /// Per ray: the view's index and the pixel's y * width + x.
+    pub pixels: Vec<[u32; 2]>,
+    /// Per ray: the target colour and its signed colour weight ([`colour_weight`]).
+    pub targets: Vec<[f32; 4]>,
+}
+
+/// Fixed-point bits of the batch kernel's cumulative image probabilities (render/batch.wgsl).
+const CDF_BITS: u32 = 24;
+
+/// The batch kernel's cumulative bounds for probabilities `p` (render/batch.wgsl): image i owns
+/// [cdf[i - 1], cdf[i]) of [0, 2^24); the last bound is 2^24 and a zero probability gives an
+/// empty share.
+pub fn image_cdf(p: &[f64]) -> Result<Vec<u32>> {
+    let total: f64 = p.iter().sum();
+    if p.is_empty() || p.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || total <= 0.0 {
+        return Err(GpuError::Usage(format!(
+            "view sampling probabilities must be finite, non-negative and not all zero: {p:?}"
+        )));
+    }
+    let scale = (1u64 << CDF_BITS) as f64;
+    let mut acc = 0.0;
+    let mut cdf: Vec<u32> = p
+        .iter()
+        .map(|v| {
+            acc += v / total;
+            (acc * scale).round().min(scale) as u32
+        })
+        .collect();
+    // Rounding must not leave the top of the range unowned: the last image with a share ends it.
+    let top = 1u32 << CDF_BITS;
+    let last = p.iter().rposition(|v| *v > 0.0).unwrap_or(p.len() - 1);
+    for c in &mut cdf[last..] {
+        *c = top;
+    }
+    Ok(cdf)
+}
+
+/// The training views on the device: cameras, packed pixels (with their signed colour
+/// weights), depth targets and the images' sampling table.
 #[derive(Debug)]
 pub struct TrainData {
     cameras: Buffer<GpuCamera>,
     info: Buffer<[u32; 4]>,
     rgb: Buffer<[f32; 4]>,
     depth: Buffer<[f32; 2]>,
+    cdf: Buffer<u32>,
     n_images: u32,
 }
 
 impl TrainData {
-    /// Uploads `views` (camera, image, optional per-pixel `(depth, confidence)` with depth in
-    /// the ray space's units; confidence 0 = no target).
+    /// Uploads `views`, every view equally likely per ray.
     pub fn new(ctx: &Context, views: &[View]) -> Result<TrainData> {
+        TrainData::with_sampling(ctx, views, ViewSampling::Uniform)
+    }
+
+    /// Uploads `views`, drawn per ray as `sampling` says.
+    pub fn with_sampling(
+        ctx: &Context,
+        views: &[View],
+        sampling: ViewSampling,
+    ) -> Result<TrainData> {
         if views.is_empty() {
             return Err(GpuError::Usage("no training views".into()));
         }
+        let probabilities = sampling.probabilities(views)?;
         let mut info = Vec::new();
         let mut rgb = Vec::new();
         let mut depth = Vec::new();
-        for (i, (cam, img, d)) in views.iter().enumerate() {
-            let px = img.width as usize * img.height as usize;
+        for (i, v) in views.iter().enumerate() {
+            let (cam, img) = (&v.camera, &v.image);
+            let px = v.pixels();
             if (cam.width, cam.height) != (img.width, img.height) {
                 return Err(GpuError::Usage(format!(
                     "view {i}: camera is {}x{} but its image {} is {}x{}",
@@ -257,8 +398,35 @@ impl TrainData {
                 )));
             }
             info.push([rgb.len() as u32, img.width, img.height, i as u32]);
-            rgb.extend(img.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2], 0.0]));
-            match d {
+            match &v.weight {
+                None => {
+                    let w = colour_weight(v.kind, 1.0);
+                    rgb.extend(img.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2], w]));
+                }
+                Some(w) if w.len() == px => {
+                    if let Some(bad) = w.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
+                        return Err(GpuError::Usage(format!(
+                            "view {i} ({}): colour weight {} at pixel {bad}; weights must be finite and >= 0",
+                            cam.image.display(),
+                            w[bad]
+                        )));
+                    }
+                    rgb.extend(
+                        img.rgb
+                            .chunks_exact(3)
+                            .zip(w)
+                            .map(|(c, &w)| [c[0], c[1], c[2], colour_weight(v.kind, w)]),
+                    );
+                }
+                Some(w) => {
+                    return Err(GpuError::Usage(format!(
+                        "view {i} ({}): {} colour weights for {px} pixels",
+                        cam.image.display(),
+                        w.len()
+                    )))
+                }
+            }
+            match &v.depth {
                 Some(d) if d.len() == px => depth.extend_from_slice(d),
                 Some(d) => {
                     return Err(GpuError::Usage(format!(
@@ -270,12 +438,13 @@ impl TrainData {
             }
         }
         count_u32(rgb.len() as u64, "training pixels")?;
-        let cams: Vec<GpuCamera> = views.iter().map(|v| gpu_camera(&v.0)).collect();
+        let cams: Vec<GpuCamera> = views.iter().map(|v| gpu_camera(&v.camera)).collect();
         Ok(TrainData {
             cameras: Buffer::from_slice(ctx, "train cameras", &cams)?,
             info: Buffer::from_slice(ctx, "train image info", &info)?,
             rgb: Buffer::from_slice(ctx, "train pixels", &rgb)?,
             depth: Buffer::from_slice(ctx, "train depth targets", &depth)?,
+            cdf: Buffer::from_slice(ctx, "train image sampling", &image_cdf(&probabilities)?)?,
             n_images: views.len() as u32,
         })
     }
@@ -891,6 +1060,16 @@ impl Trainer {
         &self.cfg
     }
 
+    /// Sets the total steps and the learning-rate decay to `steps` (at least the steps done):
+    /// a time budget re-fits them from the pace measured so far.
+    pub fn set_steps(&mut self, steps: u32) -> Result<()> {
+        let steps = steps.max(self.step).max(1);
+        self.adam.set_decay_steps(steps)?;
+        self.cfg.steps = steps;
+        self.cfg.decay_steps = steps;
+        Ok(())
+    }
+
     /// The field being trained.
     pub fn nerf(&self) -> &Nerf {
         &self.nerf
@@ -967,20 +1146,15 @@ impl Trainer {
         }))
     }
 
-    /// Records training step `step` (1-based); without `update`, everything but Adam (the
-    /// gradient stays in the gradient buffer).
-    #[allow(clippy::too_many_arguments)] // each is a distinct operand
-    fn record_step<'a>(
+    /// Records the batch of step `step`: each ray's pixel and its colour and depth targets, in
+    /// the workspace. Returns the step's seed.
+    fn record_batch<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
-        prims: &'a Prims,
         data: &'a TrainData,
         step: u32,
-        update: bool,
-        prof: &mut Option<Profiler<'a>>,
-    ) -> Result<()> {
+    ) -> Result<u32> {
         let ws = &self.ws;
-        let n = ws.rays as u64;
         let seed = (self.cfg.seed as u32) ^ step.wrapping_mul(0x9e37_79b9);
         let p = kb::Params {
             n_rays: ws.rays,
@@ -995,8 +1169,38 @@ impl Trainer {
             pixels: ws.pixels.binding(),
             target_rgb: ws.target_rgb.binding(),
             target_depth: ws.target_depth.binding(),
+            image_cdf: data.cdf.binding(),
         };
-        rec.dispatch(&self.batch, b.into_array(), &p, n)?;
+        rec.dispatch(&self.batch, b.into_array(), &p, ws.rays as u64)?;
+        Ok(seed)
+    }
+
+    /// The batch that step `step` (1-based) draws from `data`: per ray the view's index and
+    /// the pixel's (y * width + x), and the target colour with its signed colour weight
+    /// ([`colour_weight`]).
+    pub fn draw_batch(&self, ctx: &Context, data: &TrainData, step: u32) -> Result<DrawnBatch> {
+        let mut rec = ctx.recorder("draw batch")?;
+        self.record_batch(&mut rec, data, step)?;
+        ctx.run(rec)?;
+        Ok(DrawnBatch {
+            pixels: self.ws.pixels.read()?,
+            targets: self.ws.target_rgb.read()?,
+        })
+    }
+
+    /// Records training step `step` (1-based); without `update`, everything but Adam (the
+    /// gradient stays in the gradient buffer).
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    fn record_step<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        prims: &'a Prims,
+        data: &'a TrainData,
+        step: u32,
+        update: bool,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let seed = self.record_batch(rec, data, step)?;
         mark(prof, rec, "batch (pixels, targets)")?;
         let skip = self.record_occupancy(rec, prims, step, seed)?;
         mark(prof, rec, "occupancy update")?;

@@ -1,7 +1,14 @@
 // The per-ray photometric and depth loss of render/loss.wgsl, shared with the fused training
-// step (render/train_step.wgsl). RGB: L2 |e|^2 / 3 (kind 0) or Huber with threshold delta per
-// channel (kind 1), e = rendered - target; depth: lambda * confidence * (d - d*)^2 where the
-// confidence is positive. Neither is divided by the batch size here.
+// step (render/train_step.wgsl). Neither is divided by the batch size here.
+//
+// The target colour's w is the ray's signed colour weight (render/batch.wgsl copies it from the
+// training pixel; trainer::colour_weight writes it):
+//   w >= 0: the configured loss, scaled by w: L2 |e|^2 / 3 (kind 0) or Huber with threshold
+//           delta per channel (kind 1), e = rendered - target;
+//   w < 0:  L1 |e|_1 / 3 scaled by -w (the colour loss of virtual views, ExtraNeRF's
+//           w(t)-weighted L1);
+//   w = 0:  no colour loss (a pixel the view does not supervise).
+// Depth: lambda * confidence * (d - d*)^2 where the confidence is positive, whatever w is.
 
 struct LossTerms {
     loss: f32,
@@ -10,19 +17,23 @@ struct LossTerms {
     d_depth: f32,
 }
 
-fn photo_depth_loss(rgb: vec3<f32>, depth: f32, target_c: vec3<f32>, target_d: vec2<f32>, kind: u32,
+fn photo_depth_loss(rgb: vec3<f32>, depth: f32, target_c: vec4<f32>, target_d: vec2<f32>, kind: u32,
             delta: f32, depth_lambda: f32) -> LossTerms {
-    let e = rgb - target_c;
+    let e = rgb - target_c.xyz;
+    let w = abs(target_c.w);
     var out: LossTerms;
-    if kind == 0u {
-        out.loss = dot(e, e) / 3.0;
-        out.d_rgb = 2.0 * e / 3.0;
+    if target_c.w < 0.0 {
+        out.loss = w * (abs(e.x) + abs(e.y) + abs(e.z)) / 3.0;
+        out.d_rgb = w * sign(e) / 3.0;
+    } else if kind == 0u {
+        out.loss = w * dot(e, e) / 3.0;
+        out.d_rgb = w * 2.0 * e / 3.0;
     } else {
         let a = abs(e);
         let quad = a <= vec3<f32>(delta);
         let lv = select(delta * (a - 0.5 * delta), 0.5 * e * e, quad);
-        out.loss = (lv.x + lv.y + lv.z) / 3.0;
-        out.d_rgb = select(delta * sign(e), e, quad) / 3.0;
+        out.loss = w * (lv.x + lv.y + lv.z) / 3.0;
+        out.d_rgb = w * select(delta * sign(e), e, quad) / 3.0;
     }
     out.d_depth = 0.0;
     if target_d.y > 0.0 {

@@ -408,7 +408,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let inv_n = 1.0 / f32(params.n);
     let e = rgb_out - target_rgb[i].xyz;
     mse[i] = dot(e, e) / 3.0;
-    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i].xyz, target_depth[i],
+    let rl = photo_depth_loss(rgb_out, depth, target_rgb[i], target_depth[i],
                               u32((params.flags & STEP_HUBER) != 0u),
                               params.center.w, params.background.w);
     loss[i] = rl.loss * inv_n;
