@@ -459,6 +459,50 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
             "{got:?} vs {want}"
         );
     }
+    // Depth on disk says its unit: a render's ray-space depth (NDC t, channel T) is refused by
+    // name; converted to view depth in the capture's units (channel Z) it reads back as the
+    // same targets.
+    use extranerf_nerf::run::{ray_depth_to_view_depth, write_depth_exr, write_ray_depth_exr};
+    let world_scale = loaded.scene.world_from_source.x_axis.truncate().length();
+    for v in &views {
+        let stem = v.camera.image.file_stem().unwrap().to_owned();
+        let npy = dir.join("depth").join(&stem).with_extension("npy");
+        std::fs::remove_file(&npy).unwrap();
+        let t: Vec<f32> = v.depth.as_ref().unwrap().iter().map(|d| d[0]).collect();
+        let exr = dir.join("depth").join(&stem).with_extension("exr");
+        write_ray_depth_exr(&exr, 32, 24, &t).unwrap();
+    }
+    let e = training_views(&spec, &loaded, &model)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("ray-space depth") && e.contains("channel T"),
+        "{e}"
+    );
+    for v in &views {
+        let stem = v.camera.image.file_stem().unwrap().to_owned();
+        let t: Vec<f32> = v.depth.as_ref().unwrap().iter().map(|d| d[0]).collect();
+        let mut z = ray_depth_to_view_depth(&v.camera, &t, true, world_scale);
+        for (zi, d) in z.iter_mut().zip(v.depth.as_ref().unwrap()) {
+            if d[1] == 0.0 {
+                *zi = 0.0;
+            }
+        }
+        assert!(
+            (z[9 * 32 + 17] - 4.0).abs() < 1e-3,
+            "view depth {}",
+            z[9 * 32 + 17]
+        );
+        let exr = dir.join("depth").join(&stem).with_extension("exr");
+        write_depth_exr(&exr, 32, 24, &z).unwrap();
+    }
+    let back = training_views(&spec, &loaded, &model).unwrap();
+    for (a, b) in views.iter().zip(&back) {
+        let (da, db) = (a.depth.as_ref().unwrap(), b.depth.as_ref().unwrap());
+        for (p, q) in da.iter().zip(db) {
+            assert!((p[0] - q[0]).abs() < 1e-4 && p[1] == q[1], "{p:?} vs {q:?}");
+        }
+    }
     // Without the folder, no targets (the demo has no sparse points).
     spec.depth_dir = None;
     let views = training_views(&spec, &loaded, &model).unwrap();

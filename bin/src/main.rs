@@ -8,6 +8,7 @@ use extranerf_gpu::{Context, ContextDesc, Validation};
 
 mod bench;
 mod diffusion;
+mod extrapolate;
 mod mvs;
 mod nerf;
 mod report;
@@ -60,6 +61,11 @@ enum Command {
     /// Virtual cameras beyond the input rig (outward translation, a widened spiral, or rotation
     /// past the captured yaw), written as transforms.json for rendering and visibility.
     Cameras(nerf::CamerasArgs),
+    /// ExtraNeRF: train (or reuse, --base) a BaseNeRF, find what no two training cameras saw
+    /// in virtual views beyond the rig, and train the field further on those views inpainted
+    /// (stage 2; one variant per --inpainter). Resumable at every stage (--resume); `eval RUN`
+    /// then writes the comparison table.
+    Extrapolate(extrapolate::ExtrapolateArgs),
     /// Multi-view transmittance visibility (ExtraNeRF): for each pixel of a view, what the
     /// training cameras saw of the surface it shows (a point counts as seen when --rank of
     /// them saw it). Writes visibility PNG + EXR, an inpainting mask and visibility.json per
@@ -165,6 +171,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Train(a) => nerf::train(&context(cli)?, a),
         Command::Render(a) => nerf::render(&context(cli)?, a),
         Command::Eval(a) => nerf::eval(&context(cli)?, a),
+        Command::Extrapolate(a) => extrapolate::extrapolate(&context(cli)?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),
         Command::Visibility(a) => visibility::visibility(&context(cli)?, a),

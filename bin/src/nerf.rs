@@ -12,7 +12,7 @@ use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::run::{
-    load_checkpoint, model_for_scene, training_views, write_depth_exr, write_png, RunConfig,
+    load_checkpoint, model_for_scene, training_views, write_png, write_ray_depth_exr, RunConfig,
     SceneSpec,
 };
 use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer, STAT_SLOTS};
@@ -571,7 +571,7 @@ pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
     render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {
         let base = out.join(format!("{}_{:03}", r.role, r.index));
         write_png(&base.with_extension("png"), r.width, r.height, &r.rgb)?;
-        write_depth_exr(&base.with_extension("exr"), r.width, r.height, &r.depth)?;
+        write_ray_depth_exr(&base.with_extension("exr"), r.width, r.height, &r.depth)?;
         Ok(())
     })?;
     eprintln!("wrote {}", out.display());
@@ -581,7 +581,9 @@ pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
 /// Arguments of `extranerf eval`.
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
-    /// Run folder written by `extranerf train`.
+    /// Run folder written by `extranerf train`, or by `extranerf extrapolate` (then the
+    /// comparison table of the BaseNeRF and each stage-2 variant goes to RUN/eval.json and
+    /// RUN/eval.md; the other flags but --lpips do not apply).
     run: PathBuf,
     /// Metrics file (default RUN/metrics.json).
     #[arg(long)]
@@ -613,6 +615,9 @@ pub struct EvalArgs {
 /// `extranerf eval`: PSNR, SSIM, LPIPS (AlexNet and VGG) on the held-out views, PSNR on the
 /// training views.
 pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
+    if extranerf_extrapolate::manifest::Manifest::path(&a.run).exists() {
+        return crate::extrapolate::eval_run(&a.run, a.lpips.as_deref());
+    }
     let dir = a.lpips.clone().unwrap_or_else(default_lpips_dir);
     let mut nets = Vec::new();
     for n in &a.lpips_nets {

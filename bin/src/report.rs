@@ -3,13 +3,15 @@
 
 use std::io::IsTerminal;
 
-use extranerf_extrapolate::driver::{Progress, Reporter};
+use extranerf_extrapolate::driver::{Progress, Reporter, Unit};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 /// Progress on stderr.
 pub struct Console {
     tty: bool,
     bar: Option<ProgressBar>,
+    /// The pipeline stage whose progress is shown (None: a plain training run).
+    stage: Option<String>,
 }
 
 impl Console {
@@ -17,6 +19,7 @@ impl Console {
         Console {
             tty: std::io::stderr().is_terminal(),
             bar: None,
+            stage: None,
         }
     }
 }
@@ -30,29 +33,53 @@ impl Reporter for Console {
     }
 
     fn progress(&mut self, p: &Progress) {
-        if !self.tty {
+        let label = self.stage.clone().unwrap_or_else(|| "step".into());
+        if p.unit == Unit::Views {
+            if !self.tty {
+                eprintln!("{label} view {:>3}/{}  {:.1} s", p.step, p.total, p.secs);
+                return;
+            }
+        } else if !self.tty {
             eprintln!(
-                "step {:>5}/{}  loss {:.5}  psnr {:6.2} dB  {:.3e} samples/s  {:.1} s elapsed  ETA {:.0} s",
+                "{label} {:>5}/{}  loss {:.5}  psnr {:6.2} dB  {:.3e} samples/s  {:.1} s elapsed  ETA {:.0} s",
                 p.step, p.total, p.loss, p.psnr, p.samples_per_s, p.secs, p.eta
             );
             return;
         }
+        let template = format!("{label:>16} {{bar:30}} {{pos:>5}}/{{len}}  {{msg}}");
         let bar = self.bar.get_or_insert_with(|| {
             let bar =
                 ProgressBar::with_draw_target(Some(p.total as u64), ProgressDrawTarget::stderr());
             // The template is a constant that indicatif accepts.
-            if let Ok(style) = ProgressStyle::with_template("{bar:30} {pos:>5}/{len} steps  {msg}")
-            {
+            if let Ok(style) = ProgressStyle::with_template(&template) {
                 bar.set_style(style);
             }
             bar
         });
         bar.set_length(p.total as u64);
         bar.set_position(p.step as u64);
-        bar.set_message(format!(
-            "loss {:.5}  psnr {:.2} dB  {:.2e} samples/s  {:.0} s, ETA {:.0} s",
-            p.loss, p.psnr, p.samples_per_s, p.secs, p.eta
-        ));
+        bar.set_message(match p.unit {
+            Unit::Steps => format!(
+                "steps  loss {:.5}  psnr {:.2} dB  {:.2e} samples/s  {:.0} s, ETA {:.0} s",
+                p.loss, p.psnr, p.samples_per_s, p.secs, p.eta
+            ),
+            Unit::Views => format!("views  {:.0} s", p.secs),
+        });
+    }
+
+    fn stage(&mut self, name: &str) {
+        self.finish_bar();
+        self.note(&format!("== stage {name}"));
+        self.stage = Some(name.to_string());
+    }
+}
+
+impl Console {
+    /// Ends the current bar (the next progress starts a new one).
+    fn finish_bar(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish();
+        }
     }
 }
 
@@ -61,5 +88,39 @@ impl Drop for Console {
         if let Some(bar) = self.bar.take() {
             bar.finish();
         }
+    }
+}
+
+/// A reporter that also appends every note (and each stage's last progress line) to a log
+/// file, so the run folder keeps what the console showed.
+pub struct Logged<R: Reporter> {
+    pub inner: R,
+    pub file: std::fs::File,
+}
+
+impl<R: Reporter> Reporter for Logged<R> {
+    fn note(&mut self, line: &str) {
+        use std::io::Write;
+        // A log that cannot be written must not stop the run; the console still has it.
+        let _ = writeln!(self.file, "{line}");
+        self.inner.note(line);
+    }
+
+    fn progress(&mut self, p: &Progress) {
+        if p.step == p.total {
+            use std::io::Write;
+            let _ = writeln!(
+                self.file,
+                "  {}/{}  loss {:.5}  psnr {:.2} dB  {:.3e} samples/s  {:.1} s",
+                p.step, p.total, p.loss, p.psnr, p.samples_per_s, p.secs
+            );
+        }
+        self.inner.progress(p);
+    }
+
+    fn stage(&mut self, name: &str) {
+        use std::io::Write;
+        let _ = writeln!(self.file, "== stage {name}");
+        self.inner.stage(name);
     }
 }

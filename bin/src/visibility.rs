@@ -7,7 +7,10 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
-use extranerf_nerf::run::{load_checkpoint, write_depth_exr, write_png, Checkpoint, LoadedScene};
+use extranerf_nerf::run::{
+    load_checkpoint, ray_depth_to_view_depth, write_depth_exr, write_png, write_ray_depth_exr,
+    Checkpoint, LoadedScene,
+};
 use extranerf_nerf::trainer::Nerf;
 use extranerf_prims::Prims;
 
@@ -92,7 +95,9 @@ pub struct VisibilityArgs {
     /// iterations of the colour-guided fill (`depth_completion`) from the rendered depth of
     /// the visible pixels, guided by the rendered colour (the inpainting stage will supply
     /// inpainted colour instead). Writes NAME_depth.exr and NAME_depth_completed.exr (the
-    /// field's ray-space depth, NDC t for forward-facing scenes). 0: off.
+    /// field's ray-space depth, NDC t for forward-facing scenes, in channel T, which
+    /// `train --depth-dir` refuses) and NAME_view_depth.exr (the completed depth as view depth
+    /// in the capture's units, channel Z, what `--depth-dir` reads). 0: off.
     #[arg(long, default_value_t = 0, value_name = "ITERATIONS")]
     complete_depth: u32,
     /// Colour difference at which a neighbour's weight in the depth fill falls to 1/e.
@@ -545,17 +550,27 @@ fn complete_depth(
     )?;
     ctx.run(rec)?;
     let done = d.read()?;
-    write_depth_exr(
+    write_ray_depth_exr(
         &out.join(format!("{name}_depth.exr")),
         cam.width,
         cam.height,
         &depth,
     )?;
-    write_depth_exr(
+    write_ray_depth_exr(
         &out.join(format!("{name}_depth_completed.exr")),
         cam.width,
         cam.height,
         &done,
+    )?;
+    // The completed depth as view depth in the capture's units (channel Z), the unit
+    // `train --depth-dir` reads.
+    let scale = l.scene.scene.world_from_source.x_axis.truncate().length();
+    let ndc = l.ck.config.model.space == "ndc";
+    write_depth_exr(
+        &out.join(format!("{name}_view_depth.exr")),
+        cam.width,
+        cam.height,
+        &ray_depth_to_view_depth(cam, &done, ndc, scale),
     )?;
     let filled = known.iter().filter(|&&k| k == 0).count().max(1);
     Ok(depth

@@ -18,13 +18,27 @@ use extranerf_prims::Prims;
 pub trait Reporter {
     /// A line of information: the model, the budget's decisions, a held-out evaluation.
     fn note(&mut self, line: &str);
-    /// Progress after a window of steps.
+    /// Progress after a window of steps (or views: a stage's progress counts its own units).
     fn progress(&mut self, p: &Progress);
+    /// A pipeline stage starts (progress from here on is that stage's).
+    fn stage(&mut self, _name: &str) {}
 }
 
-/// A training loop's progress after a window of steps.
+/// What a [`Progress`] counts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Unit {
+    /// Training steps (loss, PSNR and pace apply).
+    #[default]
+    Steps,
+    /// Views rendered, mapped or inpainted (only the counts and seconds apply).
+    Views,
+}
+
+/// A training loop's progress after a window of steps, or a stage's over its views.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Progress {
+    /// What `step` and `total` count.
+    pub unit: Unit,
     /// Steps done and planned (a budget re-fits the plan).
     pub step: u32,
     pub total: u32,
@@ -310,6 +324,7 @@ pub fn train_loop(
         let sps = done as f64 * trainer.samples_per_step() as f64 / secs;
         let eta = secs / done as f64 * (total - trainer.step()) as f64;
         rep.progress(&Progress {
+            unit: Unit::Steps,
             step: trainer.step(),
             total,
             loss: stats.loss,

@@ -1,9 +1,24 @@
-//! The ExtraNeRF pipeline (issue 17): the stages that turn a scene into an extrapolating field.
-//! Today it holds the BaseNeRF training driver ([`driver`]), which `extranerf train`, `demo`
-//! and the trade-off sweeps run and which the later stages (visibility, inpainting,
-//! enhancement) will call; they are not built yet.
+//! The ExtraNeRF pipeline: the stages that turn a scene into an extrapolating field.
+//! - [`driver`]: the BaseNeRF training driver (budgets, checkpoints, held-out curves), which
+//!   `extranerf train`, `demo` and the trade-off sweeps run;
+//! - [`pipeline`]: `extranerf extrapolate`, stages over one run folder (BaseNeRF, visibility
+//!   of virtual views, the stage-2 inpainting loop per inpainter) with a manifest
+//!   ([`manifest`]) that makes every stage boundary resumable;
+//! - [`inpaint`]: the inpainters (depth-aware harmonic, exemplar PatchMatch, hybrid);
+//! - [`visibility`]: visibility settings, maps and masks over a trained field;
+//! - [`eval`]: the comparison table of an extrapolate run.
+//!
+//! Not built yet: the diffusion inpainter in the stage-2 loop, and stage 3 (enhancement).
 //!
 //! Nothing here prints: progress and notes go to a [`driver::Reporter`] that the caller
 //! supplies (the command line draws them as progress bars or log lines).
 
+// Pixel loops index several images and channels by the same index; iterators would hide it.
+#![allow(clippy::needless_range_loop)]
+
 pub mod driver;
+pub mod eval;
+pub mod inpaint;
+pub mod manifest;
+pub mod pipeline;
+pub mod visibility;

@@ -23,7 +23,8 @@ use crate::data::llff::average_pose;
 use crate::data::{Camera, DataError};
 
 /// The kind of extrapolated trajectory.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Trajectory {
     /// Translated outward in the rig's plane.
     Outward,

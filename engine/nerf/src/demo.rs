@@ -11,6 +11,9 @@ use glam::{DMat4, DVec3};
 use crate::data::DataError;
 use crate::run::{write_png, Result, RunError};
 
+/// The file that marks a folder as the demo scene.
+pub const DEMO_MARKER: &str = "demo_scene.json";
+
 /// Cameras of the rig (trained on) and of the outer ring (held out).
 pub const RIG_VIEWS: usize = 6;
 /// See [`RIG_VIEWS`].
@@ -56,6 +59,79 @@ fn hit_sphere(o: DVec3, d: DVec3, s: &Sphere) -> Option<f64> {
 
 fn checker(a: f64, b: f64) -> bool {
     (a.floor() as i64 + b.floor() as i64).rem_euclid(2) == 0
+}
+
+/// Distance to the first surface along `o + t d` (`d` unit length), if any.
+fn first_hit(o: DVec3, d: DVec3) -> Option<f64> {
+    let mut best = f64::INFINITY;
+    for s in &SPHERES {
+        if let Some(t) = hit_sphere(o, d, s) {
+            best = best.min(t);
+        }
+    }
+    if d.y < 0.0 {
+        let t = (FLOOR_Y - o.y) / d.y;
+        if t > 0.0 && t < best && (o + t * d).z > WALL_Z {
+            best = t;
+        }
+    }
+    if d.z < 0.0 {
+        let t = (WALL_Z - o.z) / d.z;
+        if t > 0.0 && t < best {
+            best = t;
+        }
+    }
+    best.is_finite().then_some(best)
+}
+
+/// Exact visibility of demo view `view` (an index into [`demo_cameras`]) at `width x height`:
+/// per pixel, whether the surface its centre ray hits is seen by at least `rank` of the rig
+/// cameras (inside the camera's image and nothing in between). Rays that hit nothing count
+/// as unseen. The demo's intrinsics (focal 0.9 x width, centred) hold at any resolution.
+pub fn demo_seen(view: usize, width: u32, height: u32, rank: usize) -> Vec<bool> {
+    let cams = demo_cameras();
+    let c2w = cams[view];
+    let focal = 0.9 * width as f64;
+    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+    let rig: Vec<(DMat4, DVec3)> = cams[..RIG_VIEWS]
+        .iter()
+        .map(|m| (m.inverse(), m.w_axis.truncate()))
+        .collect();
+    let mut seen = Vec::with_capacity((width * height) as usize);
+    for y in 0..height {
+        for x in 0..width {
+            let dc = DVec3::new(
+                (x as f64 + 0.5 - cx) / focal,
+                -(y as f64 + 0.5 - cy) / focal,
+                -1.0,
+            );
+            let o = c2w.w_axis.truncate();
+            let d = c2w.transform_vector3(dc).normalize();
+            let Some(t) = first_hit(o, d) else {
+                seen.push(false);
+                continue;
+            };
+            let p = o + t * d;
+            let count = rig
+                .iter()
+                .filter(|(w2c, eye)| {
+                    let c = w2c.transform_point3(p);
+                    if c.z >= 0.0 {
+                        return false;
+                    }
+                    let (u, v) = (cx + focal * c.x / -c.z, cy - focal * c.y / -c.z);
+                    if !(0.0..width as f64).contains(&u) || !(0.0..height as f64).contains(&v) {
+                        return false;
+                    }
+                    let to = p - *eye;
+                    let dist = to.length();
+                    first_hit(*eye, to / dist).is_some_and(|h| h >= dist * (1.0 - 1e-6) - 1e-6)
+                })
+                .count();
+            seen.push(count >= rank);
+        }
+    }
+    seen
 }
 
 /// Colour of the ray `o + t d` (`d` unit length).
@@ -216,12 +292,47 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
     }
     let flat: Vec<f64> = rows.concat();
     crate::data::npy::write_npy_f64(&dir.join("poses_bounds.npy"), &[rows.len(), 17], &flat)?;
+    // Marks the folder as the demo scene, whose exact visibility is known ([`demo_seen`]).
+    crate::safetensors::write_atomic(
+        &dir.join(DEMO_MARKER),
+        format!("{{\"demo\": 1, \"width\": {width}, \"height\": {height}}}\n").as_bytes(),
+    )?;
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn exact_visibility_sees_the_rig_and_hides_behind_spheres() {
+        // The centre rig camera's own view is almost wholly seen by two rig cameras (a 0.2
+        // baseline); a ring view, far outside the rig, sees much that none of them did.
+        let (w, h) = (48, 36);
+        let frac = |v: usize| {
+            let s = demo_seen(v, w, h, 2);
+            s.iter().filter(|&&b| b).count() as f64 / s.len() as f64
+        };
+        let (rig, ring) = (frac(0), frac(RIG_VIEWS));
+        assert!(rig > 0.9, "rig view seen {rig}");
+        assert!(ring < rig - 0.05, "ring view seen {ring}, rig {rig}");
+        // A point straight behind the near sphere, on the wall, as the centre camera looks:
+        // hidden from the centre camera, so rank 6 (all rig cameras) cannot see it.
+        let all = demo_seen(0, w, h, RIG_VIEWS);
+        let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+        let s = &SPHERES[0];
+        let u = cx + 0.9 * w as f64 * s.c.x / -s.c.z;
+        let v = cy - 0.9 * w as f64 * s.c.y / -s.c.z;
+        let i = v as usize * w as usize + u as usize;
+        assert!(
+            demo_seen(0, w, h, 1)[i],
+            "the sphere's centre pixel is seen by camera 0"
+        );
+        assert!(
+            all.iter().filter(|&&b| b).count() < all.len(),
+            "rank 6 hides something"
+        );
+    }
 
     #[test]
     fn rays_hit_what_is_in_front() {

@@ -386,9 +386,52 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()
     Ok(())
 }
 
-/// Writes a depth map as a single-channel f32 OpenEXR file (channel `Z`).
+/// Writes a view-depth map in the capture's units (what `train --depth-dir` reads) as a
+/// single-channel f32 OpenEXR file (channel `Z`).
 pub fn write_depth_exr(path: &Path, width: u32, height: u32, depth: &[f32]) -> Result<()> {
     write_exr_channels(path, width, height, &[("Z", depth)])
+}
+
+/// The channel that holds a field's ray-space depth (NDC t for forward-facing scenes, view
+/// depth in scene units otherwise). `train --depth-dir` refuses it by name, so a render's depth
+/// can never be read as capture-space depth.
+pub const RAY_DEPTH_CHANNEL: &str = "T";
+
+/// Writes a field's ray-space depth (renders, visibility) as a single-channel f32 OpenEXR
+/// file (channel [`RAY_DEPTH_CHANNEL`]).
+pub fn write_ray_depth_exr(path: &Path, width: u32, height: u32, depth: &[f32]) -> Result<()> {
+    write_exr_channels(path, width, height, &[(RAY_DEPTH_CHANNEL, depth)])
+}
+
+/// A ray-space depth map of `cam` (NDC t when `ndc`) as view depth in the capture's units
+/// (`world_scale`: the scene's `world_from_source` scale); 0 where there is no world point.
+pub fn ray_depth_to_view_depth(
+    cam: &Camera,
+    depth: &[f32],
+    ndc: bool,
+    world_scale: f64,
+) -> Vec<f32> {
+    depth
+        .iter()
+        .enumerate()
+        .map(|(i, &t)| {
+            let (x, y) = (
+                (i as u32 % cam.width) as f64 + 0.5,
+                (i as u32 / cam.width) as f64 + 0.5,
+            );
+            match cam.ray_point(x, y, t as f64, ndc) {
+                Some(p) => {
+                    let z = cam.project(p).2;
+                    if z > 0.0 && z.is_finite() {
+                        (z / world_scale) as f32
+                    } else {
+                        0.0
+                    }
+                }
+                None => 0.0,
+            }
+        })
+        .collect()
 }
 
 /// Writes named f32 channels of one image as an OpenEXR file, atomically.

@@ -98,7 +98,15 @@ pub fn read_depth_exr(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
     let pick = DEPTH_CHANNELS
         .iter()
         .find_map(|want| names.iter().position(|n| n == want))
-        .or((channels.len() == 1).then_some(0));
+        .or((channels.len() == 1 && names[0] != crate::run::RAY_DEPTH_CHANNEL).then_some(0));
+    if pick.is_none() && names.iter().any(|n| n == crate::run::RAY_DEPTH_CHANNEL) {
+        return Err(DataError::malformed(
+            path,
+            "holds a field's ray-space depth (channel T: NDC t for forward-facing scenes, as \
+             `render` and `visibility` write it), not view depth in the capture's units; \
+             `visibility --complete-depth` also writes NAME_view_depth.exr (channel Z) for this",
+        ));
+    }
     let Some(i) = pick else {
         return Err(DataError::malformed(
             path,

@@ -109,6 +109,34 @@ impl Camera {
         self.c2w.w_axis.truncate()
     }
 
+    /// The world ray through continuous pixel coordinates (x, y): origin and direction, the
+    /// direction scaled to unit depth along the viewing axis.
+    pub fn ray(&self, x: f64, y: f64) -> (DVec3, DVec3) {
+        let dc = DVec3::new((x - self.cx) / self.fx, -(y - self.cy) / self.fy, -1.0);
+        (
+            self.c2w.w_axis.truncate(),
+            glam::DMat3::from_mat4(self.c2w) * dc,
+        )
+    }
+
+    /// The world point at ray-space depth `depth` along the ray through (x, y): view depth
+    /// for a world-space field, NDC t (near plane 1) for an NDC one. None where the depth has
+    /// no world point (NDC t >= 1 is at or beyond infinity, or the ray runs parallel to the
+    /// near plane).
+    pub fn ray_point(&self, x: f64, y: f64, depth: f64, ndc: bool) -> Option<DVec3> {
+        let (o, d) = self.ray(x, y);
+        if !ndc {
+            return Some(o + d * depth);
+        }
+        // NDC z = 2t - 1 along any camera ray; world z = 2 / (NDC z - 1) = 1 / (t - 1).
+        if depth.is_nan() || depth >= 1.0 || d.z.abs() < 1e-12 {
+            return None;
+        }
+        let z = 1.0 / (depth - 1.0);
+        let s = (z - o.z) / d.z;
+        Some(o + d * s)
+    }
+
     /// Projects a world point: (pixel x, pixel y, depth along the viewing axis). Depth <= 0
     /// means the point is behind the camera.
     pub fn project(&self, p: DVec3) -> (f64, f64, f64) {

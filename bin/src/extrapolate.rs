@@ -1,0 +1,199 @@
+//! `extranerf extrapolate` (the ExtraNeRF pipeline) and `extranerf eval` on its run folders.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context as _;
+use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
+use extranerf_extrapolate::eval::compare;
+use extranerf_extrapolate::inpaint::InpainterKind;
+use extranerf_extrapolate::pipeline::{
+    extrapolate as run_pipeline, BaseSpec, Options, Stage2Spec, VirtualSpec,
+};
+use extranerf_extrapolate::visibility::VisSettings;
+use extranerf_gpu::Context;
+use extranerf_nerf::cameras::Trajectory;
+use extranerf_nerf::metrics::{Lpips, LpipsNet};
+use extranerf_nerf::run::SceneSpec;
+
+use crate::report::{Console, Logged};
+
+/// `extrapolate --trajectory`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TrajectoryArg {
+    /// Translated outward in the rig's plane.
+    Outward,
+    /// A widened LLFF spiral looking at the focus point.
+    Spiral,
+    /// Turned about the up axis beyond the captured yaw.
+    Rotate,
+}
+
+impl From<TrajectoryArg> for Trajectory {
+    fn from(t: TrajectoryArg) -> Trajectory {
+        match t {
+            TrajectoryArg::Outward => Trajectory::Outward,
+            TrajectoryArg::Spiral => Trajectory::Spiral,
+            TrajectoryArg::Rotate => Trajectory::Rotate,
+        }
+    }
+}
+
+/// Arguments of `extranerf extrapolate`.
+#[derive(clap::Args, Debug)]
+pub struct ExtrapolateArgs {
+    /// Scene: an LLFF folder or a transforms.json scene (not needed with --base).
+    #[arg(long, value_name = "DIR", required_unless_present_any = ["base", "resume"])]
+    scene: Option<PathBuf>,
+    /// Views to train the BaseNeRF on: extrapolation, fewshot or all.
+    #[arg(long, default_value = "extrapolation")]
+    split: String,
+    /// Training views of the few-shot split.
+    #[arg(long, default_value_t = 3)]
+    fewshot_views: usize,
+    /// LLFF downsampling factor (reads images_N).
+    #[arg(long, default_value_t = 8)]
+    factor: u32,
+    /// Run folder: extrapolate.json (the manifest), base/, visibility/, stage2-NAME/,
+    /// extrapolate.log.
+    #[arg(long, value_name = "RUN")]
+    out: PathBuf,
+    /// Reuse a trained BaseNeRF (a run folder of `extranerf train`) instead of training one;
+    /// its scene and split are used.
+    #[arg(long, value_name = "RUN")]
+    base: Option<PathBuf>,
+    /// Training seconds of a new BaseNeRF (`train --budget`).
+    #[arg(long, default_value_t = 900.0, value_name = "SECONDS")]
+    base_budget: f64,
+    /// Inpainters, one stage-2 variant each (comma-separated): harmonic, exemplar, hybrid.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "harmonic")]
+    inpainter: Vec<InpainterKind>,
+    /// Virtual views.
+    #[arg(long = "virtual", default_value_t = 8, value_name = "N")]
+    virtual_views: usize,
+    /// Path of the virtual cameras.
+    #[arg(long, value_enum, default_value = "spiral")]
+    trajectory: TrajectoryArg,
+    /// How far beyond the rig the virtual cameras go (1: its edge).
+    #[arg(long, default_value_t = 1.5)]
+    range: f64,
+    /// Divide the training resolution by this for the virtual views and the visibility maps.
+    #[arg(long, default_value_t = 2)]
+    virtual_downscale: u32,
+    /// Stage-2 rounds over the virtual views.
+    #[arg(long, default_value_t = Stage2Spec::default().rounds)]
+    rounds: u32,
+    /// Training steps per round.
+    #[arg(long, default_value_t = Stage2Spec::default().steps_per_round)]
+    steps_per_round: u32,
+    /// Fraction of each batch's rays drawn from the virtual views.
+    #[arg(long, default_value_t = Stage2Spec::default().virtual_fraction)]
+    virtual_fraction: f32,
+    /// Learning rate of the stage-2 steps.
+    #[arg(long, default_value_t = Stage2Spec::default().lr)]
+    stage2_lr: f32,
+    /// Do not reproject earlier fills of a round into later views (each view is filled on
+    /// its own).
+    #[arg(long)]
+    no_reproject: bool,
+    /// Pixels whose seen share (visibility over opacity) is below this are inpainted.
+    #[arg(long, default_value_t = VisSettings::default().threshold)]
+    threshold: f32,
+    /// Seed of the inpainters.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Continue the run in --out: finished stages are skipped, stage 2 resumes after its last
+    /// finished round. The settings must be those it was started with.
+    #[arg(long)]
+    resume: bool,
+}
+
+/// `extranerf extrapolate`.
+pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
+    let scene = a.scene.as_ref().map(|dir| SceneSpec {
+        dir: dir.clone(),
+        split: a.split.clone(),
+        fewshot_views: a.fewshot_views,
+        factor: a.factor,
+        sparse_depth: true,
+        depth_dir: None,
+    });
+    let scene = match (scene, a.resume, &a.base) {
+        (None, true, None) => {
+            let m =
+                extranerf_extrapolate::manifest::Manifest::load(&a.out)?.with_context(|| {
+                    format!("--resume: {} holds no extrapolate run", a.out.display())
+                })?;
+            Some(m.scene)
+        }
+        (s, _, _) => s,
+    };
+    let o = Options {
+        out: a.out.clone(),
+        scene,
+        base: BaseSpec {
+            from: a.base.clone(),
+            budget: a.base_budget,
+        },
+        virt: VirtualSpec {
+            trajectory: a.trajectory.into(),
+            count: a.virtual_views,
+            range: a.range,
+            downscale: a.virtual_downscale,
+        },
+        vis: VisSettings {
+            threshold: a.threshold,
+            ..VisSettings::default()
+        },
+        stage2: Stage2Spec {
+            rounds: a.rounds,
+            steps_per_round: a.steps_per_round,
+            virtual_fraction: a.virtual_fraction,
+            lr: a.stage2_lr,
+            reproject: !a.no_reproject,
+            seed: a.seed,
+            ..Stage2Spec::default()
+        },
+        inpainters: a.inpainter.clone(),
+        resume: a.resume,
+    };
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let log = a.out.join("extrapolate.log");
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log)
+        .with_context(|| format!("opening {}", log.display()))?;
+    let mut rep = Logged {
+        inner: Console::new(),
+        file,
+    };
+    let m = run_pipeline(ctx, &o, &mut rep)?;
+    for s in &m.stages {
+        rep.note(&format!("{:>20}: {:.1} s", s.name, s.seconds));
+    }
+    rep.note(&format!(
+        "done; `extranerf eval {}` writes the comparison table",
+        a.out.display()
+    ));
+    Ok(())
+}
+
+/// `extranerf eval` on an extrapolate run: writes RUN/eval.json and RUN/eval.md.
+pub fn eval_run(run: &Path, lpips: Option<&Path>) -> anyhow::Result<()> {
+    let dir = lpips.map(PathBuf::from).unwrap_or_else(default_lpips_dir);
+    let lp = match Lpips::load(&dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex) {
+        Ok(l) => Some(l),
+        Err(e) => {
+            eprintln!("no LPIPS in the table ({e})");
+            None
+        }
+    };
+    let t = compare(run, lp.as_ref())?;
+    let md = t.markdown();
+    crate::bench::write_json(&run.join("eval.json"), &serde_json::to_value(&t)?)?;
+    std::fs::write(run.join("eval.md"), &md)
+        .with_context(|| format!("writing {}", run.join("eval.md").display()))?;
+    println!("held-out views {:?}\n\n{md}", t.views);
+    eprintln!("wrote {} and eval.md", run.join("eval.json").display());
+    Ok(())
+}

@@ -1,0 +1,361 @@
+//! Inpainters: what fills the pixels of a virtual view that no two training cameras saw, in
+//! colour and in depth. Every inpainter implements [`Inpainter`]; `extranerf extrapolate
+//! --inpainter` picks one by [`InpainterKind`].
+//!
+//! Images are `[h, w, 3]` row-major f32 in [0, 1]; depth maps `[h, w]` in the field's ray
+//! space (NDC t for forward-facing scenes, view depth otherwise: larger is farther in both);
+//! masks `[h, w]` with values >= 0.5 meaning "fill". Pixels outside the mask come back
+//! unchanged.
+
+pub mod exemplar;
+pub mod harmonic;
+
+use std::fmt;
+
+/// Why an inpainting could not be done.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("inpainting: {0}")]
+pub struct InpaintError(pub String);
+
+/// Result alias of inpainting.
+pub type Result<T, E = InpaintError> = std::result::Result<T, E>;
+
+/// The view to fill.
+#[derive(Clone, Copy, Debug)]
+pub struct Target<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// The render, `[h, w, 3]`.
+    pub rgb: &'a [f32],
+    /// The rendered depth, `[h, w]` (larger is farther).
+    pub depth: &'a [f32],
+    /// `[h, w]`, >= 0.5 where the pixel is to be filled.
+    pub mask: &'a [f32],
+}
+
+/// An image whose texture an exemplar-based inpainter may copy (an input photo at the target's
+/// scale), with its depth when known.
+#[derive(Clone, Copy, Debug)]
+pub struct Source<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub rgb: &'a [f32],
+    pub depth: Option<&'a [f32]>,
+}
+
+/// An inpainted view: the target's pixels with the masked ones filled.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Fill {
+    pub rgb: Vec<f32>,
+    pub depth: Vec<f32>,
+}
+
+/// Which inpainter.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    clap::ValueEnum,
+    serde::Serialize,
+    serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum InpainterKind {
+    /// Laplace's equation seeded only from the far side of each hole's boundary (a
+    /// disocclusion shows what lies behind the occluder), in colour and depth.
+    Harmonic,
+    /// Multi-scale PatchMatch with EM voting (Wexler et al. 2007, Barnes et al. 2009): copies
+    /// texture from the view's visible part and the input photos; depth follows the same
+    /// correspondences.
+    Exemplar,
+    /// The harmonic fill's low frequencies with the exemplar fill's high frequencies.
+    Hybrid,
+}
+
+impl InpainterKind {
+    /// The name on the command line and in run folders.
+    pub fn name(self) -> &'static str {
+        match self {
+            InpainterKind::Harmonic => "harmonic",
+            InpainterKind::Exemplar => "exemplar",
+            InpainterKind::Hybrid => "hybrid",
+        }
+    }
+
+    /// The inpainter with its default settings.
+    pub fn build(self) -> Box<dyn Inpainter> {
+        match self {
+            InpainterKind::Harmonic => Box::new(harmonic::Harmonic::default()),
+            InpainterKind::Exemplar => Box::new(exemplar::Exemplar::default()),
+            InpainterKind::Hybrid => Box::new(Hybrid::default()),
+        }
+    }
+}
+
+impl fmt::Display for InpainterKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Fills the masked pixels of a view.
+pub trait Inpainter {
+    /// Which inpainter this is.
+    fn kind(&self) -> InpainterKind;
+    /// Fills `target`'s masked pixels; `sources` are extra images to copy from, `seed` makes
+    /// randomised inpainters repeatable. An empty mask returns the target unchanged; a mask
+    /// that leaves nothing to start from is an error.
+    fn inpaint(&mut self, target: &Target<'_>, sources: &[Source<'_>], seed: u64) -> Result<Fill>;
+}
+
+/// Checks the sizes of a target and its sources.
+pub fn check(target: &Target<'_>, sources: &[Source<'_>]) -> Result<()> {
+    let n = target.width * target.height;
+    if n == 0 {
+        return Err(InpaintError(format!(
+            "the view is {}x{}; it has no pixels",
+            target.width, target.height
+        )));
+    }
+    if target.rgb.len() != 3 * n || target.depth.len() != n || target.mask.len() != n {
+        return Err(InpaintError(format!(
+            "a {}x{} view needs {} colour values, {n} depths and {n} mask values; got {}, {} and {}",
+            target.width,
+            target.height,
+            3 * n,
+            target.rgb.len(),
+            target.depth.len(),
+            target.mask.len()
+        )));
+    }
+    if target
+        .rgb
+        .iter()
+        .chain(target.depth)
+        .chain(target.mask)
+        .any(|v| !v.is_finite())
+    {
+        return Err(InpaintError(
+            "the view's colour, depth or mask holds NaN or infinity".into(),
+        ));
+    }
+    for (i, s) in sources.iter().enumerate() {
+        let m = s.width * s.height;
+        if m == 0
+            || s.rgb.len() != 3 * m
+            || s.depth.is_some_and(|d| d.len() != m)
+            || s.rgb.iter().any(|v| !v.is_finite())
+        {
+            return Err(InpaintError(format!(
+                "source image {i} ({}x{}) has {} colour values{}; want {} finite ones",
+                s.width,
+                s.height,
+                s.rgb.len(),
+                s.depth
+                    .map(|d| format!(" and {} depths", d.len()))
+                    .unwrap_or_default(),
+                3 * m
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Whether pixel `i` is to be filled.
+pub fn is_hole(mask: &[f32], i: usize) -> bool {
+    mask[i] >= 0.5
+}
+
+/// A separable box blur of radius `r` (applied twice: a tent) over an `[h, w, c]` image.
+pub fn blur(img: &[f32], w: usize, h: usize, c: usize, r: usize) -> Vec<f32> {
+    let pass = |src: &[f32], horizontal: bool| -> Vec<f32> {
+        let mut out = vec![0f32; src.len()];
+        for y in 0..h {
+            for x in 0..w {
+                let (lo, hi) = if horizontal {
+                    (x.saturating_sub(r), (x + r).min(w - 1))
+                } else {
+                    (y.saturating_sub(r), (y + r).min(h - 1))
+                };
+                for ch in 0..c {
+                    let mut s = 0f32;
+                    for k in lo..=hi {
+                        let j = if horizontal { y * w + k } else { k * w + x };
+                        s += src[j * c + ch];
+                    }
+                    out[(y * w + x) * c + ch] = s / (hi - lo + 1) as f32;
+                }
+            }
+        }
+        out
+    };
+    let mut v = img.to_vec();
+    for _ in 0..2 {
+        v = pass(&v, true);
+        v = pass(&v, false);
+    }
+    v
+}
+
+/// The hybrid inpainter: the harmonic fill's low frequencies (its colour blurred) plus the
+/// exemplar fill's high frequencies (the exemplar fill minus its blur), depth from the
+/// harmonic fill.
+#[derive(Clone, Debug)]
+pub struct Hybrid {
+    pub harmonic: harmonic::Harmonic,
+    pub exemplar: exemplar::Exemplar,
+    /// Box-blur radius (applied twice) that separates low from high frequencies, in pixels.
+    pub radius: usize,
+}
+
+impl Default for Hybrid {
+    fn default() -> Self {
+        Hybrid {
+            harmonic: harmonic::Harmonic::default(),
+            exemplar: exemplar::Exemplar::default(),
+            radius: 3,
+        }
+    }
+}
+
+impl Inpainter for Hybrid {
+    fn kind(&self) -> InpainterKind {
+        InpainterKind::Hybrid
+    }
+
+    fn inpaint(&mut self, target: &Target<'_>, sources: &[Source<'_>], seed: u64) -> Result<Fill> {
+        let low = self.harmonic.inpaint(target, sources, seed)?;
+        let ex = self.exemplar.inpaint(target, sources, seed)?;
+        let (w, h) = (target.width, target.height);
+        let ex_blur = blur(&ex.rgb, w, h, 3, self.radius);
+        let low_blur = blur(&low.rgb, w, h, 3, self.radius);
+        let mut rgb = target.rgb.to_vec();
+        for i in 0..w * h {
+            if is_hole(target.mask, i) {
+                for c in 0..3 {
+                    let k = 3 * i + c;
+                    rgb[k] = (low_blur[k] + ex.rgb[k] - ex_blur[k]).clamp(0.0, 1.0);
+                }
+            }
+        }
+        Ok(Fill {
+            rgb,
+            depth: low.depth,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mis_sized_and_non_finite_inputs_are_refused() {
+        let rgb = vec![0.5f32; 4 * 4 * 3];
+        let depth = vec![1.0f32; 16];
+        let mask = vec![0.0f32; 15];
+        let t = Target {
+            width: 4,
+            height: 4,
+            rgb: &rgb,
+            depth: &depth,
+            mask: &mask,
+        };
+        for kind in [
+            InpainterKind::Harmonic,
+            InpainterKind::Exemplar,
+            InpainterKind::Hybrid,
+        ] {
+            let e = kind.build().inpaint(&t, &[], 0).unwrap_err();
+            assert!(e.0.contains("16 mask values"), "{kind}: {e}");
+        }
+        let mut mask = vec![0.0f32; 16];
+        mask[3] = f32::NAN;
+        let t = Target { mask: &mask, ..t };
+        let e = harmonic::Harmonic::default()
+            .inpaint(&t, &[], 0)
+            .unwrap_err();
+        assert!(e.0.contains("NaN"), "{e}");
+        let bad = Source {
+            width: 2,
+            height: 2,
+            rgb: &rgb[..5],
+            depth: None,
+        };
+        let mask = vec![0.0f32; 16];
+        let t = Target { mask: &mask, ..t };
+        let e = exemplar::Exemplar::default()
+            .inpaint(&t, &[bad], 0)
+            .unwrap_err();
+        assert!(e.0.contains("source image 0"), "{e}");
+    }
+
+    #[test]
+    fn an_empty_mask_is_a_no_op_and_a_full_one_an_error() {
+        let (w, h) = (8, 6);
+        let rgb: Vec<f32> = (0..w * h * 3).map(|i| (i % 7) as f32 / 7.0).collect();
+        let depth: Vec<f32> = (0..w * h).map(|i| 0.5 + (i % 5) as f32 * 0.1).collect();
+        let empty = vec![0.0f32; w * h];
+        let full = vec![1.0f32; w * h];
+        for kind in [
+            InpainterKind::Harmonic,
+            InpainterKind::Exemplar,
+            InpainterKind::Hybrid,
+        ] {
+            let t = Target {
+                width: w,
+                height: h,
+                rgb: &rgb,
+                depth: &depth,
+                mask: &empty,
+            };
+            let f = kind.build().inpaint(&t, &[], 1).unwrap();
+            assert_eq!(f.rgb, rgb, "{kind}");
+            assert_eq!(f.depth, depth, "{kind}");
+            let t = Target { mask: &full, ..t };
+            let e = kind.build().inpaint(&t, &[], 1).unwrap_err();
+            assert!(e.0.contains("whole view"), "{kind}: {e}");
+        }
+    }
+
+    #[test]
+    fn hybrid_keeps_the_harmonic_low_frequencies_on_a_ramp() {
+        // On a linear ramp both fills are close to the ramp, so the hybrid is too.
+        let (w, h) = (40, 30);
+        let rgb: Vec<f32> = (0..w * h)
+            .flat_map(|i| {
+                let (x, y) = ((i % w) as f32, (i / w) as f32);
+                [x / w as f32, y / h as f32, 0.5]
+            })
+            .collect();
+        let depth = vec![1.0f32; w * h];
+        let mask: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                f32::from((15..25).contains(&x) && (10..20).contains(&y))
+            })
+            .collect();
+        let t = Target {
+            width: w,
+            height: h,
+            rgb: &rgb,
+            depth: &depth,
+            mask: &mask,
+        };
+        let f = Hybrid::default().inpaint(&t, &[], 3).unwrap();
+        let mut worst = 0f32;
+        for i in 0..w * h {
+            if mask[i] > 0.5 {
+                for c in 0..3 {
+                    worst = worst.max((f.rgb[3 * i + c] - rgb[3 * i + c]).abs());
+                }
+            }
+        }
+        assert!(worst < 0.08, "largest error {worst}");
+    }
+}

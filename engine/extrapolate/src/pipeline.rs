@@ -1,0 +1,1059 @@
+//! `extranerf extrapolate`: the ExtraNeRF pipeline as stages over one run folder.
+//!
+//! - [`BaseStage`]: the BaseNeRF (trained into `RUN/base` under a time budget, or an existing
+//!   run reused with `--base`);
+//! - [`VisibilityStage`]: virtual cameras beyond the rig, and the visibility of the virtual and
+//!   the held-out views against the training cameras (`RUN/visibility`);
+//! - [`InpaintStage`]: the stage-2 loop for one inpainter (`RUN/stage2-NAME`): rounds of
+//!   render, mask, inpaint and train on the virtual views mixed with the captured ones.
+//!
+//! Stage 3 (enhancement) will be one more [`Stage`]. Each stage records its resolved
+//! configuration in `extrapolate.json` ([`Manifest`]); a resumed run skips the stages done,
+//! refuses one asked for with other settings, and continues an unfinished stage 2 from its
+//! last finished round.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use extranerf_gpu::Context;
+use extranerf_nerf::cameras::{virtual_cameras, write_transforms, Trajectory};
+use extranerf_nerf::data::{load_image, Camera, Image};
+use extranerf_nerf::demo::{demo_seen, DEMO_MARKER};
+use extranerf_nerf::render::march::MarchCuts;
+use extranerf_nerf::render::visibility::{mask_all_but, VisibilityMap};
+use extranerf_nerf::run::{
+    load_checkpoint, save_checkpoint, training_views, write_png, Checkpoint, LoadedScene,
+    RunConfig, SceneSpec,
+};
+use extranerf_nerf::safetensors::{SafeTensors, Tensor};
+use extranerf_nerf::trainer::{
+    March, Nerf, TrainConfig, TrainData, Trainer, View, ViewKind, ViewSampling,
+};
+use extranerf_prims::Prims;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use crate::driver::{fit_budget, train_loop, Progress, Reporter, TrainRun, Unit};
+use crate::inpaint::{Fill, InpainterKind, Source, Target};
+use crate::manifest::{Manifest, StageRecord};
+use crate::visibility::{FieldVisibility, VisSettings};
+
+/// Where the BaseNeRF comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BaseSpec {
+    /// An existing run folder to reuse (None: train one into `RUN/base`).
+    pub from: Option<PathBuf>,
+    /// Training seconds for a new BaseNeRF (the `train --budget` fit).
+    pub budget: f64,
+}
+
+/// The virtual cameras.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VirtualSpec {
+    pub trajectory: Trajectory,
+    /// How many.
+    pub count: usize,
+    /// How far beyond the rig (1: its edge).
+    pub range: f64,
+    /// Divide the training resolution by this for the virtual views.
+    pub downscale: u32,
+}
+
+/// The stage-2 loop.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Stage2Spec {
+    /// Rounds over the virtual views (each: render, inpaint, train).
+    pub rounds: u32,
+    /// Training steps per round.
+    pub steps_per_round: u32,
+    /// Fraction of each batch's rays drawn from the virtual views.
+    pub virtual_fraction: f32,
+    /// Learning rate (constant) of the stage's steps.
+    pub lr: f32,
+    /// Noise level t of the first and the last round (the diffusion inpainter starts its
+    /// sampling there; every inpainter's loss is weighted by w(t) = sqrt(1 - t^2)).
+    pub t_start: f32,
+    pub t_end: f32,
+    /// Keep fills consistent across views: pixels that an earlier virtual view of the round
+    /// filled are reprojected with their completed depth and count as seen.
+    pub reproject: bool,
+    /// Seed of the inpainters.
+    pub seed: u64,
+}
+
+impl Default for Stage2Spec {
+    fn default() -> Self {
+        Stage2Spec {
+            rounds: 4,
+            steps_per_round: 250,
+            virtual_fraction: 0.3,
+            lr: 3e-3,
+            t_start: 0.6,
+            t_end: 0.2,
+            reproject: true,
+            seed: 0,
+        }
+    }
+}
+
+impl Stage2Spec {
+    /// Checks the settings.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        if self.rounds == 0 || self.steps_per_round == 0 {
+            bail!("stage 2 needs at least one round of at least one step");
+        }
+        if !(0.0..=1.0).contains(&self.virtual_fraction) {
+            bail!(
+                "--virtual-fraction {}: use a value in [0, 1]",
+                self.virtual_fraction
+            );
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0) {
+            bail!("--stage2-lr {}: use a positive learning rate", self.lr);
+        }
+        for t in [self.t_start, self.t_end] {
+            if !(0.0..1.0).contains(&t) {
+                bail!("noise levels must be in [0, 1), not {t}");
+            }
+        }
+        Ok(())
+    }
+
+    /// Noise level of `round`.
+    pub fn t(&self, round: u32) -> f32 {
+        if self.rounds <= 1 {
+            return self.t_start;
+        }
+        let f = round as f32 / (self.rounds - 1) as f32;
+        self.t_start + (self.t_end - self.t_start) * f
+    }
+
+    /// The loss weight w(t) = sqrt(1 - t^2) (the signal level of a render noised to t).
+    pub fn weight(&self, round: u32) -> f32 {
+        let t = self.t(round);
+        (1.0 - t * t).max(0.0).sqrt()
+    }
+}
+
+/// Everything `extranerf extrapolate` was asked to do.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// Run folder.
+    pub out: PathBuf,
+    /// The scene (ignored with `base.from`, whose scene is used).
+    pub scene: Option<SceneSpec>,
+    pub base: BaseSpec,
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+    pub stage2: Stage2Spec,
+    /// One stage-2 variant per inpainter, each from the same BaseNeRF.
+    pub inpainters: Vec<InpainterKind>,
+    /// Continue a run folder that holds a manifest.
+    pub resume: bool,
+}
+
+/// The run folder's layout.
+#[derive(Clone, Debug)]
+pub struct RunDir {
+    pub root: PathBuf,
+    /// The BaseNeRF's run folder.
+    pub base: PathBuf,
+}
+
+impl RunDir {
+    pub fn visibility(&self) -> PathBuf {
+        self.root.join("visibility")
+    }
+
+    pub fn stage2(&self, kind: InpainterKind) -> PathBuf {
+        self.root.join(format!("stage2-{}", kind.name()))
+    }
+}
+
+/// A stage of the pipeline.
+pub trait Stage {
+    /// Its name in the manifest.
+    fn name(&self) -> String;
+    /// Its resolved configuration (what a resumed run must match).
+    fn config(&self) -> Value;
+    /// Runs it (resuming inside it where it can); returns its report.
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value>;
+}
+
+/// The BaseNeRF.
+#[derive(Clone, Debug)]
+pub struct BaseStage {
+    pub spec: BaseSpec,
+    pub scene: SceneSpec,
+}
+
+/// The default training configuration for a scene (as `extranerf train` with no flags).
+pub fn default_run_config(scene: &SceneSpec, rep: &mut dyn Reporter) -> anyhow::Result<RunConfig> {
+    let loaded = scene.load()?;
+    let choice = extranerf_nerf::autoconfig::auto_model(&loaded.scene, &loaded.split.train);
+    for r in &choice.reasons {
+        rep.note(&format!("auto-config: {r}"));
+    }
+    Ok(RunConfig {
+        scene: scene.clone(),
+        model: choice.model,
+        train: TrainConfig::default(),
+    })
+}
+
+impl Stage for BaseStage {
+    fn name(&self) -> String {
+        "base".into()
+    }
+
+    fn config(&self) -> Value {
+        json!({"from": self.spec.from, "budget": self.spec.budget})
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        if self.spec.from.is_some() {
+            let ck = load_checkpoint(&dir.base)
+                .with_context(|| format!("--base {}", dir.base.display()))?;
+            return Ok(json!({"reused": dir.base, "step": ck.step}));
+        }
+        let run = |cfg: &RunConfig, start, budget, params, moments, rep: &mut dyn Reporter| {
+            train_loop(
+                ctx,
+                cfg,
+                &TrainRun {
+                    out: dir.base.clone(),
+                    start,
+                    log_every: 25,
+                    checkpoint_every: 500,
+                    eval_every: 0,
+                    eval_views: "test".into(),
+                    budget,
+                },
+                params,
+                moments,
+                rep,
+            )
+        };
+        if dir.base.join(extranerf_nerf::run::CHECKPOINT_FILE).exists() {
+            // Interrupted: continue to the steps its last checkpoint planned.
+            let ck = load_checkpoint(&dir.base)?;
+            rep.note(&format!("base: resuming at step {}", ck.step));
+            if ck.step < ck.config.train.steps {
+                run(&ck.config, ck.step, None, Some(ck.params), ck.moments, rep)?;
+            }
+        } else {
+            let mut cfg = default_run_config(&self.scene, rep)?;
+            fit_budget(ctx, &mut cfg, self.spec.budget, true, rep)?;
+            run(&cfg, 0, Some(self.spec.budget), None, None, rep)?;
+        }
+        let ck = load_checkpoint(&dir.base)?;
+        Ok(json!({"step": ck.step}))
+    }
+}
+
+/// The virtual cameras and the visibility maps.
+#[derive(Clone, Debug)]
+pub struct VisibilityStage {
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+}
+
+/// The scene, field and views of a run's BaseNeRF.
+pub struct BaseField {
+    pub ck: Checkpoint,
+    pub loaded: LoadedScene,
+    pub nerf: Nerf,
+}
+
+impl std::fmt::Debug for BaseField {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BaseField")
+            .field("step", &self.ck.step)
+            .finish_non_exhaustive()
+    }
+}
+
+impl BaseField {
+    /// Loads `dir`'s checkpoint and scene.
+    pub fn load(ctx: &Context, dir: &Path) -> anyhow::Result<BaseField> {
+        let ck = load_checkpoint(dir)?;
+        let loaded = ck.config.scene.load()?;
+        let nerf = Nerf::new(
+            ctx,
+            ck.config.model.clone(),
+            &ck.params,
+            ck.config.train.background,
+        )?;
+        Ok(BaseField { ck, loaded, nerf })
+    }
+
+    /// The training cameras.
+    pub fn train_cameras(&self) -> Vec<Camera> {
+        self.loaded
+            .split
+            .train
+            .iter()
+            .map(|&i| self.loaded.scene.cameras[i].clone())
+            .collect()
+    }
+
+    /// Whether the field is in NDC.
+    pub fn ndc(&self) -> bool {
+        self.ck.config.model.space == "ndc"
+    }
+}
+
+/// The virtual cameras of `spec` for `train`, at the virtual views' resolution.
+pub fn make_virtual(spec: &VirtualSpec, train: &[Camera]) -> anyhow::Result<Vec<Camera>> {
+    if spec.downscale == 0 {
+        bail!("--virtual-downscale must be at least 1");
+    }
+    Ok(
+        virtual_cameras(train, spec.trajectory, spec.count, spec.range)?
+            .into_iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let mut c = c.downscaled(spec.downscale);
+                c.image = PathBuf::from(format!("virtual_{i:03}.png"));
+                c
+            })
+            .collect(),
+    )
+}
+
+/// Renders `cam` from `nerf` with the fused march: colour, depth, opacity.
+pub fn render(
+    ctx: &Context,
+    nerf: &Nerf,
+    cam: &Camera,
+    samples: u32,
+) -> anyhow::Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+    Ok(nerf.render_with(ctx, cam, 8192, samples, March::Fused(MarchCuts::EXACT))?)
+}
+
+/// Saves maps into a safetensors file (`NAME.visibility`, `NAME.opacity`, `NAME.depth`).
+fn save_maps(path: &Path, maps: &[(String, VisibilityMap)]) -> anyhow::Result<()> {
+    let mut st = SafeTensors::default();
+    for (name, m) in maps {
+        let shape = vec![m.height as usize, m.width as usize];
+        for (what, v) in [
+            ("visibility", &m.visibility),
+            ("opacity", &m.opacity),
+            ("depth", &m.depth),
+        ] {
+            st.tensors.insert(
+                format!("{name}.{what}"),
+                Tensor {
+                    shape: shape.clone(),
+                    data: v.clone(),
+                },
+            );
+        }
+    }
+    st.write(path)?;
+    Ok(())
+}
+
+/// Reads map `name` from a [`save_maps`] file.
+pub fn load_map(st: &SafeTensors, path: &Path, name: &str) -> anyhow::Result<VisibilityMap> {
+    let get = |what: &str| -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
+        let t = st
+            .tensors
+            .get(&format!("{name}.{what}"))
+            .with_context(|| format!("{}: no map {name}.{what}", path.display()))?;
+        Ok((t.shape.clone(), t.data.clone()))
+    };
+    let (shape, visibility) = get("visibility")?;
+    let (_, opacity) = get("opacity")?;
+    let (_, depth) = get("depth")?;
+    if shape.len() != 2 || opacity.len() != visibility.len() || depth.len() != visibility.len() {
+        bail!("{}: map {name} is malformed", path.display());
+    }
+    Ok(VisibilityMap {
+        width: shape[1] as u32,
+        height: shape[0] as u32,
+        evals: vec![0.0; visibility.len()],
+        visibility,
+        opacity,
+        depth,
+    })
+}
+
+/// A mask against the truly unseen pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct MaskScore {
+    /// Intersection over union of the masked and the truly unseen pixels (1 when both are
+    /// empty).
+    pub iou: f64,
+    /// Share of pixels on which mask and truth agree.
+    pub accuracy: f64,
+    /// Masked share, truly unseen share.
+    pub masked: f64,
+    pub unseen: f64,
+}
+
+impl MaskScore {
+    /// Scores `mask` (>= 0.5: to inpaint) against `unseen`.
+    pub fn new(mask: &[f32], unseen: &[bool]) -> MaskScore {
+        let (mut inter, mut union, mut agree, mut m, mut u) =
+            (0usize, 0usize, 0usize, 0usize, 0usize);
+        for (&x, &t) in mask.iter().zip(unseen) {
+            let x = x >= 0.5;
+            inter += usize::from(x && t);
+            union += usize::from(x || t);
+            agree += usize::from(x == t);
+            m += usize::from(x);
+            u += usize::from(t);
+        }
+        let n = mask.len().max(1) as f64;
+        MaskScore {
+            iou: if union == 0 {
+                1.0
+            } else {
+                inter as f64 / union as f64
+            },
+            accuracy: agree as f64 / n,
+            masked: m as f64 / n,
+            unseen: u as f64 / n,
+        }
+    }
+
+    /// The mean of several views' scores.
+    pub fn mean(v: &[MaskScore]) -> MaskScore {
+        let n = v.len().max(1) as f64;
+        let f = |g: fn(&MaskScore) -> f64| v.iter().map(g).sum::<f64>() / n;
+        MaskScore {
+            iou: f(|s| s.iou),
+            accuracy: f(|s| s.accuracy),
+            masked: f(|s| s.masked),
+            unseen: f(|s| s.unseen),
+        }
+    }
+}
+
+/// The scene index of a held-out view's map name (`test_NNN`).
+fn test_index(name: &str) -> Option<usize> {
+    name.strip_prefix("test_")?.parse().ok()
+}
+
+/// The maps file of the visibility stage.
+pub const MAPS_FILE: &str = "maps.safetensors";
+
+fn grey(v: &[f32]) -> Vec<f32> {
+    v.iter().flat_map(|&x| [x, x, x]).collect()
+}
+
+impl Stage for VisibilityStage {
+    fn name(&self) -> String {
+        "visibility".into()
+    }
+
+    fn config(&self) -> Value {
+        json!({"virtual": self.virt, "settings": self.vis})
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        let out = dir.visibility();
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let base = BaseField::load(ctx, &dir.base)?;
+        let train = base.train_cameras();
+        let virt = make_virtual(&self.virt, &train)?;
+        write_transforms(&out.join("virtual.json"), &virt)?;
+        let cfg = self
+            .vis
+            .config(self.vis.rank, base.ck.config.train.samples)?;
+        let t = Instant::now();
+        let fv = FieldVisibility::new(ctx, &base.nerf, &train, &self.vis)?;
+        let volume_s = t.elapsed().as_secs_f64();
+        let all = mask_all_but(train.len(), None);
+        // Virtual views, and the held-out views (mapped at the virtual views' scale, their
+        // BaseNeRF renders at full size for `eval`).
+        let mut views: Vec<(String, Camera, Camera)> = virt
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (format!("virtual_{i:03}"), c.clone(), c.clone()))
+            .collect();
+        for &i in &base.loaded.split.test {
+            let full = base.loaded.scene.cameras[i].clone();
+            let c = full.downscaled(self.virt.downscale);
+            views.push((format!("test_{i:03}"), c, full));
+        }
+        let mut maps = Vec::new();
+        let mut rows = Vec::new();
+        let total = views.len() as u32;
+        // The demo scene's generator knows what each rig camera sees: score the held-out
+        // views' masks against it.
+        let demo = base.ck.config.scene.dir.join(DEMO_MARKER).exists();
+        let mut exact: Vec<MaskScore> = Vec::new();
+        for (k, (name, cam, full)) in views.iter().enumerate() {
+            let t = Instant::now();
+            let m = fv.map(ctx, &base.nerf, cam, all, &cfg, self.vis.chunk)?;
+            let mask = self.vis.mask(&m);
+            write_png(
+                &out.join(format!("{name}_vis.png")),
+                m.width,
+                m.height,
+                &grey(&m.visibility),
+            )?;
+            write_png(
+                &out.join(format!("{name}_mask.png")),
+                m.width,
+                m.height,
+                &grey(&mask),
+            )?;
+            let (rgb, _, _) = render(ctx, &base.nerf, full, cfg.samples)?;
+            write_png(
+                &out.join(format!("{name}_base.png")),
+                full.width,
+                full.height,
+                &rgb,
+            )?;
+            let masked = mask.iter().map(|&v| v as f64).sum::<f64>() / mask.len().max(1) as f64;
+            let mut row = json!({
+                "view": name,
+                "width": m.width,
+                "height": m.height,
+                "mean_visibility": m.mean(),
+                "mean_opacity": m.mean_opacity(),
+                "masked_fraction": masked,
+                "seconds": t.elapsed().as_secs_f64(),
+            });
+            if let (true, Some(i)) = (demo, test_index(name)) {
+                let unseen: Vec<bool> = demo_seen(i, m.width, m.height, cfg.rank as usize)
+                    .into_iter()
+                    .map(|s| !s)
+                    .collect();
+                let s = MaskScore::new(&mask, &unseen);
+                row["exact"] = json!(s);
+                exact.push(s);
+            }
+            rows.push(row);
+            rep.progress(&Progress {
+                unit: Unit::Views,
+                step: k as u32 + 1,
+                total,
+                loss: masked,
+                psnr: 0.0,
+                samples_per_s: 0.0,
+                secs: 0.0,
+                eta: 0.0,
+            });
+            rep.note(&format!(
+                "{name}: {}x{}, {:.1}% to inpaint (mean opacity {:.3})",
+                m.width,
+                m.height,
+                100.0 * masked,
+                m.mean_opacity()
+            ));
+            maps.push((name.clone(), m));
+        }
+        save_maps(&out.join(MAPS_FILE), &maps)?;
+        let exact_mean = (!exact.is_empty()).then(|| MaskScore::mean(&exact));
+        if let Some(e) = &exact_mean {
+            rep.note(&format!(
+                "masks against the demo's exact visibility: IoU {:.3}, accuracy {:.3} ({:.1}% masked, {:.1}% truly unseen)",
+                e.iou,
+                e.accuracy,
+                100.0 * e.masked,
+                100.0 * e.unseen
+            ));
+        }
+        let doc = json!({
+            "exact_mean": exact_mean,
+            "training_views": base.loaded.split.train,
+            "settings": self.vis,
+            "virtual": self.virt,
+            "volume_seconds": volume_s,
+            "views": rows,
+        });
+        extranerf_nerf::safetensors::write_atomic(
+            &out.join("visibility.json"),
+            serde_json::to_string_pretty(&doc)?.as_bytes(),
+        )?;
+        Ok(json!({"volume_seconds": volume_s, "views": rows.len(), "exact_mean": exact_mean}))
+    }
+}
+
+/// One stage-2 variant.
+#[derive(Clone, Debug)]
+pub struct InpaintStage {
+    pub kind: InpainterKind,
+    pub spec: Stage2Spec,
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+}
+
+/// Fills of earlier views, reprojected into `cam`: per pixel, the nearest reprojected colour
+/// and its ray-space depth in `cam`.
+pub fn reproject(
+    earlier: &[(Camera, Fill, Vec<f32>)],
+    cam: &Camera,
+    ndc: bool,
+) -> Vec<Option<([f32; 3], f32)>> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut best: Vec<Option<([f32; 3], f32, f64)>> = vec![None; w * h];
+    for (src, fill, filled) in earlier {
+        let sw = src.width as usize;
+        for (i, &f) in filled.iter().enumerate() {
+            if f < 0.5 {
+                continue;
+            }
+            let (x, y) = ((i % sw) as f64 + 0.5, (i / sw) as f64 + 0.5);
+            let Some(p) = src.ray_point(x, y, fill.depth[i] as f64, ndc) else {
+                continue;
+            };
+            let (px, py, z) = cam.project(p);
+            if !(z > 0.0 && px >= 0.0 && py >= 0.0 && px < w as f64 && py < h as f64) {
+                continue;
+            }
+            let j = py as usize * w + px as usize;
+            if best[j].is_some_and(|b| b.2 <= z) {
+                continue;
+            }
+            // Ray-space depth in this camera: NDC t = 1 + 1 / z_world, else view depth.
+            let t = if ndc {
+                let pz = p.z;
+                if pz >= -1.0 {
+                    continue;
+                }
+                1.0 + 1.0 / pz
+            } else {
+                z
+            };
+            best[j] = Some((
+                [fill.rgb[3 * i], fill.rgb[3 * i + 1], fill.rgb[3 * i + 2]],
+                t as f32,
+                z,
+            ));
+        }
+    }
+    best.into_iter()
+        .map(|b| b.map(|(c, t, _)| (c, t)))
+        .collect()
+}
+
+/// The stage-2 state between rounds (`round.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct RoundState {
+    rounds_done: u32,
+    seconds: f64,
+}
+
+impl Stage for InpaintStage {
+    fn name(&self) -> String {
+        format!("stage2-{}", self.kind.name())
+    }
+
+    fn config(&self) -> Value {
+        json!({"inpainter": self.kind, "loop": self.spec})
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        self.spec.validate()?;
+        let out = dir.stage2(self.kind);
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let base = BaseField::load(ctx, &dir.base)?;
+        let ndc = base.ndc();
+        let cfg = base.ck.config.clone();
+        let samples = cfg.train.samples;
+        let train = base.train_cameras();
+        let virt = make_virtual(&self.virt, &train)?;
+        let maps_path = dir.visibility().join(MAPS_FILE);
+        let st = SafeTensors::read(&maps_path)?;
+        let masks: Vec<Vec<f32>> = (0..virt.len())
+            .map(|i| {
+                let m = load_map(&st, &maps_path, &format!("virtual_{i:03}"))?;
+                if (m.width, m.height) != (virt[i].width, virt[i].height) {
+                    bail!(
+                        "{}: virtual view {i}'s map has another size",
+                        maps_path.display()
+                    );
+                }
+                Ok(self.vis.mask(&m))
+            })
+            .collect::<anyhow::Result<_>>()?;
+        let captured = training_views(&cfg.scene, &base.loaded, &cfg.model)?;
+        // Exemplar sources: the training photos at the virtual views' scale, with the
+        // BaseNeRF's depth.
+        let mut source_imgs = Vec::new();
+        for v in &captured {
+            let cam = v.camera.downscaled(self.virt.downscale);
+            let img = downscale_image(&v.image, cam.width, cam.height);
+            let (_, depth, _) = render(ctx, &base.nerf, &cam, samples)?;
+            source_imgs.push((cam, img, depth));
+        }
+        // Resume from the last finished round.
+        let state_path = out.join("round.json");
+        let (start_round, mut seconds, params, moments) =
+            if state_path.exists() && out.join(extranerf_nerf::run::CHECKPOINT_FILE).exists() {
+                let s: RoundState = serde_json::from_str(
+                    &std::fs::read_to_string(&state_path)
+                        .with_context(|| format!("reading {}", state_path.display()))?,
+                )
+                .with_context(|| format!("{}: malformed", state_path.display()))?;
+                let ck = load_checkpoint(&out)?;
+                rep.note(&format!(
+                    "{}: resuming after round {}",
+                    self.name(),
+                    s.rounds_done
+                ));
+                (s.rounds_done, s.seconds, ck.params, ck.moments)
+            } else {
+                (0, 0.0, base.ck.params.clone(), base.ck.moments.clone())
+            };
+        let total_steps = self.spec.rounds * self.spec.steps_per_round;
+        let mut tcfg = cfg.train.clone();
+        tcfg.steps = total_steps;
+        tcfg.decay_steps = total_steps;
+        tcfg.lr_start = self.spec.lr;
+        tcfg.lr_end = self.spec.lr;
+        let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
+        let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
+        let mut trainer = Trainer::new(
+            ctx,
+            nerf,
+            tcfg.clone(),
+            start_round * self.spec.steps_per_round,
+            moments,
+        )?;
+        let prims = Prims::new(ctx)?;
+        let mut inpainter = self.kind.build();
+        let mut rounds = Vec::new();
+        for round in start_round..self.spec.rounds {
+            let t0 = Instant::now();
+            let t = self.spec.t(round);
+            let weight = self.spec.weight(round);
+            let round_dir = out.join(format!("round_{round:02}"));
+            std::fs::create_dir_all(&round_dir)
+                .with_context(|| format!("creating {}", round_dir.display()))?;
+            let mut filled: Vec<(Camera, Fill, Vec<f32>)> = Vec::new();
+            let mut inpaint_s = 0.0;
+            let mut render_s = 0.0;
+            let mut reprojected = 0usize;
+            for (k, cam) in virt.iter().enumerate() {
+                let tr = Instant::now();
+                let (mut rgb, mut depth, _) = render(ctx, trainer.nerf(), cam, samples)?;
+                render_s += tr.elapsed().as_secs_f64();
+                let mut mask = masks[k].clone();
+                if self.spec.reproject && !filled.is_empty() {
+                    for (j, r) in reproject(&filled, cam, ndc).into_iter().enumerate() {
+                        if let Some((c, d)) = r {
+                            if mask[j] >= 0.5 {
+                                rgb[3 * j..3 * j + 3].copy_from_slice(&c);
+                                depth[j] = d;
+                                mask[j] = 0.0;
+                                reprojected += 1;
+                            }
+                        }
+                    }
+                }
+                let sources: Vec<Source<'_>> = source_imgs
+                    .iter()
+                    .map(|(c, img, d)| Source {
+                        width: c.width as usize,
+                        height: c.height as usize,
+                        rgb: &img.rgb,
+                        depth: Some(d),
+                    })
+                    .collect();
+                let target = Target {
+                    width: cam.width as usize,
+                    height: cam.height as usize,
+                    rgb: &rgb,
+                    depth: &depth,
+                    mask: &mask,
+                };
+                let ti = Instant::now();
+                let seed = self.spec.seed ^ ((round as u64) << 32) ^ k as u64;
+                let fill = if mask.iter().all(|&m| m < 0.5) {
+                    Fill {
+                        rgb: rgb.clone(),
+                        depth: depth.clone(),
+                    }
+                } else {
+                    inpainter
+                        .inpaint(&target, &sources, seed)
+                        .with_context(|| format!("virtual view {k}, round {round}"))?
+                };
+                inpaint_s += ti.elapsed().as_secs_f64();
+                write_png(
+                    &round_dir.join(format!("virtual_{k:03}.png")),
+                    cam.width,
+                    cam.height,
+                    &fill.rgb,
+                )?;
+                write_png(
+                    &round_dir.join(format!("virtual_{k:03}_mask.png")),
+                    cam.width,
+                    cam.height,
+                    &grey(&masks[k]),
+                )?;
+                filled.push((cam.clone(), fill, masks[k].clone()));
+                rep.progress(&Progress {
+                    unit: Unit::Views,
+                    step: k as u32 + 1,
+                    total: virt.len() as u32,
+                    loss: 0.0,
+                    psnr: 0.0,
+                    samples_per_s: 0.0,
+                    secs: t0.elapsed().as_secs_f64(),
+                    eta: 0.0,
+                });
+            }
+            // Train on the captured views and this round's virtual views.
+            let mut views = captured.clone();
+            for (cam, fill, _) in &filled {
+                let n = cam.width as usize * cam.height as usize;
+                views.push(View {
+                    camera: cam.clone(),
+                    image: Image {
+                        width: cam.width,
+                        height: cam.height,
+                        rgb: fill.rgb.clone(),
+                    },
+                    depth: Some(fill.depth.iter().map(|&d| [d, 1.0]).collect()),
+                    weight: Some(vec![weight; n]),
+                    kind: ViewKind::Virtual,
+                });
+            }
+            let data = TrainData::with_sampling(
+                ctx,
+                &views,
+                ViewSampling::VirtualFraction(self.spec.virtual_fraction),
+            )?;
+            let tt = Instant::now();
+            let mut left = self.spec.steps_per_round;
+            let mut last = None;
+            while left > 0 {
+                let n = left.min(25);
+                let stats = trainer.run_steps(ctx, &prims, &data, n)?;
+                if !(stats.loss.is_finite() && stats.mse.is_finite()) {
+                    bail!(
+                        "{}: the loss became {} in round {round}; the last finished round in {} is intact",
+                        self.name(),
+                        stats.loss,
+                        out.display()
+                    );
+                }
+                left -= n;
+                let done = self.spec.steps_per_round - left;
+                let secs = tt.elapsed().as_secs_f64();
+                rep.progress(&Progress {
+                    unit: Unit::Steps,
+                    step: done,
+                    total: self.spec.steps_per_round,
+                    loss: stats.loss,
+                    psnr: stats.psnr(),
+                    samples_per_s: done as f64 * trainer.samples_per_step() as f64 / secs,
+                    secs,
+                    eta: secs / done as f64 * left as f64,
+                });
+                last = Some(stats);
+            }
+            let train_s = tt.elapsed().as_secs_f64();
+            // The round is done: checkpoint, then the state that points at it.
+            save_checkpoint(
+                &out,
+                &Checkpoint {
+                    config: RunConfig {
+                        train: tcfg.clone(),
+                        ..cfg.clone()
+                    },
+                    step: trainer.step(),
+                    params: trainer.nerf().params().read()?,
+                    moments: Some(trainer.moments()?),
+                },
+            )?;
+            seconds += t0.elapsed().as_secs_f64();
+            extranerf_nerf::safetensors::write_atomic(
+                &state_path,
+                serde_json::to_string(&RoundState {
+                    rounds_done: round + 1,
+                    seconds,
+                })?
+                .as_bytes(),
+            )?;
+            let row = json!({
+                "round": round,
+                "t": t,
+                "weight": weight,
+                "render_seconds": render_s,
+                "inpaint_seconds": inpaint_s,
+                "train_seconds": train_s,
+                "reprojected_pixels": reprojected,
+                "batch_psnr": last.map(|s| s.psnr()),
+            });
+            rep.note(&format!(
+                "{} round {}/{}: t {t:.2}, render {render_s:.1} s, inpaint {inpaint_s:.1} s, train {train_s:.1} s; {reprojected} pixels reprojected",
+                self.name(),
+                round + 1,
+                self.spec.rounds
+            ));
+            rounds.push(row);
+        }
+        // The held-out views' renders, for `eval`.
+        for &i in &base.loaded.split.test {
+            let cam = &base.loaded.scene.cameras[i];
+            let (rgb, _, _) = render(ctx, trainer.nerf(), cam, samples)?;
+            write_png(
+                &out.join(format!("test_{i:03}.png")),
+                cam.width,
+                cam.height,
+                &rgb,
+            )?;
+        }
+        Ok(json!({"rounds": rounds, "seconds": seconds}))
+    }
+}
+
+/// `img` resized to `w x h` by area averaging (box filter over the covered source pixels).
+pub fn downscale_image(img: &Image, w: u32, h: u32) -> Image {
+    let (sw, sh) = (img.width as usize, img.height as usize);
+    let (w, h) = (w as usize, h as usize);
+    let mut rgb = vec![0f32; w * h * 3];
+    for y in 0..h {
+        let (y0, y1) = (y * sh / h, ((y + 1) * sh / h).max(y * sh / h + 1));
+        for x in 0..w {
+            let (x0, x1) = (x * sw / w, ((x + 1) * sw / w).max(x * sw / w + 1));
+            let mut acc = [0f32; 3];
+            for yy in y0..y1.min(sh) {
+                for xx in x0..x1.min(sw) {
+                    for c in 0..3 {
+                        acc[c] += img.rgb[3 * (yy * sw + xx) + c];
+                    }
+                }
+            }
+            let n = ((y1.min(sh) - y0) * (x1.min(sw) - x0)).max(1) as f32;
+            for c in 0..3 {
+                rgb[3 * (y * w + x) + c] = acc[c] / n;
+            }
+        }
+    }
+    Image {
+        width: w as u32,
+        height: h as u32,
+        rgb,
+    }
+}
+
+/// Runs the pipeline: the base, the visibility stage, then one stage-2 variant per
+/// inpainter, skipping the stages a resumed run has done.
+pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow::Result<Manifest> {
+    if o.inpainters.is_empty() {
+        bail!("give at least one --inpainter");
+    }
+    o.stage2.validate()?;
+    let existing = Manifest::load(&o.out)?;
+    if existing.is_some() && !o.resume {
+        bail!(
+            "{} already holds an extrapolate run; pass --resume to continue it or choose another --out",
+            o.out.display()
+        );
+    }
+    if existing.is_none() && o.resume {
+        bail!(
+            "--resume: {} holds no {}",
+            o.out.display(),
+            crate::manifest::MANIFEST_FILE
+        );
+    }
+    let base_dir = o.base.from.clone().unwrap_or_else(|| o.out.join("base"));
+    let scene = match (&o.base.from, &o.scene) {
+        (Some(from), _) => {
+            load_checkpoint(from)
+                .with_context(|| format!("--base {}", from.display()))?
+                .config
+                .scene
+        }
+        (None, Some(s)) => s.clone(),
+        (None, None) => bail!("give --scene, or --base with a trained run"),
+    };
+    let mut manifest = match existing {
+        Some(m) => {
+            m.check_scene(&o.out, &scene)?;
+            m
+        }
+        None => Manifest::new(scene.clone()),
+    };
+    std::fs::create_dir_all(&o.out).with_context(|| format!("creating {}", o.out.display()))?;
+    let dir = RunDir {
+        root: o.out.clone(),
+        base: base_dir,
+    };
+    let mut stages: Vec<Box<dyn Stage>> = vec![
+        Box::new(BaseStage {
+            spec: o.base.clone(),
+            scene,
+        }),
+        Box::new(VisibilityStage {
+            virt: o.virt.clone(),
+            vis: o.vis.clone(),
+        }),
+    ];
+    for &kind in &o.inpainters {
+        stages.push(Box::new(InpaintStage {
+            kind,
+            spec: o.stage2.clone(),
+            virt: o.virt.clone(),
+            vis: o.vis.clone(),
+        }));
+    }
+    // Every stage's settings are checked before anything runs.
+    for s in &stages {
+        manifest.stage(&o.out, &s.name(), &s.config())?;
+    }
+    for s in &stages {
+        let name = s.name();
+        let config = s.config();
+        let prior = manifest.stage(&o.out, &name, &config)?.cloned();
+        if prior.as_ref().is_some_and(|r| r.done) {
+            rep.note(&format!("stage {name}: done, skipped"));
+            continue;
+        }
+        rep.stage(&name);
+        let before = prior.as_ref().map_or(0.0, |r| r.seconds);
+        manifest.record(StageRecord {
+            name: name.clone(),
+            config: config.clone(),
+            done: false,
+            seconds: before,
+            report: Value::Null,
+        });
+        manifest.save(&o.out)?;
+        let t = Instant::now();
+        let report = s
+            .run(ctx, &dir, rep)
+            .with_context(|| format!("stage {name}"))?;
+        let seconds = before + t.elapsed().as_secs_f64();
+        rep.note(&format!("stage {name}: done in {seconds:.1} s"));
+        manifest.record(StageRecord {
+            name,
+            config,
+            done: true,
+            seconds,
+            report,
+        });
+        manifest.save(&o.out)?;
+    }
+    Ok(manifest)
+}
+
+/// Loads `path` as an image the size of `cam` (for evaluations).
+pub fn load_view_image(cam: &Camera) -> anyhow::Result<Image> {
+    let img = load_image(&cam.image)?;
+    if (img.width, img.height) != (cam.width, cam.height) {
+        bail!(
+            "{}: {}x{}, its camera says {}x{}",
+            cam.image.display(),
+            img.width,
+            img.height,
+            cam.width,
+            cam.height
+        );
+    }
+    Ok(img)
+}
