@@ -1002,10 +1002,9 @@ fn clip_tokenizer_and_text_encoder_match_transformers() {
     assert!(clip.forward(&[vec![9999; 4]], &dev).is_err());
 }
 
-#[test]
-fn stable_diffusion_style_folders_load_with_clip_conditioning() {
-    let dev = cpu();
-    let dir = scratch_dir("sd-folder");
+/// A Stable-Diffusion-style inpainting folder of the tiny fixture models (U-Net, VAE, CLIP).
+fn sd_folder(name: &str) -> std::path::PathBuf {
+    let dir = scratch_dir(name);
     let f = fixtures();
     for (from, to) in [
         ("unet_conv", "unet"),
@@ -1027,6 +1026,66 @@ fn stable_diffusion_style_folders_load_with_clip_conditioning() {
         r#"{"_class_name": "StableDiffusionInpaintPipeline", "_diffusers_version": "0.31.0"}"#,
     )
     .unwrap();
+    dir
+}
+
+#[test]
+fn the_diffusion_inpainter_fills_only_the_mask_at_any_size() {
+    use extranerf_extrapolate::inpaint::diffusion::DiffusionInpainter;
+    use extranerf_extrapolate::inpaint::{Inpainter, Target};
+    let dir = sd_folder("sd-inpainter");
+    let mut inp = DiffusionInpainter::load(&dir, None, cpu(), 2).unwrap();
+    // 13x10: not a multiple of the latent factor, so the view is padded and cropped back.
+    let (w, h) = (13usize, 10usize);
+    let rgb: Vec<f32> = (0..w * h * 3).map(|i| (i % 11) as f32 / 11.0).collect();
+    let depth: Vec<f32> = (0..w * h)
+        .map(|i| if i % w < 6 { 0.3 } else { 0.9 })
+        .collect();
+    let mask: Vec<f32> = (0..w * h)
+        .map(|i| f32::from((4..9).contains(&(i % w)) && (3..7).contains(&(i / w))))
+        .collect();
+    let t = Target {
+        width: w,
+        height: h,
+        rgb: &rgb,
+        depth: &depth,
+        mask: &mask,
+        t: 0.6,
+    };
+    let f = inp.inpaint(&t, &[], 3).unwrap();
+    for i in 0..w * h {
+        if mask[i] < 0.5 {
+            assert_eq!(
+                &f.rgb[3 * i..3 * i + 3],
+                &rgb[3 * i..3 * i + 3],
+                "pixel {i}"
+            );
+            assert_eq!(f.depth[i], depth[i]);
+        } else {
+            assert!(f.rgb[3 * i..3 * i + 3]
+                .iter()
+                .all(|v| (0.0..=1.0).contains(v)));
+            // Depth from the far side of the hole's edge only.
+            assert!(
+                (f.depth[i] - 0.9).abs() < 1e-3,
+                "pixel {i}: depth {}",
+                f.depth[i]
+            );
+        }
+    }
+    // Repeatable with the seed; a mask over the whole view is refused.
+    assert_eq!(inp.inpaint(&t, &[], 3).unwrap(), f);
+    let full = vec![1.0f32; w * h];
+    let e = inp
+        .inpaint(&Target { mask: &full, ..t }, &[], 3)
+        .unwrap_err();
+    assert!(e.0.contains("whole view"), "{e}");
+}
+
+#[test]
+fn stable_diffusion_style_folders_load_with_clip_conditioning() {
+    let dev = cpu();
+    let dir = sd_folder("sd-folder");
     let p = Pipeline::load(&dir, &dev, "a photo of sks scene").unwrap();
     assert!(p.notes.iter().any(|n| n.contains("CLIP")), "{:?}", p.notes);
     assert_eq!(p.model.tokens.dims(), [12, 12]);

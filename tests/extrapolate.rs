@@ -84,6 +84,7 @@ fn options(out: &Path, base: &Path) -> Options {
             ..Stage2Spec::default()
         },
         inpainters: vec![InpainterKind::Harmonic],
+        diffusion: None,
         resume: false,
     }
 }

@@ -7,7 +7,7 @@ use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
 use extranerf_extrapolate::eval::compare;
 use extranerf_extrapolate::inpaint::InpainterKind;
 use extranerf_extrapolate::pipeline::{
-    extrapolate as run_pipeline, BaseSpec, Options, Stage2Spec, VirtualSpec,
+    extrapolate as run_pipeline, BaseSpec, DiffusionSpec, Options, Stage2Spec, VirtualSpec,
 };
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
@@ -64,9 +64,24 @@ pub struct ExtrapolateArgs {
     /// Training seconds of a new BaseNeRF (`train --budget`).
     #[arg(long, default_value_t = 900.0, value_name = "SECONDS")]
     base_budget: f64,
-    /// Inpainters, one stage-2 variant each (comma-separated): harmonic, exemplar, hybrid.
+    /// Inpainters, one stage-2 variant each (comma-separated): harmonic, exemplar, hybrid,
+    /// diffusion (needs --diffusion-model).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "harmonic")]
     inpainter: Vec<InpainterKind>,
+    /// The diffusion inpainter's model: a diffusers inpainting folder (Stable Diffusion
+    /// inpainting when you have its weights, or `extranerf diffusion prior`'s model).
+    #[arg(long, value_name = "DIR")]
+    diffusion_model: Option<PathBuf>,
+    /// LoRA adapters for that model (`extranerf diffusion finetune`).
+    #[arg(long, value_name = "DIR")]
+    diffusion_lora: Option<PathBuf>,
+    /// DDIM steps per inpainting (ExtraNeRF: about 10).
+    #[arg(long, default_value_t = 10)]
+    diffusion_steps: usize,
+    /// burn backend of the diffusion inpainter: auto (the engine's device, or burn's CPU
+    /// backend on a CPU Vulkan driver such as lavapipe), device or cpu.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "device", "cpu"])]
+    diffusion_backend: String,
     /// Virtual views.
     #[arg(long = "virtual", default_value_t = 8, value_name = "N")]
     virtual_views: usize,
@@ -91,6 +106,10 @@ pub struct ExtrapolateArgs {
     /// Learning rate of the stage-2 steps.
     #[arg(long, default_value_t = Stage2Spec::default().lr)]
     stage2_lr: f32,
+    /// Weight of a virtual view's seen pixels relative to its inpainted ones (0: only the
+    /// inpainted pixels supervise the field; 1: the whole view, as the paper's loss reads).
+    #[arg(long, default_value_t = Stage2Spec::default().visible_weight)]
+    visible_weight: f32,
     /// Do not reproject earlier fills of a round into later views (each view is filled on
     /// its own).
     #[arg(long)]
@@ -105,6 +124,13 @@ pub struct ExtrapolateArgs {
     /// finished round. The settings must be those it was started with.
     #[arg(long)]
     resume: bool,
+}
+
+impl ExtrapolateArgs {
+    /// Whether burn may run on the engine's own device (the context must then be shareable).
+    pub fn needs_wgpu(&self) -> bool {
+        self.inpainter.contains(&InpainterKind::Diffusion) && self.diffusion_backend != "cpu"
+    }
 }
 
 /// `extranerf extrapolate`.
@@ -150,10 +176,17 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             virtual_fraction: a.virtual_fraction,
             lr: a.stage2_lr,
             reproject: !a.no_reproject,
+            visible_weight: a.visible_weight,
             seed: a.seed,
             ..Stage2Spec::default()
         },
         inpainters: a.inpainter.clone(),
+        diffusion: a.diffusion_model.as_ref().map(|m| DiffusionSpec {
+            model: m.clone(),
+            lora: a.diffusion_lora.clone(),
+            steps: a.diffusion_steps,
+            backend: a.diffusion_backend.clone(),
+        }),
         resume: a.resume,
     };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;

@@ -171,7 +171,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Train(a) => nerf::train(&context(cli)?, a),
         Command::Render(a) => nerf::render(&context(cli)?, a),
         Command::Eval(a) => nerf::eval(&context(cli)?, a),
-        Command::Extrapolate(a) => extrapolate::extrapolate(&context(cli)?, a),
+        Command::Extrapolate(a) => extrapolate::extrapolate(&context_with(cli, a.needs_wgpu())?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),
         Command::Visibility(a) => visibility::visibility(&context(cli)?, a),

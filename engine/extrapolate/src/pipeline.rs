@@ -78,6 +78,9 @@ pub struct Stage2Spec {
     /// sampling there; every inpainter's loss is weighted by w(t) = sqrt(1 - t^2)).
     pub t_start: f32,
     pub t_end: f32,
+    /// Weight of a virtual view's seen pixels relative to its filled ones (0: only the filled
+    /// pixels supervise; the seen ones are the field's own render, left to the captured views).
+    pub visible_weight: f32,
     /// Keep fills consistent across views: pixels that an earlier virtual view of the round
     /// filled are reprojected with their completed depth and count as seen.
     pub reproject: bool,
@@ -94,6 +97,7 @@ impl Default for Stage2Spec {
             lr: 3e-3,
             t_start: 0.6,
             t_end: 0.2,
+            visible_weight: 0.0,
             reproject: true,
             seed: 0,
         }
@@ -114,6 +118,12 @@ impl Stage2Spec {
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
             bail!("--stage2-lr {}: use a positive learning rate", self.lr);
+        }
+        if !(0.0..=1.0).contains(&self.visible_weight) {
+            bail!(
+                "--visible-weight {}: use a value in [0, 1]",
+                self.visible_weight
+            );
         }
         for t in [self.t_start, self.t_end] {
             if !(0.0..1.0).contains(&t) {
@@ -152,6 +162,8 @@ pub struct Options {
     pub stage2: Stage2Spec,
     /// One stage-2 variant per inpainter, each from the same BaseNeRF.
     pub inpainters: Vec<InpainterKind>,
+    /// The diffusion inpainter's model (needed when `inpainters` holds it).
+    pub diffusion: Option<DiffusionSpec>,
     /// Continue a run folder that holds a manifest.
     pub resume: bool,
 }
@@ -578,10 +590,26 @@ impl Stage for VisibilityStage {
     }
 }
 
+/// The diffusion inpainter's model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiffusionSpec {
+    /// A diffusers inpainting folder.
+    pub model: PathBuf,
+    /// LoRA adapters (`diffusion finetune`).
+    pub lora: Option<PathBuf>,
+    /// DDIM steps per inpainting.
+    pub steps: usize,
+    /// burn backend: auto, device or cpu.
+    pub backend: String,
+}
+
 /// One stage-2 variant.
 #[derive(Clone, Debug)]
 pub struct InpaintStage {
     pub kind: InpainterKind,
+    /// The model of the diffusion inpainter.
+    pub diffusion: Option<DiffusionSpec>,
     pub spec: Stage2Spec,
     pub virt: VirtualSpec,
     pub vis: VisSettings,
@@ -649,7 +677,11 @@ impl Stage for InpaintStage {
     }
 
     fn config(&self) -> Value {
-        json!({"inpainter": self.kind, "loop": self.spec})
+        let mut c = json!({"inpainter": self.kind, "loop": self.spec});
+        if self.kind == InpainterKind::Diffusion {
+            c["diffusion"] = json!(self.diffusion);
+        }
+        c
     }
 
     fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
@@ -721,7 +753,31 @@ impl Stage for InpaintStage {
             moments,
         )?;
         let prims = Prims::new(ctx)?;
-        let mut inpainter = self.kind.build();
+        let mut inpainter: Box<dyn crate::inpaint::Inpainter> = match self.kind.build() {
+            Some(i) => i,
+            None => {
+                let Some(d) = &self.diffusion else {
+                    bail!("--inpainter diffusion needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
+                };
+                let backend = extranerf_diffusion::device::Backend::parse(&d.backend)
+                    .with_context(|| {
+                        format!("diffusion backend `{}`: use auto, device or cpu", d.backend)
+                    })?;
+                let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, backend)?;
+                let inp = crate::inpaint::diffusion::DiffusionInpainter::load(
+                    &d.model,
+                    d.lora.as_deref(),
+                    device,
+                    d.steps,
+                )?;
+                rep.note(&format!(
+                    "diffusion inpainter on {}: {}",
+                    b.name(),
+                    inp.notes.join("; ")
+                ));
+                Box::new(inp)
+            }
+        };
         let mut rounds = Vec::new();
         for round in start_round..self.spec.rounds {
             let t0 = Instant::now();
@@ -766,6 +822,7 @@ impl Stage for InpaintStage {
                     rgb: &rgb,
                     depth: &depth,
                     mask: &mask,
+                    t,
                 };
                 let ti = Instant::now();
                 let seed = self.spec.seed ^ ((round as u64) << 32) ^ k as u64;
@@ -806,8 +863,26 @@ impl Stage for InpaintStage {
             }
             // Train on the captured views and this round's virtual views.
             let mut views = captured.clone();
-            for (cam, fill, _) in &filled {
-                let n = cam.width as usize * cam.height as usize;
+            for (cam, fill, mask) in &filled {
+                // The filled pixels carry w(t); the seen rest `visible_weight` of it (their
+                // colour is the field's own render, which the captured views supervise).
+                let w: Vec<f32> = mask
+                    .iter()
+                    .map(|&m| {
+                        if m >= 0.5 {
+                            weight
+                        } else {
+                            weight * self.spec.visible_weight
+                        }
+                    })
+                    .collect();
+                let conf = |m: f32| {
+                    if m >= 0.5 || self.spec.visible_weight > 0.0 {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                };
                 views.push(View {
                     camera: cam.clone(),
                     image: Image {
@@ -815,8 +890,14 @@ impl Stage for InpaintStage {
                         height: cam.height,
                         rgb: fill.rgb.clone(),
                     },
-                    depth: Some(fill.depth.iter().map(|&d| [d, 1.0]).collect()),
-                    weight: Some(vec![weight; n]),
+                    depth: Some(
+                        fill.depth
+                            .iter()
+                            .zip(mask)
+                            .map(|(&d, &m)| [d, conf(m)])
+                            .collect(),
+                    ),
+                    weight: Some(w),
                     kind: ViewKind::Virtual,
                 });
             }
@@ -997,6 +1078,7 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
     for &kind in &o.inpainters {
         stages.push(Box::new(InpaintStage {
             kind,
+            diffusion: o.diffusion.clone(),
             spec: o.stage2.clone(),
             virt: o.virt.clone(),
             vis: o.vis.clone(),

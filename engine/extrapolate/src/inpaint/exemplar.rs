@@ -552,6 +552,7 @@ mod tests {
             rgb: &hole_view,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         let f = Exemplar::default().inpaint(&t, &[], 7).unwrap();
         let (mut err, mut grey, mut n) = (0f64, 0f64, 0f64);
@@ -596,6 +597,7 @@ mod tests {
             rgb: &rgb,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         let s = Source {
             width: w,

@@ -279,6 +279,7 @@ mod tests {
             rgb: &rgb,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         let f = Harmonic {
             tol: 1e-7,
@@ -334,6 +335,7 @@ mod tests {
             rgb: &rgb,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         let f = Harmonic::default().inpaint(&t, &[], 0).unwrap();
         for i in 0..w * h {
@@ -395,6 +397,7 @@ mod tests {
             rgb: &rgb,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         let (seed, comps) = far_side_seeds(&t, 0.1);
         assert_eq!(comps, 2);

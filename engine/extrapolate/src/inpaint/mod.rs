@@ -7,6 +7,7 @@
 //! masks `[h, w]` with values >= 0.5 meaning "fill". Pixels outside the mask come back
 //! unchanged.
 
+pub mod diffusion;
 pub mod exemplar;
 pub mod harmonic;
 
@@ -31,6 +32,9 @@ pub struct Target<'a> {
     pub depth: &'a [f32],
     /// `[h, w]`, >= 0.5 where the pixel is to be filled.
     pub mask: &'a [f32],
+    /// The round's noise level in [0, 1) (where the diffusion inpainter starts sampling;
+    /// the others ignore it).
+    pub t: f32,
 }
 
 /// An image whose texture an exemplar-based inpainter may copy (an input photo at the target's
@@ -75,6 +79,9 @@ pub enum InpainterKind {
     Exemplar,
     /// The harmonic fill's low frequencies with the exemplar fill's high frequencies.
     Hybrid,
+    /// An inpainting diffusion model (`--diffusion-model`), from the render noised to the
+    /// round's t; depth from the depth-aware harmonic fill.
+    Diffusion,
 }
 
 impl InpainterKind {
@@ -84,15 +91,18 @@ impl InpainterKind {
             InpainterKind::Harmonic => "harmonic",
             InpainterKind::Exemplar => "exemplar",
             InpainterKind::Hybrid => "hybrid",
+            InpainterKind::Diffusion => "diffusion",
         }
     }
 
-    /// The inpainter with its default settings.
-    pub fn build(self) -> Box<dyn Inpainter> {
+    /// The inpainter with its default settings; None for `diffusion`, which needs a model
+    /// ([`diffusion::DiffusionInpainter::load`]).
+    pub fn build(self) -> Option<Box<dyn Inpainter>> {
         match self {
-            InpainterKind::Harmonic => Box::new(harmonic::Harmonic::default()),
-            InpainterKind::Exemplar => Box::new(exemplar::Exemplar::default()),
-            InpainterKind::Hybrid => Box::new(Hybrid::default()),
+            InpainterKind::Harmonic => Some(Box::new(harmonic::Harmonic::default())),
+            InpainterKind::Exemplar => Some(Box::new(exemplar::Exemplar::default())),
+            InpainterKind::Hybrid => Some(Box::new(Hybrid::default())),
+            InpainterKind::Diffusion => None,
         }
     }
 }
@@ -265,13 +275,14 @@ mod tests {
             rgb: &rgb,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         for kind in [
             InpainterKind::Harmonic,
             InpainterKind::Exemplar,
             InpainterKind::Hybrid,
         ] {
-            let e = kind.build().inpaint(&t, &[], 0).unwrap_err();
+            let e = kind.build().unwrap().inpaint(&t, &[], 0).unwrap_err();
             assert!(e.0.contains("16 mask values"), "{kind}: {e}");
         }
         let mut mask = vec![0.0f32; 16];
@@ -313,12 +324,13 @@ mod tests {
                 rgb: &rgb,
                 depth: &depth,
                 mask: &empty,
+                t: 0.5,
             };
-            let f = kind.build().inpaint(&t, &[], 1).unwrap();
+            let f = kind.build().unwrap().inpaint(&t, &[], 1).unwrap();
             assert_eq!(f.rgb, rgb, "{kind}");
             assert_eq!(f.depth, depth, "{kind}");
             let t = Target { mask: &full, ..t };
-            let e = kind.build().inpaint(&t, &[], 1).unwrap_err();
+            let e = kind.build().unwrap().inpaint(&t, &[], 1).unwrap_err();
             assert!(e.0.contains("whole view"), "{kind}: {e}");
         }
     }
@@ -346,6 +358,7 @@ mod tests {
             rgb: &rgb,
             depth: &depth,
             mask: &mask,
+            t: 0.5,
         };
         let f = Hybrid::default().inpaint(&t, &[], 3).unwrap();
         let mut worst = 0f32;

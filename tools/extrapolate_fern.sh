@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# ExtraNeRF stage 2 on fern (8x, extrapolation split: 6 central views trained, the 8 farthest
+# held out), one variant per inpainter, against the BaseNeRF; then `eval`'s comparison table.
+#
+# The BaseNeRF is the committed curve run fernx/budget900_clock (`train --budget 900`, made by
+# `tools/curve.sh fernx budget900_clock 2000 --budget 900`), trained first when missing.
+# Writes results/extrapolate_fern_lavapipe/: eval.md and eval.json (the table), extrapolate.json
+# (each stage's settings, wall time and report), visibility.json, extrapolate.log, and images
+# of one held-out view (BaseNeRF, mask, each variant, the photo) and one virtual view's fills.
+#
+# Usage: tools/extrapolate_fern.sh [extrapolate flags...]  (default: harmonic,exemplar,hybrid)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+data="${EXTRANERF_DATA:-../shared/data}"
+bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
+cargo build --release -p extranerf >&2
+base=runs/curve_fernx_budget900_clock
+if [ ! -f "$base/checkpoint.safetensors" ]; then
+    tools/curve.sh fernx budget900_clock 2000 --budget 900
+fi
+run=runs/extrapolate_fern
+rm -rf "$run"
+inp=(--inpainter harmonic,exemplar,hybrid)
+for a in "$@"; do [ "$a" = --inpainter ] && inp=(); done
+/usr/bin/time -f "extrapolate wall %e s" "$bin" extrapolate --base "$base" --out "$run" "${inp[@]}" "$@"
+"$bin" eval "$run"
+out=results/extrapolate_fern_lavapipe
+rm -rf "$out"
+mkdir -p "$out/images"
+cp "$run/eval.md" "$run/eval.json" "$run/extrapolate.json" "$run/extrapolate.log" \
+    "$run/visibility/visibility.json" "$out/"
+# Held-out view 0 of the split (scene index 0 is the farthest-left view of fern's rig).
+view=$(ls "$run"/visibility/test_*_base.png | head -1 | sed 's/.*test_\([0-9]*\)_base.png/\1/')
+cp "$run/visibility/test_${view}_base.png" "$out/images/test_${view}_base.png"
+cp "$run/visibility/test_${view}_mask.png" "$out/images/test_${view}_mask.png"
+for d in "$run"/stage2-*; do
+    v=$(basename "$d")
+    cp "$d/test_${view}.png" "$out/images/test_${view}_$v.png"
+    last=$(ls -d "$d"/round_* | tail -1)
+    cp "$last/virtual_004.png" "$out/images/virtual_004_$v.png"
+done
+cp "$run/visibility/virtual_004_base.png" "$run/visibility/virtual_004_mask.png" "$out/images/"
+photo=$(ls "$data/llff/fern/images_8" | sort | sed -n "$((10#$view + 1))p")
+cp "$data/llff/fern/images_8/$photo" "$out/images/test_${view}_photo.png"
+echo "wrote $out" >&2
