@@ -19,7 +19,9 @@ mod visibility;
 /// cameras that took them). This build trains the BaseNeRF field (hash grid + tiny MLPs) on
 /// posed photos, renders and evaluates it, runs a self-contained demo, and benchmarks the
 /// kernels and the training step, generates virtual cameras and computes multi-view visibility,
-/// and runs the inpainting diffusion models (diffusers layout) on the same Vulkan device.
+/// runs the inpainting diffusion models (diffusers layout) on the same Vulkan device, and runs
+/// ExtraNeRF's stage 2 (`extrapolate`: inpainted virtual views supervising the field). Stage 3
+/// (enhancement) is not built yet.
 #[derive(Parser, Debug)]
 #[command(name = "extranerf", version, propagate_version = true)]
 struct Cli {

@@ -187,11 +187,24 @@ fn train_resume_render_eval_on_fern() {
     let png = image::open(run.join("render/train_002.png")).unwrap();
     assert_eq!((png.width(), png.height()), (504, 378));
     let scene = extranerf_nerf::data::llff::load_llff(&scene, &Default::default()).unwrap();
-    let depth = extranerf_nerf::data::depth::read_depth_exr(
-        &run.join("render/train_002.exr"),
-        &scene.cameras[2],
-    )
-    .unwrap();
+    // The render's depth is the field's ray-space depth (channel T), which `--depth-dir`'s
+    // reader refuses by name.
+    let exr_path = run.join("render/train_002.exr");
+    let e = extranerf_nerf::data::depth::read_depth_exr(&exr_path, &scene.cameras[2])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("channel T"), "{e}");
+    let img = exr::prelude::read_first_flat_layer_from_file(&exr_path).unwrap();
+    let ch = &img.layer_data.channel_data.list[0];
+    assert_eq!(ch.name.to_string(), "T");
+    assert_eq!(
+        (img.layer_data.size.width(), img.layer_data.size.height()),
+        (504, 378)
+    );
+    let depth: Vec<f32> = match &ch.sample_data {
+        exr::prelude::FlatSamples::F32(v) => v.clone(),
+        o => panic!("depth samples of another type: {o:?}"),
+    };
     // NDC t of the expected depth: inside (0, 1] wherever the field has density.
     assert!(depth.iter().all(|d| (0.0..=1.0).contains(d)));
     assert!(depth.iter().any(|&d| d > 0.0));
@@ -318,6 +331,7 @@ fn train_resume_render_eval_on_fern() {
         "virtual_001_vis.png",
         "trainmask_002_mask.png",
         "test_000_depth.exr",
+        "test_000_view_depth.exr",
         "virtual_001_depth_completed.exr",
         "visibility.json",
     ] {
