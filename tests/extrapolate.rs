@@ -11,7 +11,9 @@ use std::path::Path;
 use extranerf_extrapolate::driver::{train_loop, Progress, Reporter, TrainRun, Unit};
 use extranerf_extrapolate::inpaint::InpainterKind;
 use extranerf_extrapolate::manifest::Manifest;
-use extranerf_extrapolate::pipeline::{extrapolate, BaseSpec, Options, Stage2Spec, VirtualSpec};
+use extranerf_extrapolate::pipeline::{
+    extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec,
+};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
@@ -85,6 +87,11 @@ fn options(out: &Path, base: &Path) -> Options {
         },
         inpainters: vec![InpainterKind::Harmonic],
         diffusion: None,
+        flythrough: FlythroughSpec {
+            frames: 3,
+            downscale: 2,
+            delay_ms: 100,
+        },
         resume: false,
     }
 }
@@ -172,7 +179,16 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     let mut rec = Record::default();
     let m = extrapolate(ctx, &options(&a, &base), &mut rec).unwrap();
     let names: Vec<&str> = m.stages.iter().map(|s| s.name.as_str()).collect();
-    assert_eq!(names, ["base", "visibility", "stage2-harmonic"]);
+    assert_eq!(
+        names,
+        [
+            "base",
+            "visibility",
+            "stage2-harmonic",
+            "flythrough-base",
+            "flythrough-stage2-harmonic"
+        ]
+    );
     assert!(m.stages.iter().all(|s| s.done));
     for f in [
         "visibility/maps.safetensors",
@@ -180,9 +196,27 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         "visibility/virtual_002_mask.png",
         "stage2-harmonic/round_01/virtual_002.png",
         "stage2-harmonic/checkpoint.safetensors",
+        "flythrough/base/frame_002.png",
+        "flythrough/stage2-harmonic/frame_000.png",
     ] {
         assert!(a.join(f).exists(), "{f} missing");
     }
+    // The fly-through: one looping animation per field, frames at half the virtual size, and
+    // the variant's differs from the BaseNeRF's.
+    let gif = |name: &str| {
+        use image::AnimationDecoder;
+        let f = std::fs::File::open(a.join(format!("flythrough/{name}.gif"))).unwrap();
+        image::codecs::gif::GifDecoder::new(std::io::BufReader::new(f))
+            .unwrap()
+            .into_frames()
+            .collect_frames()
+            .unwrap()
+    };
+    let (fb, fs) = (gif("base"), gif("stage2-harmonic"));
+    assert_eq!(fb.len(), 3);
+    assert_eq!(fs.len(), 3);
+    assert_eq!(fb[0].buffer().dimensions(), (24, 18));
+    assert_ne!(fb[2].buffer().as_raw(), fs[2].buffer().as_raw());
     // The masks against the demo's exact visibility.
     let vis: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(a.join("visibility/visibility.json")).unwrap(),
@@ -190,8 +224,9 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     .unwrap();
     let iou = vis["exact_mean"]["iou"].as_f64().unwrap();
     let acc = vis["exact_mean"]["accuracy"].as_f64().unwrap();
+    eprintln!("masks against the exact visibility: IoU {iou:.3}, accuracy {acc:.3}");
     assert!(
-        (0.0..=1.0).contains(&iou) && acc > 0.5,
+        (0.0..=1.0).contains(&iou) && acc > 0.65,
         "IoU {iou}, accuracy {acc}"
     );
 

@@ -1,8 +1,9 @@
 //! Multi-view transmittance visibility against the f64 reference of the same definition, on
 //! analytic scenes with a known answer (a sphere in front of a plane, a wall with a hole) and
 //! on a random NDC field; the properties the definition implies (a training camera's own
-//! footprint, points behind every camera, a single camera, rank 1 against rank 2); the accuracy
-//! cuts; and the extremes (opaque and empty fields, axis-parallel rays).
+//! footprint, points behind every camera, a single camera, rank 1 against rank 2); the relative
+//! measure on surfaces rendered as semi-transparent shells; the accuracy cuts; and the extremes
+//! (opaque and empty fields, axis-parallel rays).
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
@@ -15,7 +16,7 @@ use extranerf_nerf::reference::{
 };
 use extranerf_nerf::render::visibility::{
     mask_all_but, AnalyticField, Density, Shape, TransmittanceVolume, Visibility, VisibilityConfig,
-    VisibilityMap,
+    VisibilityMap, VisibilityMeasure,
 };
 use extranerf_nerf::trainer::Nerf;
 use extranerf_prims::reference::Rng;
@@ -120,6 +121,7 @@ fn setup(ndc: bool, near: f32, far: f32, c: &VisibilityConfig, mask: u32) -> Vis
         vis_samples: c.vis_samples,
         rank: c.rank,
         mask,
+        measure: c.measure,
     }
 }
 
@@ -170,8 +172,16 @@ fn analytic_scenes_match_the_reference() {
     ] {
         let field = analytic(&shapes);
         let cam = camera(eye, yaw, 16, 12, 11.0);
-        for rank in [1, 2, 3] {
-            let c = cfg(64, 48, rank);
+        for (rank, measure) in [1, 2, 3].into_iter().flat_map(|r| {
+            [
+                (r, VisibilityMeasure::Relative),
+                (r, VisibilityMeasure::Absolute),
+            ]
+        }) {
+            let c = VisibilityConfig {
+                measure,
+                ..cfg(64, 48, rank)
+            };
             let mask = mask_all_but(train.len(), None);
             let got = vis_map(&Density::Analytic(&field), &cam, &train, mask, &c);
             let want = check(
@@ -187,7 +197,7 @@ fn analytic_scenes_match_the_reference() {
             let hidden = want.iter().filter(|w| w[1] > 0.9 && w[0] < 0.2).count();
             assert!(
                 seen > 5 && (rank == 1 || hidden > 5),
-                "{name} rank {rank}: {seen} visible and {hidden} hidden opaque pixels"
+                "{name} rank {rank} {measure:?}: {seen} visible and {hidden} hidden opaque pixels"
             );
         }
     }
@@ -275,6 +285,107 @@ fn points_behind_every_camera_and_a_single_camera_give_zero() {
     assert_no_validation_messages(ctx);
 }
 
+/// The sphere and back plane of [`sphere_before_plane`] as shells: opaque in sum but spread
+/// over several samples in depth, as an under-fitted field renders surfaces.
+fn shells() -> Vec<Shape> {
+    vec![
+        Shape::Sphere {
+            centre: [0.0, 0.0, -2.0],
+            radius: 0.6,
+            sigma: 5.0,
+            soft: 0.4,
+        },
+        Shape::Box {
+            min: [-6.0, -6.0, -6.5],
+            max: [6.0, 6.0, -4.0],
+            sigma: 2.5,
+            soft: 0.4,
+        },
+    ]
+}
+
+#[test]
+fn the_relative_measure_sees_shells_where_the_cameras_did() {
+    let ctx = &engine().ctx;
+    let train = rig(&[-0.6, 0.0, 0.6]);
+    let sharp = analytic(&sphere_before_plane());
+    let shell = analytic(&shells());
+    let rel = cfg(192, 48, 2);
+    let abs = VisibilityConfig {
+        measure: VisibilityMeasure::Absolute,
+        ..rel
+    };
+    let cam = camera([1.6, 0.1, 0.4], 0.35, 16, 12, 11.0);
+    let mask = 0b111;
+    // (seen share, opacity) per pixel, checked against the reference.
+    let shares = |field: &AnalyticField, c: &VisibilityConfig| {
+        let m = vis_map(&Density::Analytic(field), &cam, &train, mask, c);
+        check(
+            &m,
+            &|x| field.density(x),
+            &cam,
+            &train,
+            &setup(false, NEAR, FAR, c, mask),
+            2e-3,
+        );
+        m.visibility
+            .iter()
+            .zip(&m.opacity)
+            .map(|(v, o)| ((v / o.max(1e-6)) as f64, *o as f64))
+            .collect::<Vec<_>>()
+    };
+    let (sharp_abs, sharp_rel) = (shares(&sharp, &abs), shares(&sharp, &rel));
+    let (shell_abs, shell_rel) = (shares(&shell, &abs), shares(&shell, &rel));
+    // Mean seen share over the opaque pixels the sharp scene says were seen (or hidden).
+    let mean = |r: &[(f64, f64)], seen: bool| {
+        let v: Vec<f64> = r
+            .iter()
+            .zip(&sharp_abs)
+            .filter(|(x, s)| x.1 > 0.9 && s.1 > 0.9 && (s.0 > 0.5) == seen)
+            .map(|(x, _)| x.0)
+            .collect();
+        (v.iter().sum::<f64>() / v.len().max(1) as f64, v.len())
+    };
+    for (name, r) in [
+        ("sharp absolute", &sharp_abs),
+        ("sharp relative", &sharp_rel),
+        ("shells absolute", &shell_abs),
+        ("shells relative", &shell_rel),
+    ] {
+        eprintln!(
+            "{name}: seen {:?}, hidden {:?}",
+            mean(r, true),
+            mean(r, false)
+        );
+    }
+    let (seen, n_seen) = mean(&sharp_abs, true);
+    let (hidden, n_hidden) = mean(&sharp_abs, false);
+    assert!(n_seen > 20 && n_hidden > 5 && seen > 0.9 && hidden < 0.1);
+    // On sharp surfaces the measures agree.
+    assert!((mean(&sharp_rel, true).0 - seen).abs() < 0.05);
+    assert!((mean(&sharp_rel, false).0 - hidden).abs() < 0.05);
+    // On shells the absolute measure loses much of what was seen; the relative one keeps it,
+    // and what the sphere hid stays hidden.
+    // (Seen through the shells at an angle, the cameras' paths through them are longer than
+    // the pixel's, so the relative share stays below 1.)
+    assert!(
+        mean(&shell_abs, true).0 < 0.65,
+        "{:?}",
+        mean(&shell_abs, true)
+    );
+    assert!(
+        mean(&shell_rel, true).0 > 0.8,
+        "{:?}",
+        mean(&shell_rel, true)
+    );
+    assert!(
+        mean(&shell_rel, false).0 < 0.2,
+        "{:?}",
+        mean(&shell_rel, false)
+    );
+    assert_no_validation_messages(ctx);
+}
+
 #[test]
 fn cuts_stay_within_their_bounds() {
     let ctx = &engine().ctx;
@@ -282,11 +393,27 @@ fn cuts_stay_within_their_bounds() {
     let d = Density::Analytic(&field);
     let train = rig(&[-0.6, -0.2, 0.2, 0.6]);
     let cam = camera([1.0, 0.0, 0.3], 0.25, 16, 12, 11.0);
-    let exact = vis_map(&d, &cam, &train, 0b1111, &cfg(64, 48, 2));
-    for (min_weight, min_transmittance) in [(1e-3, 0.0), (0.0, 1e-2), (1e-2, 1e-2)] {
+    for (min_weight, min_transmittance, measure) in [
+        (1e-3, 0.0, VisibilityMeasure::Relative),
+        (0.0, 1e-2, VisibilityMeasure::Relative),
+        (1e-2, 1e-2, VisibilityMeasure::Relative),
+        (0.0, 1e-2, VisibilityMeasure::Absolute),
+        (1e-2, 1e-2, VisibilityMeasure::Absolute),
+    ] {
+        let exact = vis_map(
+            &d,
+            &cam,
+            &train,
+            0b1111,
+            &VisibilityConfig {
+                measure,
+                ..cfg(64, 48, 2)
+            },
+        );
         let c = VisibilityConfig {
             min_weight,
             min_transmittance,
+            measure,
             ..cfg(64, 48, 2)
         };
         let cut = vis_map(&d, &cam, &train, 0b1111, &c);
@@ -511,6 +638,21 @@ fn transmittance_volumes_match_the_reference_and_approximate_the_march() {
     let field = analytic(&sphere_before_plane());
     let d = Density::Analytic(&field);
     let cam = camera([1.6, 0.1, 0.4], 0.35, 16, 12, 11.0);
+    let absolute = VisibilityConfig {
+        measure: VisibilityMeasure::Absolute,
+        ..cfg(64, 48, 2)
+    };
+    let sa = setup(false, NEAR, FAR, &absolute, 0b111);
+    check_volume(
+        &d,
+        &|x| field.density(x),
+        &cam,
+        &train,
+        &sa,
+        &absolute,
+        24,
+        96,
+    );
     let c = cfg(64, 48, 2);
     let s = setup(false, NEAR, FAR, &c, 0b111);
     let (vm, vol) = check_volume(&d, &|x| field.density(x), &cam, &train, &s, &c, 24, 96);

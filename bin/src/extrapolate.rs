@@ -7,7 +7,8 @@ use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
 use extranerf_extrapolate::eval::compare;
 use extranerf_extrapolate::inpaint::InpainterKind;
 use extranerf_extrapolate::pipeline::{
-    extrapolate as run_pipeline, BaseSpec, DiffusionSpec, Options, Stage2Spec, VirtualSpec,
+    extrapolate as run_pipeline, BaseSpec, DiffusionSpec, FlythroughSpec, Options, Stage2Spec,
+    VirtualSpec,
 };
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
@@ -16,6 +17,7 @@ use extranerf_nerf::metrics::{Lpips, LpipsNet};
 use extranerf_nerf::run::SceneSpec;
 
 use crate::report::{Console, Logged};
+use crate::visibility::Measure;
 
 /// `extrapolate --trajectory`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -54,7 +56,7 @@ pub struct ExtrapolateArgs {
     #[arg(long, default_value_t = 8)]
     factor: u32,
     /// Run folder: extrapolate.json (the manifest), base/, visibility/, stage2-NAME/,
-    /// extrapolate.log.
+    /// flythrough/, extrapolate.log.
     #[arg(long, value_name = "RUN")]
     out: PathBuf,
     /// Reuse a trained BaseNeRF (a run folder of `extranerf train`) instead of training one;
@@ -117,9 +119,20 @@ pub struct ExtrapolateArgs {
     /// Pixels whose seen share (visibility over opacity) is below this are inpainted.
     #[arg(long, default_value_t = VisSettings::default().threshold)]
     threshold: f32,
+    /// Which transmittance the visibility stage measures: relative to the pixel ray's own
+    /// (robust to surfaces rendered as semi-transparent shells) or absolute (the paper).
+    #[arg(long, value_enum, default_value_t = Measure::Relative)]
+    visibility_measure: Measure,
     /// Seed of the inpainters.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Frames of the fly-through along the virtual trajectory, rendered from the BaseNeRF and
+    /// each variant into RUN/flythrough (PNG frames and a looping GIF); 0: none.
+    #[arg(long, default_value_t = FlythroughSpec::default().frames, value_name = "FRAMES")]
+    flythrough: u32,
+    /// Divide the virtual views' resolution by this for the fly-through frames.
+    #[arg(long, default_value_t = FlythroughSpec::default().downscale)]
+    flythrough_downscale: u32,
     /// Continue the run in --out: finished stages are skipped, stage 2 resumes after its last
     /// finished round. The settings must be those it was started with.
     #[arg(long)]
@@ -168,6 +181,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
         },
         vis: VisSettings {
             threshold: a.threshold,
+            measure: a.visibility_measure.into(),
             ..VisSettings::default()
         },
         stage2: Stage2Spec {
@@ -187,6 +201,11 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             steps: a.diffusion_steps,
             backend: a.diffusion_backend.clone(),
         }),
+        flythrough: FlythroughSpec {
+            frames: a.flythrough,
+            downscale: a.flythrough_downscale,
+            ..FlythroughSpec::default()
+        },
         resume: a.resume,
     };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;

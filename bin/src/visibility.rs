@@ -16,10 +16,46 @@ use extranerf_prims::Prims;
 
 use extranerf_nerf::render::visibility::{
     mask_all_but, Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap,
-    MAX_RANK, MAX_TRAIN_CAMERAS,
+    VisibilityMeasure, MAX_RANK, MAX_TRAIN_CAMERAS,
 };
 
 use crate::nerf::MarchArgs;
+
+/// Where the training cameras' transmittances come from.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Method {
+    /// Transmittance volumes (deep shadow maps).
+    Volume,
+    /// A march of every segment.
+    March,
+}
+
+impl Method {
+    fn name(self) -> &'static str {
+        match self {
+            Method::Volume => "volume",
+            Method::March => "march",
+        }
+    }
+}
+
+/// What a transmittance is measured against (`VisibilityMeasure`).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Measure {
+    /// Over the pixel ray's own transmittance in front of the sample, at most 1.
+    Relative,
+    /// The transmittance itself (the paper).
+    Absolute,
+}
+
+impl From<Measure> for VisibilityMeasure {
+    fn from(m: Measure) -> VisibilityMeasure {
+        match m {
+            Measure::Relative => VisibilityMeasure::Relative,
+            Measure::Absolute => VisibilityMeasure::Absolute,
+        }
+    }
+}
 
 /// How visibility is computed (shared by `visibility` and `bench visibility`).
 #[derive(clap::Args, Debug, Clone)]
@@ -53,8 +89,14 @@ pub struct VisArgs {
     /// rays (a deep shadow map; cost independent of the distance to the camera). march: march
     /// every segment toward every camera (the exact definition; about 100x slower on fern,
     /// results/bench_visibility_lavapipe).
-    #[arg(long, default_value = "volume", value_parser = ["volume", "march"])]
-    method: String,
+    #[arg(long, value_enum, default_value_t = Method::Volume)]
+    method: Method,
+    /// relative: a camera's transmittance to a sample over the pixel ray's own in front of
+    /// it (at most 1), so a surface the field renders as a semi-transparent shell counts as
+    /// seen where the cameras saw it. absolute: the transmittance itself (the paper), which
+    /// such a shell halves even for the pixel's own camera.
+    #[arg(long, value_enum, default_value_t = Measure::Relative)]
+    measure: Measure,
     /// Rays across each training camera's transmittance volume (rows follow its aspect).
     #[arg(long, default_value_t = 128)]
     volume_res: u32,
@@ -198,6 +240,7 @@ impl Loaded {
             rank,
             min_weight: a.min_weight,
             min_transmittance: a.min_transmittance,
+            measure: a.measure.into(),
         })
     }
 
@@ -334,7 +377,7 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
     let mut l = Loaded::new(ctx, &a.run, &a.vis)?;
     let train = l.train_cameras()?;
     let cfg = l.config(&a.vis, a.vis.rank)?;
-    let volume = a.vis.method == "volume";
+    let volume = a.vis.method == Method::Volume;
     let build_seconds = if volume {
         Some(l.build_volume(ctx, &train, &a.vis)?)
     } else {
@@ -481,7 +524,8 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
             "min_weight": cfg.min_weight,
             "min_transmittance": cfg.min_transmittance,
             "downscale": a.vis.downscale,
-            "method": a.vis.method,
+            "method": a.vis.method.name(),
+            "measure": cfg.measure,
             "volume_res": a.vis.volume_res,
             "volume_depth": a.vis.volume_depth,
             "volume_build_seconds": build_seconds,

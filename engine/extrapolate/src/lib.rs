@@ -2,13 +2,15 @@
 //! - [`driver`]: the BaseNeRF training driver (budgets, checkpoints, held-out curves), which
 //!   `extranerf train`, `demo` and the trade-off sweeps run;
 //! - [`pipeline`]: `extranerf extrapolate`, stages over one run folder (BaseNeRF, visibility
-//!   of virtual views, the stage-2 inpainting loop per inpainter) with a manifest
+//!   of virtual views, the stage-2 inpainting loop per inpainter, the fly-through) with a manifest
 //!   ([`manifest`]) that makes every stage boundary resumable;
 //! - [`inpaint`]: the inpainters (depth-aware harmonic, exemplar PatchMatch, hybrid);
 //! - [`visibility`]: visibility settings, maps and masks over a trained field;
 //! - [`eval`]: the comparison table of an extrapolate run.
 //!
-//! Not built yet: the diffusion inpainter in the stage-2 loop, and stage 3 (enhancement).
+//! - [`anim`]: looping GIFs of rendered frames (the fly-through).
+//!
+//! Not built yet: stage 3 (enhancement).
 //!
 //! Nothing here prints: progress and notes go to a [`driver::Reporter`] that the caller
 //! supplies (the command line draws them as progress bars or log lines).
@@ -16,6 +18,7 @@
 // Pixel loops index several images and channels by the same index; iterators would hide it.
 #![allow(clippy::needless_range_loop)]
 
+pub mod anim;
 pub mod driver;
 pub mod eval;
 pub mod inpaint;

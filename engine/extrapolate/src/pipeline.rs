@@ -5,7 +5,9 @@
 //! - [`VisibilityStage`]: virtual cameras beyond the rig, and the visibility of the virtual and
 //!   the held-out views against the training cameras (`RUN/visibility`);
 //! - [`InpaintStage`]: the stage-2 loop for one inpainter (`RUN/stage2-NAME`): rounds of
-//!   render, mask, inpaint and train on the virtual views mixed with the captured ones.
+//!   render, mask, inpaint and train on the virtual views mixed with the captured ones;
+//! - [`FlythroughStage`]: frames along the virtual trajectory and a looping GIF, for the
+//!   BaseNeRF and each variant (`RUN/flythrough`).
 //!
 //! Stage 3 (enhancement) will be one more [`Stage`]. Each stage records its resolved
 //! configuration in `extrapolate.json` ([`Manifest`]); a resumed run skips the stages done,
@@ -149,6 +151,29 @@ impl Stage2Spec {
     }
 }
 
+/// The fly-through: frames along the virtual cameras' trajectory, rendered from the
+/// BaseNeRF and from each stage-2 variant.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FlythroughSpec {
+    /// Frames along the path (0: no fly-through).
+    pub frames: u32,
+    /// Divide the virtual views' resolution by this for the frames.
+    pub downscale: u32,
+    /// Milliseconds per frame of the animation.
+    pub delay_ms: u32,
+}
+
+impl Default for FlythroughSpec {
+    fn default() -> Self {
+        FlythroughSpec {
+            frames: 24,
+            downscale: 2,
+            delay_ms: 100,
+        }
+    }
+}
+
 /// Everything `extranerf extrapolate` was asked to do.
 #[derive(Clone, Debug)]
 pub struct Options {
@@ -164,6 +189,8 @@ pub struct Options {
     pub inpainters: Vec<InpainterKind>,
     /// The diffusion inpainter's model (needed when `inpainters` holds it).
     pub diffusion: Option<DiffusionSpec>,
+    /// The fly-through of the BaseNeRF and each variant.
+    pub flythrough: FlythroughSpec,
     /// Continue a run folder that holds a manifest.
     pub resume: bool,
 }
@@ -184,6 +211,10 @@ impl RunDir {
     pub fn stage2(&self, kind: InpainterKind) -> PathBuf {
         self.root.join(format!("stage2-{}", kind.name()))
     }
+
+    pub fn flythrough(&self) -> PathBuf {
+        self.root.join("flythrough")
+    }
 }
 
 /// A stage of the pipeline.
@@ -194,6 +225,11 @@ pub trait Stage {
     fn config(&self) -> Value;
     /// Runs it (resuming inside it where it can); returns its report.
     fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value>;
+    /// The stages whose output it reads: when one of them runs, this one runs again even if
+    /// the manifest says it is done.
+    fn inputs(&self) -> Vec<String> {
+        Vec::new()
+    }
 }
 
 /// The BaseNeRF.
@@ -991,6 +1027,112 @@ impl Stage for InpaintStage {
     }
 }
 
+/// The fly-through of one field: `frames` cameras along the virtual trajectory (the path the
+/// virtual views sample, sampled densely), rendered into `RUN/flythrough/NAME/frame_NNN.png`
+/// and `RUN/flythrough/NAME.gif`. NAME is `base` or a stage-2 variant's folder name.
+#[derive(Clone, Debug)]
+pub struct FlythroughStage {
+    /// The stage-2 variant rendered (None: the BaseNeRF).
+    pub variant: Option<InpainterKind>,
+    pub virt: VirtualSpec,
+    pub spec: FlythroughSpec,
+}
+
+impl FlythroughStage {
+    fn field_name(&self) -> String {
+        match self.variant {
+            Some(k) => format!("stage2-{}", k.name()),
+            None => "base".into(),
+        }
+    }
+}
+
+impl Stage for FlythroughStage {
+    fn name(&self) -> String {
+        format!("flythrough-{}", self.field_name())
+    }
+
+    fn config(&self) -> Value {
+        json!({"virtual": self.virt, "flythrough": self.spec})
+    }
+
+    fn inputs(&self) -> Vec<String> {
+        vec!["base".into(), self.field_name()]
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        let s = &self.spec;
+        if s.frames == 0 || s.downscale == 0 || s.delay_ms == 0 {
+            bail!("the fly-through needs at least one frame, a downscale of at least 1 and a positive delay");
+        }
+        let base = BaseField::load(ctx, &dir.base)?;
+        let samples = base.ck.config.train.samples;
+        let (nerf, step) = match self.variant {
+            Some(k) => {
+                let ck = load_checkpoint(&dir.stage2(k))
+                    .with_context(|| format!("the {} variant's field", k.name()))?;
+                let cfg = &ck.config;
+                (
+                    Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?,
+                    ck.step,
+                )
+            }
+            None => (base.nerf, base.ck.step),
+        };
+        let train: Vec<Camera> = base
+            .loaded
+            .split
+            .train
+            .iter()
+            .map(|&i| base.loaded.scene.cameras[i].clone())
+            .collect();
+        let cams = virtual_cameras(
+            &train,
+            self.virt.trajectory,
+            s.frames as usize,
+            self.virt.range,
+        )?;
+        let name = self.field_name();
+        let out = dir.flythrough().join(&name);
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let mut frames = Vec::with_capacity(cams.len());
+        let (mut w, mut h) = (0, 0);
+        let t = Instant::now();
+        for (i, c) in cams.iter().enumerate() {
+            let cam = c.downscaled(self.virt.downscale.max(1) * s.downscale);
+            let (rgb, _, _) = render(ctx, &nerf, &cam, samples)?;
+            write_png(
+                &out.join(format!("frame_{i:03}.png")),
+                cam.width,
+                cam.height,
+                &rgb,
+            )?;
+            (w, h) = (cam.width, cam.height);
+            frames.push(rgb);
+            rep.progress(&Progress {
+                unit: Unit::Views,
+                step: i as u32 + 1,
+                total: s.frames,
+                loss: 0.0,
+                psnr: 0.0,
+                samples_per_s: 0.0,
+                secs: t.elapsed().as_secs_f64(),
+                eta: 0.0,
+            });
+        }
+        let gif = dir.flythrough().join(format!("{name}.gif"));
+        crate::anim::write_gif(&gif, w, h, &frames, s.delay_ms)?;
+        rep.note(&format!(
+            "{}: {} frames of {w}x{h} ({}), {:.1} s",
+            gif.display(),
+            frames.len(),
+            self.field_name(),
+            t.elapsed().as_secs_f64()
+        ));
+        Ok(json!({"frames": frames.len(), "width": w, "height": h, "field_step": step}))
+    }
+}
+
 /// `img` resized to `w x h` by area averaging (box filter over the covered source pixels).
 pub fn downscale_image(img: &Image, w: u32, h: u32) -> Image {
     let (sw, sh) = (img.width as usize, img.height as usize);
@@ -1084,18 +1226,31 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
             vis: o.vis.clone(),
         }));
     }
+    if o.flythrough.frames > 0 {
+        let variants = std::iter::once(None).chain(o.inpainters.iter().map(|&k| Some(k)));
+        for variant in variants {
+            stages.push(Box::new(FlythroughStage {
+                variant,
+                virt: o.virt.clone(),
+                spec: o.flythrough.clone(),
+            }));
+        }
+    }
     // Every stage's settings are checked before anything runs.
     for s in &stages {
         manifest.stage(&o.out, &s.name(), &s.config())?;
     }
+    let mut ran: Vec<String> = Vec::new();
     for s in &stages {
         let name = s.name();
         let config = s.config();
         let prior = manifest.stage(&o.out, &name, &config)?.cloned();
-        if prior.as_ref().is_some_and(|r| r.done) {
+        let stale = s.inputs().iter().any(|i| ran.contains(i));
+        if prior.as_ref().is_some_and(|r| r.done) && !stale {
             rep.note(&format!("stage {name}: done, skipped"));
             continue;
         }
+        ran.push(name.clone());
         rep.stage(&name);
         let before = prior.as_ref().map_or(0.0, |r| r.seconds);
         manifest.record(StageRecord {

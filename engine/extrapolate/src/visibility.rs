@@ -6,8 +6,8 @@ use anyhow::bail;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::render::visibility::{
-    Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap, MAX_RANK,
-    MAX_TRAIN_CAMERAS,
+    Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap, VisibilityMeasure,
+    MAX_RANK, MAX_TRAIN_CAMERAS,
 };
 use extranerf_nerf::trainer::Nerf;
 use serde::{Deserialize, Serialize};
@@ -35,6 +35,15 @@ pub struct VisSettings {
     pub min_opacity: f32,
     /// Pixels per submission.
     pub chunk: u32,
+    /// Transmittance absolute (the paper) or relative to the pixel ray's own (robust to a
+    /// field that renders surfaces as semi-transparent shells). Manifests written before this
+    /// setting existed computed the absolute one.
+    #[serde(default = "absolute")]
+    pub measure: VisibilityMeasure,
+}
+
+fn absolute() -> VisibilityMeasure {
+    VisibilityMeasure::Absolute
 }
 
 impl Default for VisSettings {
@@ -49,6 +58,7 @@ impl Default for VisSettings {
             threshold: 0.5,
             min_opacity: 0.1,
             chunk: 4096,
+            measure: VisibilityMeasure::Relative,
         }
     }
 }
@@ -87,6 +97,7 @@ impl VisSettings {
             rank,
             min_weight: self.min_weight,
             min_transmittance: self.min_transmittance,
+            measure: self.measure,
         })
     }
 

@@ -928,6 +928,8 @@ pub struct VisibilitySetup {
     pub rank: u32,
     /// Training cameras used (bit k: camera k).
     pub mask: u32,
+    /// Absolute transmittance, or relative to the pixel ray's own in front of the sample.
+    pub measure: crate::render::visibility::VisibilityMeasure,
 }
 
 /// The camera ray of `pixel` (continuous pixel coordinates) in the field's space (NDC with
@@ -998,7 +1000,8 @@ fn in_image(c: &crate::data::Camera, p: glam::DVec3) -> Option<(f64, f64, f64)> 
 /// The part both visibility references share: march the pixel's ray (stratum midpoints, exact
 /// alpha); for each weighted sample at field point x (world p) whose previous sample sits at
 /// field point xs (world ps), `transmittance(k, x, p, xs, ps)` gives selected camera k's
-/// transmittance; the rank-th largest, weighted, sums to the visibility. Returns (visibility,
+/// transmittance (divided by the ray's own in front of the sample and capped at 1 for the
+/// relative measure); the rank-th largest, weighted, sums to the visibility. Returns (visibility,
 /// opacity, depth).
 fn visibility_march(
     density: &dyn Fn([f64; 3]) -> f64,
@@ -1022,7 +1025,8 @@ fn visibility_march(
         let dt = sample_t(s, s1) - sample_t(s, s0);
         let x = o + t * d;
         let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
-        let w = (-tau).exp() * (1.0 - (-xo).exp());
+        let own = (-tau).exp();
+        let w = own * (1.0 - (-xo).exp());
         tau += xo;
         opacity += w;
         depth += w * t;
@@ -1042,7 +1046,13 @@ fn visibility_march(
         }
         let mut ts: Vec<f64> = (0..n_train.min(32))
             .filter(|&c| (s.mask >> c) & 1 == 1)
-            .map(|c| transmittance(c, x, p, xs, ps))
+            .map(|c| {
+                let t = transmittance(c, x, p, xs, ps);
+                match s.measure {
+                    crate::render::visibility::VisibilityMeasure::Absolute => t,
+                    crate::render::visibility::VisibilityMeasure::Relative => (t / own).min(1.0),
+                }
+            })
             .collect();
         ts.sort_by(|a, b| b.total_cmp(a));
         vis += w

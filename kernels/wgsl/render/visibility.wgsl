@@ -9,6 +9,15 @@
 // visibility is sum_j w_j v_j, volume-rendered with the ray's own weights, so it lies in
 // [0, opacity].
 //
+// Relative measure (flag VIS_RELATIVE): each T_jk is divided by the pixel ray's own
+// transmittance T_j in front of sample j and clamped to 1, so v_j asks whether camera k sees
+// the sample at least as well as the pixel's camera does. On a sharp surface T_j = 1 where the
+// weight is and nothing changes; on a surface the field renders as a semi-transparent shell
+// (opaque in sum, but spread in depth) the absolute measure gives sum_j w_j T_j, about half the
+// opacity, even from a camera identical to the pixel's, while the relative one gives the
+// opacity; an occluder that only camera k looks through still drives T_jk, and v_j, to 0.
+// The cut `min_transmittance` then applies to the ratio, so its bound stays the same.
+//
 // The segment toward a camera starts at the previous sample's position (the near end for the
 // first sample), for every camera, and ends at the camera centre, or where it crosses the NDC
 // near plane (z = -ndc_near, beyond which an NDC field is not defined) for forward-facing
@@ -104,6 +113,7 @@ var<immediate> params: Params;
 const VIS_NDC: u32 = 1u;
 const VIS_ANALYTIC: u32 = 2u;
 const VIS_VOLUME: u32 = 4u;
+const VIS_RELATIVE: u32 = 8u;
 
 // Whether the field lives in NDC.
 fn in_ndc() -> bool {
@@ -320,6 +330,11 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
         let x = ray[0] + t * ray[1];
         // Where the previous sample was (the near end for the first).
         let t_prev = select(t_of(s0 - 0.5 * inv_k), t_of(0.0), j == 0u);
+        // The relative measure's unit: the ray's own transmittance in front of the sample.
+        var t_own = 1.0;
+        if (params.flags & VIS_RELATIVE) != 0u {
+            t_own = exp(-tau);
+        }
         let w = next_weight(density(x, &a), dt, &tau);
         depth += w * t;
         opacity += w;
@@ -346,9 +361,10 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
             if (params.flags & VIS_VOLUME) != 0u {
                 tr = volume_lookup(k, p_prev, p);
                 evals += 1.0;
-                if tr < params.min_transmittance {
+                if tr < params.min_transmittance * t_own {
                     tr = 0.0;
                 }
+                tr = min(tr / t_own, 1.0);
             } else {
                 let c = train_cams[k];
                 if !in_frustum(p, c) {
@@ -356,8 +372,8 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                 }
                 // A transmittance at or below the current rank-th value cannot change the
                 // result.
-                let floor = max(top[rank - 1u], params.min_transmittance);
-                tr = transmittance(x_prev, p_prev, c, cam, floor, &a, &evals);
+                let floor = max(top[rank - 1u], params.min_transmittance) * t_own;
+                tr = min(transmittance(x_prev, p_prev, c, cam, floor, &a, &evals) / t_own, 1.0);
             }
             if tr <= top[rank - 1u] {
                 continue;

@@ -20,10 +20,12 @@ use crate::render::occupancy::Occupancy;
 use crate::render::rays::{gpu_camera, GpuCamera};
 
 /// Bits of the visibility kernel's `flags` (`VIS_*` in `kernels/wgsl/render/visibility.wgsl`):
-/// the field lives in NDC, the density is analytic shapes, transmittances come from volumes.
+/// the field lives in NDC, the density is analytic shapes, transmittances come from volumes,
+/// the relative measure.
 const VIS_NDC: u32 = 1;
 const VIS_ANALYTIC: u32 = 2;
 const VIS_VOLUME: u32 = 4;
+const VIS_RELATIVE: u32 = 8;
 
 /// 4-byte words of one `GpuCamera`.
 const CAMERA_WORDS: u64 = (std::mem::size_of::<GpuCamera>() / 4) as u64;
@@ -32,6 +34,20 @@ const CAMERA_WORDS: u64 = (std::mem::size_of::<GpuCamera>() / 4) as u64;
 pub const MAX_RANK: u32 = 8;
 /// The most training cameras one pass considers (a 32-bit mask selects them).
 pub const MAX_TRAIN_CAMERAS: usize = 32;
+
+/// What a training camera's transmittance to a sample is measured against.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VisibilityMeasure {
+    /// The transmittance itself (the paper): a sample inside a surface the field renders as a
+    /// semi-transparent shell is half-hidden from every camera, the pixel's own included.
+    Absolute,
+    /// The transmittance over the pixel ray's own transmittance in front of the sample, at
+    /// most 1: whether the camera sees the sample at least as well as the pixel's camera does.
+    /// The same on a sharp surface; on a shell, seen surfaces count as seen.
+    #[default]
+    Relative,
+}
 
 /// How visibility is computed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -45,8 +61,11 @@ pub struct VisibilityConfig {
     /// Samples whose weight is at most this are not marched toward the cameras; each drops at
     /// most this much visibility (0: exact).
     pub min_weight: f32,
-    /// Segments stop once their transmittance falls below this, and count as 0 (0: exact).
+    /// Segments stop once their transmittance (relative, for that measure) falls below this,
+    /// and count as 0 (0: exact).
     pub min_transmittance: f32,
+    /// Absolute or relative transmittance.
+    pub measure: VisibilityMeasure,
 }
 
 impl Default for VisibilityConfig {
@@ -57,6 +76,7 @@ impl Default for VisibilityConfig {
             rank: 2,
             min_weight: 0.0,
             min_transmittance: 0.0,
+            measure: VisibilityMeasure::Relative,
         }
     }
 }
@@ -579,6 +599,9 @@ impl Visibility {
         p.n_train = n_train;
         p.train_mask = mask;
         p.rank = cfg.rank;
+        if cfg.measure == VisibilityMeasure::Relative {
+            p.flags |= VIS_RELATIVE;
+        }
         let tvol = match volume {
             Some(v) => {
                 if v.cameras != n_train {
