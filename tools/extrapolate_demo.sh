@@ -4,7 +4,7 @@
 # each inpainter and `eval`'s table. visibility.json scores the held-out views' masks against
 # the exact visibility (IoU, accuracy).
 # Writes results/extrapolate_demo_lavapipe/: eval.md, eval.json, extrapolate.json,
-# visibility.json, extrapolate.log.
+# visibility.json, extrapolate.log, flythrough/*.gif.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
@@ -19,4 +19,6 @@ rm -rf "$out"; mkdir -p "$out"
 run=runs/extrapolate_demo/ex
 cp "$run/eval.md" "$run/eval.json" "$run/extrapolate.json" "$run/extrapolate.log" \
     "$run/visibility/visibility.json" "$out/"
+mkdir -p "$out/flythrough"
+cp "$run"/flythrough/*.gif "$out/flythrough/"
 echo "wrote $out" >&2

@@ -8,7 +8,14 @@
 # (each stage's settings, wall time and report), visibility.json, extrapolate.log, and images
 # of one held-out view (BaseNeRF, mask, each variant, the photo) and one virtual view's fills.
 #
-# Usage: tools/extrapolate_fern.sh [extrapolate flags...]  (default: harmonic,exemplar,hybrid)
+# The diffusion variant uses the scene prior trained here from scratch (no pretrained weights):
+# `extranerf diffusion prior --scene ../shared/data/llff/fern --out runs/prior_fern_lavapipe
+# --steps 2000` (30-50 minutes on two cores), run first when its model is missing and the
+# default inpainters are used.
+# The fly-throughs (RUN/flythrough/*.gif) are copied too.
+#
+# Usage: tools/extrapolate_fern.sh [extrapolate flags...]
+#   (default: --inpainter harmonic,exemplar,hybrid,diffusion)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 data="${EXTRANERF_DATA:-../shared/data}"
@@ -18,10 +25,14 @@ base=runs/curve_fernx_budget900_clock
 if [ ! -f "$base/checkpoint.safetensors" ]; then
     tools/curve.sh fernx budget900_clock 2000 --budget 900
 fi
+prior=runs/prior_fern_lavapipe
+inp=(--inpainter harmonic,exemplar,hybrid,diffusion --diffusion-model "$prior/model")
+for a in "$@"; do [ "$a" = --inpainter ] && inp=(); done
+if [ ${#inp[@]} -gt 0 ] && [ ! -f "$prior/model/model_index.json" ]; then
+    "$bin" diffusion prior --scene "$data/llff/fern" --out "$prior" --steps 2000
+fi
 run=runs/extrapolate_fern
 rm -rf "$run"
-inp=(--inpainter harmonic,exemplar,hybrid)
-for a in "$@"; do [ "$a" = --inpainter ] && inp=(); done
 /usr/bin/time -f "extrapolate wall %e s" "$bin" extrapolate --base "$base" --out "$run" "${inp[@]}" "$@"
 "$bin" eval "$run"
 out=results/extrapolate_fern_lavapipe
@@ -40,6 +51,10 @@ for d in "$run"/stage2-*; do
     cp "$last/virtual_004.png" "$out/images/virtual_004_$v.png"
 done
 cp "$run/visibility/virtual_004_base.png" "$run/visibility/virtual_004_mask.png" "$out/images/"
+if [ -d "$run/flythrough" ]; then
+    mkdir -p "$out/flythrough"
+    cp "$run"/flythrough/*.gif "$out/flythrough/"
+fi
 photo=$(ls "$data/llff/fern/images_8" | sort | sed -n "$((10#$view + 1))p")
 cp "$data/llff/fern/images_8/$photo" "$out/images/test_${view}_photo.png"
 echo "wrote $out" >&2
