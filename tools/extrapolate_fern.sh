@@ -2,34 +2,34 @@
 # ExtraNeRF stage 2 on fern (8x, extrapolation split: 6 central views trained, the 8 farthest
 # held out), one variant per inpainter, against the BaseNeRF; then `eval`'s comparison table.
 #
-# The BaseNeRF is the committed curve run fernx/budget900_clock (`train --budget 900`, made by
-# `tools/curve.sh fernx budget900_clock 2000 --budget 900`), trained first when missing.
-# Writes results/extrapolate_fern_lavapipe/: eval.md and eval.json (the table), extrapolate.json
-# (each stage's settings, wall time and report), visibility.json, extrapolate.log, and images
-# of one held-out view (BaseNeRF, mask, each variant, the photo) and one virtual view's fills.
+# The BaseNeRF is the curve run fernx/steps6889 (`tools/curve.sh fernx steps6889 2000 --steps
+# 6889`: the steps that `--budget 900` reached in the committed run fernx/budget900_clock, fixed
+# so that the field does not depend on how fast the machine was), trained first when missing.
 #
-# The diffusion variant uses the scene prior trained here from scratch (no pretrained weights):
-# `extranerf diffusion prior --scene ../shared/data/llff/fern --out runs/prior_fern_lavapipe
-# --steps 2000` (30-50 minutes on two cores), run first when its model is missing and the
-# default inpainters are used.
+# The diffusion variant uses a scene prior trained here from scratch (no pretrained weights):
+# `extranerf diffusion prior --scene ../shared/data/llff/fern --out runs/prior_fern_sPRIOR_STEPS
+# --steps PRIOR_STEPS` (PRIOR_STEPS=1000 by default: about 15 minutes on two cores), run first
+# when its model is missing and the default inpainters are used.
 # The fly-throughs (RUN/flythrough/*.gif) are copied too.
 #
-# Usage: tools/extrapolate_fern.sh [extrapolate flags...]
-#   (default: --inpainter harmonic,exemplar,hybrid,diffusion)
+# Usage: [PRIOR_STEPS=N] tools/extrapolate_fern.sh [extrapolate flags...]
+#   (default: --inpainter harmonic,exemplar,diffusion)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 data="${EXTRANERF_DATA:-../shared/data}"
 bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
 cargo build --release -p extranerf >&2
-base=runs/curve_fernx_budget900_clock
+base=runs/curve_fernx_steps6889
 if [ ! -f "$base/checkpoint.safetensors" ]; then
-    tools/curve.sh fernx budget900_clock 2000 --budget 900
+    tools/curve.sh fernx steps6889 2000 --steps 6889
 fi
-prior=runs/prior_fern_lavapipe
-inp=(--inpainter harmonic,exemplar,hybrid,diffusion --diffusion-model "$prior/model")
+steps="${PRIOR_STEPS:-1000}"
+prior=runs/prior_fern_s$steps
+inp=(--inpainter harmonic,exemplar,diffusion --diffusion-model "$prior/model")
 for a in "$@"; do [ "$a" = --inpainter ] && inp=(); done
 if [ ${#inp[@]} -gt 0 ] && [ ! -f "$prior/model/model_index.json" ]; then
-    "$bin" diffusion prior --scene "$data/llff/fern" --out "$prior" --steps 2000
+    "$bin" diffusion prior --scene "$data/llff/fern" --out "$prior" --steps "$steps" \
+        2>&1 | tee "$prior.log" >&2
 fi
 run=runs/extrapolate_fern
 rm -rf "$run"
@@ -40,6 +40,7 @@ rm -rf "$out"
 mkdir -p "$out/images"
 cp "$run/eval.md" "$run/eval.json" "$run/extrapolate.json" "$run/extrapolate.log" \
     "$run/visibility/visibility.json" "$out/"
+if [ ${#inp[@]} -gt 0 ] && [ -f "$prior.log" ]; then cp "$prior.log" "$out/prior.log"; fi
 # Held-out view 0 of the split (scene index 0 is the farthest-left view of fern's rig).
 view=$(ls "$run"/visibility/test_*_base.png | head -1 | sed 's/.*test_\([0-9]*\)_base.png/\1/')
 cp "$run/visibility/test_${view}_base.png" "$out/images/test_${view}_base.png"
