@@ -1032,7 +1032,7 @@ fn sd_folder(name: &str) -> std::path::PathBuf {
 #[test]
 fn the_diffusion_inpainter_fills_only_the_mask_at_any_size() {
     use extranerf_extrapolate::inpaint::diffusion::DiffusionInpainter;
-    use extranerf_extrapolate::inpaint::{Inpainter, Target};
+    use extranerf_extrapolate::inpaint::{rect_mask, Inpainter, Target};
     let dir = sd_folder("sd-inpainter");
     let mut inp = DiffusionInpainter::load(&dir, None, cpu(), 2).unwrap();
     // 13x10: not a multiple of the latent factor, so the view is padded and cropped back.
@@ -1041,17 +1041,8 @@ fn the_diffusion_inpainter_fills_only_the_mask_at_any_size() {
     let depth: Vec<f32> = (0..w * h)
         .map(|i| if i % w < 6 { 0.3 } else { 0.9 })
         .collect();
-    let mask: Vec<f32> = (0..w * h)
-        .map(|i| f32::from((4..9).contains(&(i % w)) && (3..7).contains(&(i / w))))
-        .collect();
-    let t = Target {
-        width: w,
-        height: h,
-        rgb: &rgb,
-        depth: &depth,
-        mask: &mask,
-        t: 0.6,
-    };
+    let mask: Vec<f32> = rect_mask(w, h, 4..9, 3..7);
+    let t = Target::new(w, h, &rgb, &depth, &mask, 0.6);
     let f = inp.inpaint(&t, &[], 3).unwrap();
     for i in 0..w * h {
         if mask[i] < 0.5 {
@@ -1080,6 +1071,58 @@ fn the_diffusion_inpainter_fills_only_the_mask_at_any_size() {
         .inpaint(&Target { mask: &full, ..t }, &[], 3)
         .unwrap_err();
     assert!(e.0.contains("whole view"), "{e}");
+}
+
+#[test]
+fn images_in_inpainted_images_out() {
+    use extranerf_diffusion::inpaint::SampleSettings;
+    let dev = cpu();
+    let p = Pipeline::load(&sd_folder("sd-images"), &dev, "").unwrap();
+    let (w, h) = (13usize, 10usize);
+    let a: Vec<f32> = (0..w * h * 3).map(|i| (i % 7) as f32 / 7.0).collect();
+    let b: Vec<f32> = (0..w * h * 3).map(|i| (i % 5) as f32 / 5.0).collect();
+    let hole = extranerf_extrapolate::inpaint::rect_mask(w, h, 2..7, 1..5);
+    let none = vec![0f32; w * h];
+    let s = SampleSettings {
+        strength: 0.7,
+        steps: 2,
+        guidance: 1.0,
+        keep_known: true,
+    };
+    let out = p
+        .model
+        .inpaint_images(&[(&a[..], &hole[..]), (&b, &none)], w, h, 5, &s, &dev)
+        .unwrap();
+    assert_eq!(out.len(), 2);
+    // Known pixels come back as given; filled ones are colours in [0, 1]; with nothing to fill
+    // the image comes back unchanged.
+    for i in 0..w * h {
+        let px = &out[0].rgb[3 * i..3 * i + 3];
+        if hole[i] > 0.5 {
+            assert!(
+                px.iter().all(|v| (0.0..=1.0).contains(v)),
+                "pixel {i}: {px:?}"
+            );
+        } else {
+            assert_eq!(px, &a[3 * i..3 * i + 3], "pixel {i}");
+        }
+    }
+    assert_eq!(out[1].rgb, b);
+    assert!(out[0].noise_level > 0.0 && out[0].noise_level <= 1.0);
+    // One image alone is the batch of one, repeatable with the seed.
+    let one = p.model.inpaint_image(&a, &hole, w, h, 5, &s, &dev).unwrap();
+    assert_eq!(
+        one,
+        p.model.inpaint_image(&a, &hole, w, h, 5, &s, &dev).unwrap()
+    );
+    // Sizes that do not match the stated image are refused, naming what was expected.
+    let e = p
+        .model
+        .inpaint_images(&[(&a[..], &hole[..]), (&b[1..], &none)], w, h, 5, &s, &dev)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("image 1") && e.contains("390"), "{e}");
+    assert!(p.model.inpaint_images(&[], w, h, 5, &s, &dev).is_err());
 }
 
 #[test]

@@ -53,7 +53,7 @@ impl Reporter for Record {
 fn scene(dir: &Path) -> SceneSpec {
     SceneSpec {
         dir: dir.to_path_buf(),
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 1,
         sparse_depth: false,

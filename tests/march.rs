@@ -12,7 +12,7 @@ use extranerf_nerf::model::{init_params, ModelConfig, ParamLayout};
 use extranerf_nerf::reference::{field_forward, march_pixel, occ_cell, occ_cell_point};
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
-use extranerf_nerf::trainer::{March, Nerf};
+use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine};
 
@@ -37,12 +37,12 @@ fn model(space: &str) -> ModelConfig {
         return base;
     }
     ModelConfig {
-        space: "world".into(),
+        space: extranerf_nerf::model::Space::World,
         near: 0.5,
         far: 30.0,
         center: [0.1, -0.2, 0.0],
         radius: 1.5,
-        contraction: "l2".into(),
+        contraction: extranerf_nerf::field::encodings::Contraction::L2,
         ..base
     }
 }

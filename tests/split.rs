@@ -8,7 +8,9 @@
 use extranerf_gpu::{Context, ContextDesc};
 use extranerf_nerf::model::{init_params, ModelConfig};
 use extranerf_nerf::render::march::MarchCuts;
-use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer, View};
+use extranerf_nerf::renderer::{March, Nerf};
+use extranerf_nerf::trainer::{TrainConfig, Trainer};
+use extranerf_nerf::views::{TrainData, View};
 use extranerf_prims::Prims;
 use extranerf_tests::{assert_no_validation_messages, demo_training_views, desc};
 

@@ -18,7 +18,9 @@ use extranerf_nerf::mvs::{Mvs, MvsConfig};
 use extranerf_nerf::render::visibility::{
     AnalyticField, Density, Shape, Visibility, VisibilityConfig,
 };
-use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, View};
+use extranerf_nerf::renderer::Nerf;
+use extranerf_nerf::trainer::{TrainConfig, Trainer};
+use extranerf_nerf::views::{TrainData, View};
 use extranerf_tests::{assert_no_validation_messages, demo_training_views, engine};
 
 fn tiny() -> ModelConfig {
@@ -219,7 +221,7 @@ fn training_with_the_f16_table_tracks_f32() {
     };
     let (f0, f1, _, p32) = train_model(&views, cfg.clone(), tiny());
     let half = ModelConfig {
-        precision: "f16".into(),
+        precision: extranerf_nerf::model::Precision::F16,
         ..tiny()
     };
     let (h0, h1, _, p16) = train_model(&views, cfg, half);
@@ -237,7 +239,7 @@ fn training_with_the_f16_table_tracks_f32() {
         .fold(0f32, f32::max);
     eprintln!("f16 vs f32 after 60 steps: final MSE {h1:.5} vs {f1:.5}, largest parameter difference {drift:.3e}");
     let bad = ModelConfig {
-        precision: "f16".into(),
+        precision: extranerf_nerf::model::Precision::F16,
         features: 4,
         ..tiny()
     };

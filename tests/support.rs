@@ -100,14 +100,14 @@ pub fn scratch_dir(name: &str) -> PathBuf {
 pub fn demo_training_views(
     name: &str,
     model: &extranerf_nerf::model::ModelConfig,
-) -> Vec<extranerf_nerf::trainer::View> {
+) -> Vec<extranerf_nerf::views::View> {
     use extranerf_nerf::run::{training_views, SceneSpec};
     let dir = scratch_dir(name);
     extranerf_nerf::demo::write_demo_scene(&dir, 32, 24)
         .unwrap_or_else(|e| panic!("writing the demo scene: {e}"));
     let spec = SceneSpec {
         dir,
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 1,
         sparse_depth: false,

@@ -255,7 +255,7 @@ fn checkpoints_round_trip_and_bad_ones_are_refused() {
         config: RunConfig {
             scene: SceneSpec {
                 dir: "scene".into(),
-                split: "all".into(),
+                split: extranerf_nerf::data::split::SplitKind::All,
                 fewshot_views: 3,
                 factor: 8,
                 sparse_depth: false,
@@ -294,13 +294,15 @@ fn checkpoints_round_trip_and_bad_ones_are_refused() {
 
 #[test]
 fn training_on_fern_raises_psnr_and_renders() {
+    use extranerf_nerf::renderer::Nerf;
     use extranerf_nerf::run::{training_views, SceneSpec};
-    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer};
+    use extranerf_nerf::trainer::{TrainConfig, Trainer};
+    use extranerf_nerf::views::TrainData;
     let e = engine();
     let ctx = &e.ctx;
     let spec = SceneSpec {
         dir: shared_data().join("llff/fern"),
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 8,
         sparse_depth: true,
@@ -407,7 +409,7 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
     write_demo_scene(&scene, 32, 24).unwrap();
     let mut spec = SceneSpec {
         dir: scene.clone(),
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 1,
         sparse_depth: false,
@@ -512,15 +514,17 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
 #[test]
 fn all_black_and_all_white_images_train_without_nan() {
     use extranerf_nerf::demo::write_demo_scene;
+    use extranerf_nerf::renderer::Nerf;
     use extranerf_nerf::run::{training_views, SceneSpec};
-    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer};
+    use extranerf_nerf::trainer::{TrainConfig, Trainer};
+    use extranerf_nerf::views::TrainData;
     let e = engine();
     let ctx = &e.ctx;
     let dir = scratch_dir("black-white");
     write_demo_scene(&dir, 32, 24).unwrap();
     let spec = SceneSpec {
         dir: dir.clone(),
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 1,
         sparse_depth: false,
@@ -572,15 +576,17 @@ fn all_black_and_all_white_images_train_without_nan() {
 #[test]
 fn fused_step_gradient_matches_the_standalone_chain() {
     use extranerf_nerf::demo::write_demo_scene;
+    use extranerf_nerf::renderer::Nerf;
     use extranerf_nerf::run::{training_views, SceneSpec};
-    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, ViewKind, ViewSampling};
+    use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer};
+    use extranerf_nerf::views::{TrainData, ViewKind, ViewSampling};
     let e = engine();
     let ctx = &e.ctx;
     let dir = scratch_dir("fused-step");
     write_demo_scene(&dir, 32, 24).unwrap();
     let spec = SceneSpec {
         dir: dir.clone(),
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 1,
         sparse_depth: false,
@@ -588,21 +594,21 @@ fn fused_step_gradient_matches_the_standalone_chain() {
     };
     let loaded = spec.load().unwrap();
     let world = ModelConfig {
-        space: "world".into(),
+        space: extranerf_nerf::model::Space::World,
         near: 0.5,
         far: 8.0,
         radius: 2.0,
-        contraction: "l2".into(),
+        contraction: extranerf_nerf::field::encodings::Contraction::L2,
         ..tiny()
     };
     // The last field: an occupancy grid of that many cells per axis (0: none), swept and
     // thresholded in the step itself, whose strata then cover only occupied probe intervals.
     let cases = [
-        (tiny(), "l2", false, 1e-2f32, 0),
-        (tiny(), "huber", true, 0.0, 0),
-        (world.clone(), "l2", true, 5e-2, 0),
-        (tiny(), "l2", true, 1e-2, 16),
-        (world, "huber", false, 5e-2, 12),
+        (tiny(), RgbLossKind::L2, false, 1e-2f32, 0),
+        (tiny(), RgbLossKind::Huber, true, 0.0, 0),
+        (world.clone(), RgbLossKind::L2, true, 5e-2, 0),
+        (tiny(), RgbLossKind::L2, true, 1e-2, 16),
+        (world, RgbLossKind::Huber, false, 5e-2, 12),
     ];
     for (ci, (model, rgb_loss, grad_scaling, distortion, occupancy_res)) in
         cases.into_iter().enumerate()
@@ -659,7 +665,7 @@ fn fused_step_gradient_matches_the_standalone_chain() {
             let cfg = TrainConfig {
                 rays: 96,
                 samples: if ci % 2 == 0 { 10 } else { 12 },
-                rgb_loss: rgb_loss.into(),
+                rgb_loss,
                 huber_delta: 0.05,
                 depth_lambda: 0.2,
                 distortion_lambda: distortion,
@@ -722,7 +728,9 @@ fn fused_step_gradient_matches_the_standalone_chain() {
 /// named.
 #[test]
 fn zero_colour_weights_give_zero_gradient_and_bad_weights_are_refused() {
-    use extranerf_nerf::trainer::{Nerf, TrainConfig, TrainData, Trainer, ViewKind};
+    use extranerf_nerf::renderer::Nerf;
+    use extranerf_nerf::trainer::{TrainConfig, Trainer};
+    use extranerf_nerf::views::{TrainData, ViewKind};
     use extranerf_tests::demo_training_views;
     let e = engine();
     let ctx = &e.ctx;
@@ -734,7 +742,7 @@ fn zero_colour_weights_give_zero_gradient_and_bad_weights_are_refused() {
             v.kind = ViewKind::Virtual;
         }
     }
-    let gradient = |views: &[extranerf_nerf::trainer::View], fused: bool| {
+    let gradient = |views: &[extranerf_nerf::views::View], fused: bool| {
         let data = TrainData::new(ctx, views).unwrap();
         let cfg = TrainConfig {
             rays: 128,
@@ -793,9 +801,9 @@ fn zero_colour_weights_give_zero_gradient_and_bad_weights_are_refused() {
 /// expectation (a binomial bound that a wrong table, off by a few percent, fails).
 #[test]
 fn batches_draw_virtual_views_at_the_configured_fraction() {
-    use extranerf_nerf::trainer::{
-        colour_weight, image_cdf, Nerf, TrainConfig, TrainData, Trainer, ViewKind, ViewSampling,
-    };
+    use extranerf_nerf::renderer::Nerf;
+    use extranerf_nerf::trainer::{TrainConfig, Trainer};
+    use extranerf_nerf::views::{colour_weight, image_cdf, TrainData, ViewKind, ViewSampling};
     use extranerf_tests::demo_training_views;
     let e = engine();
     let ctx = &e.ctx;

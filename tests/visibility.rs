@@ -18,7 +18,7 @@ use extranerf_nerf::render::visibility::{
     mask_all_but, AnalyticField, Density, Shape, TransmittanceVolume, Visibility, VisibilityConfig,
     VisibilityMap, VisibilityMeasure,
 };
-use extranerf_nerf::trainer::Nerf;
+use extranerf_nerf::renderer::Nerf;
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine};
 

@@ -6,8 +6,8 @@ use std::time::Instant;
 
 use anyhow::{bail, Context as _};
 use burn::module::Module;
-use burn::tensor::{Device, Tensor};
-use clap::{Args, Subcommand};
+use burn::tensor::Device;
+use clap::{Args, Subcommand, ValueEnum as _};
 use extranerf_diffusion::config::{
     UNetConfig, VaeConfig, CROSS_ATTN_DOWN, CROSS_ATTN_UP, DOWN, UP,
 };
@@ -22,6 +22,7 @@ use extranerf_diffusion::train::{self, Augment, Progress, TrainImage, TrainSetti
 use extranerf_diffusion::unet::UNet2DConditionModel;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::load_image;
+use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::mvs::downscale_rgb;
 use extranerf_nerf::run::{write_png, SceneSpec};
 
@@ -34,14 +35,14 @@ pub struct BackendArgs {
     /// VkDevice), `cpu` (burn's CPU backend), or `auto` (the device unless it is itself a CPU
     /// implementation such as lavapipe, where the CPU backend measured faster; see `bench
     /// diffusion`).
-    #[arg(long = "diffusion-backend", default_value = "auto", value_parser = ["auto", "device", "cpu"])]
-    pub backend: String,
+    #[arg(long = "diffusion-backend", value_enum, default_value_t = Backend::Auto)]
+    pub backend: Backend,
 }
 
 impl BackendArgs {
     fn device(&self, ctx: &Context) -> anyhow::Result<(Backend, Device)> {
-        let b = Backend::parse(&self.backend).context("--diffusion-backend")?;
-        let (b, d) = diffusion_device(ctx, b).context("starting burn on the engine's device")?;
+        let (b, d) =
+            diffusion_device(ctx, self.backend).context("starting burn on the engine's device")?;
         eprintln!("diffusion backend: {}", b.name());
         Ok((b, d))
     }
@@ -78,8 +79,8 @@ pub struct PriorArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Which views train the prior: the training views of this split.
-    #[arg(long, default_value = "extrapolation")]
-    pub split: String,
+    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
+    pub split: SplitKind,
     /// LLFF image folder factor (images_N).
     #[arg(long, default_value_t = 8)]
     pub factor: u32,
@@ -103,8 +104,8 @@ pub struct PriorArgs {
     pub lr: f64,
     /// What the U-Net predicts: `v_prediction` (stable at every noise level), `epsilon` (the
     /// noise, as SD 1.x) or `sample` (the clean image).
-    #[arg(long, default_value = "v_prediction", value_parser = ["v_prediction", "epsilon", "sample"])]
-    pub prediction: String,
+    #[arg(long, value_enum, default_value_t = Prediction::V)]
+    pub prediction: Prediction,
     /// Regions per view to score: held out of every training view (never in the loss) and
     /// cut into every test view of the split (which training never sees).
     #[arg(long, default_value_t = 2)]
@@ -146,7 +147,8 @@ pub struct InpaintArgs {
     /// LoRA adapter folder (adapter_config.json + pytorch_lora_weights.safetensors).
     #[arg(long)]
     pub lora: Option<PathBuf>,
-    /// Image (PNG/JPEG).
+    /// Image (PNG/JPEG). Sides that are not multiples of the model's size step are padded by
+    /// repeating the last row and column, and the output is cropped back.
     #[arg(long)]
     pub image: PathBuf,
     /// Mask image: white (> 0.5) = fill.
@@ -194,8 +196,8 @@ pub struct FinetuneArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Views of this split's training set.
-    #[arg(long, default_value = "extrapolation")]
-    pub split: String,
+    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
+    pub split: SplitKind,
     /// LLFF image folder factor.
     #[arg(long, default_value_t = 8)]
     pub factor: u32,
@@ -243,14 +245,25 @@ pub struct InitArgs {
     /// `tiny` (latent inpainting U-Net 32/64 with a tiny VAE), `pixel` (a pixel-space
     /// inpainting U-Net), or `sd15-inpainting` (SD-1.5 inpainting shapes: 860M parameters,
     /// 3.4 GB).
-    #[arg(long, default_value = "tiny", value_parser = ["tiny", "pixel", "sd15-inpainting"])]
-    pub config: String,
+    #[arg(long, value_enum, default_value_t = InitConfig::Tiny)]
+    pub config: InitConfig,
     /// Output folder.
     #[arg(long)]
     pub out: PathBuf,
     /// Seed of the initialisation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+}
+
+/// `diffusion init --config`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InitConfig {
+    /// A latent inpainting U-Net 32/64 with a tiny VAE.
+    Tiny,
+    /// A pixel-space inpainting U-Net.
+    Pixel,
+    /// Stable Diffusion 1.5 inpainting's shapes.
+    Sd15Inpainting,
 }
 
 /// `extranerf bench diffusion`.
@@ -318,14 +331,6 @@ pub fn prior_scheduler(prediction: Prediction) -> SchedulerConfig {
     }
 }
 
-fn parse_prediction(s: &str) -> Prediction {
-    match s {
-        "epsilon" => Prediction::Epsilon,
-        "sample" => Prediction::Sample,
-        _ => Prediction::V,
-    }
-}
-
 struct View {
     /// Camera index in the scene.
     index: usize,
@@ -338,13 +343,13 @@ struct View {
 /// The training views (and the held-out test views) of a split, downscaled.
 fn load_view_sets(
     scene: &Path,
-    split: &str,
+    split: SplitKind,
     factor: u32,
     downscale: u32,
 ) -> anyhow::Result<(Vec<View>, Vec<View>)> {
     let spec = SceneSpec {
         dir: scene.to_path_buf(),
-        split: split.to_string(),
+        split,
         fewshot_views: 3,
         factor,
         sparse_depth: false,
@@ -385,7 +390,12 @@ fn load_view_sets(
     Ok((train, load(&loaded.split.test)?))
 }
 
-fn load_views(scene: &Path, split: &str, factor: u32, downscale: u32) -> anyhow::Result<Vec<View>> {
+fn load_views(
+    scene: &Path,
+    split: SplitKind,
+    factor: u32,
+    downscale: u32,
+) -> anyhow::Result<Vec<View>> {
     Ok(load_view_sets(scene, split, factor, downscale)?.0)
 }
 
@@ -493,27 +503,6 @@ fn write_curve(out: &Path, curve: &[(usize, f64)], title: &str) -> anyhow::Resul
     Ok(())
 }
 
-/// Channel-major `[3, h, w]` from `[h, w, 3]`.
-fn to_chw(rgb: &[f32], w: usize, h: usize) -> Vec<f32> {
-    let mut out = vec![0f32; rgb.len()];
-    for i in 0..w * h {
-        for c in 0..3 {
-            out[c * w * h + i] = rgb[3 * i + c];
-        }
-    }
-    out
-}
-
-fn to_hwc(chw: &[f32], w: usize, h: usize) -> Vec<f32> {
-    let mut out = vec![0f32; chw.len()];
-    for i in 0..w * h {
-        for c in 0..3 {
-            out[3 * i + c] = chw[c * w * h + i];
-        }
-    }
-    out
-}
-
 fn crop(rgb: &[f32], w: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> Vec<f32> {
     let mut out = Vec::with_capacity(cw * ch * 3);
     for y in y0..y0 + ch {
@@ -615,7 +604,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     }
     let lpips = extranerf_extrapolate::driver::lpips_alex(a.lpips.as_deref())?;
     let (backend, dev) = a.backend.device(ctx)?;
-    let (views, test_views) = load_view_sets(&a.scene, &a.split, a.factor, a.downscale)?;
+    let (views, test_views) = load_view_sets(&a.scene, a.split, a.factor, a.downscale)?;
     std::fs::create_dir_all(a.out.join("eval"))
         .with_context(|| format!("creating {}", a.out.display()))?;
     let cfg = match &a.model {
@@ -684,7 +673,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
             }
             let ad = dev.clone().autodiff();
             ad.seed(a.seed);
-            let sched_cfg = prior_scheduler(parse_prediction(&a.prediction));
+            let sched_cfg = prior_scheduler(a.prediction);
             let pipe = Pipeline::new(cfg.clone(), None, sched_cfg.clone(), 4, &ad)?;
             let params = pipe.model.unet.num_params();
             let flops = 2 * pipe.model.unet.macs(a.crop, a.crop, 4);
@@ -787,35 +776,25 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                      seed: u64|
      -> anyhow::Result<(Vec<Vec<f32>>, f64)> {
         let t = Instant::now();
-        let mut img = Vec::with_capacity(n * 3 * window * window);
-        let mut msk = Vec::with_capacity(n * window * window);
-        for (i, w) in wins.iter().enumerate() {
-            img.extend(to_chw(&starts[i], window, window));
-            msk.extend_from_slice(&w.unknown);
-        }
-        let img_t = Tensor::<1>::from_floats(img.as_slice(), &dev).reshape([n, 3, window, window]);
-        let mask_t = Tensor::<1>::from_floats(msk.as_slice(), &dev).reshape([n, 1, window, window]);
-        let noise = seeded_noise([n, 3, window, window], seed, &dev);
-        let out = trained.model.inpaint(
-            img_t,
-            mask_t,
-            noise,
+        let images: Vec<(&[f32], &[f32])> = wins
+            .iter()
+            .enumerate()
+            .map(|(i, w)| (starts[i].as_slice(), w.unknown.as_slice()))
+            .collect();
+        let out = trained.model.inpaint_images(
+            &images,
+            window,
+            window,
+            seed,
             &SampleSettings {
                 strength,
                 steps,
                 guidance: 1.0,
                 keep_known: true,
             },
+            &dev,
         )?;
-        let v: Vec<f32> = out
-            .image
-            .into_data()
-            .try_to_vec_as::<f32>()
-            .map_err(|e| anyhow::anyhow!("reading the inpainted windows: {e:?}"))?;
-        let ws = window * window * 3;
-        let per = (0..n)
-            .map(|i| to_hwc(&v[i * ws..(i + 1) * ws], window, window))
-            .collect();
+        let per = out.into_iter().map(|o| o.rgb).collect();
         Ok((per, t.elapsed().as_secs_f64()))
     };
     let grey: Vec<Vec<f32>> = wins
@@ -1007,17 +986,7 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
     }
     let mut pipe = Pipeline::load(&a.model, &dev, &a.prompt)?;
     if let Some(dir) = &a.lora {
-        let (_, unet) = lora::load(dir, pipe.model.unet, &dev)?;
-        pipe.model.unet = unet;
-        pipe.notes
-            .push(format!("LoRA adapters from {}", dir.display()));
-        // The identifier tokens fine-tuned with the adapters.
-        let tdir = dir.join("text_encoder");
-        if tdir.join(extranerf_diffusion::text::TOKENS_FILE).is_file() {
-            pipe.model.tokens = LearnedTokens::load(&tdir, &dev)?;
-            pipe.notes
-                .push(format!("conditioning tokens from {}", tdir.display()));
-        }
+        pipe = pipe.with_lora(dir, &dev)?;
     }
     for n in &pipe.notes {
         eprintln!("model: {n}");
@@ -1031,46 +1000,26 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
             a.image.display()
         );
     }
-    let m = pipe.model.size_multiple();
-    if w % m != 0 || h % m != 0 {
-        bail!(
-            "{}: {w}x{h} is not a multiple of {m} on both sides, which this model needs",
-            a.image.display()
-        );
-    }
     let mask: Vec<f32> = mrgb
         .chunks(3)
-        .map(|p| {
-            if (p[0] + p[1] + p[2]) / 3.0 > 0.5 {
-                1.0
-            } else {
-                0.0
-            }
-        })
+        .map(|p| f32::from((p[0] + p[1] + p[2]) / 3.0 > 0.5))
         .collect();
-    let img_t = Tensor::<1>::from_floats(to_chw(&rgb, w, h).as_slice(), &dev).reshape([1, 3, h, w]);
-    let mask_t = Tensor::<1>::from_floats(mask.as_slice(), &dev).reshape([1, 1, h, w]);
-    let c = pipe.model.codec.channels();
-    let f = pipe.model.codec.factor();
-    let noise = seeded_noise([1, c, h / f, w / f], a.seed, &dev);
     let t = Instant::now();
-    let out = pipe.model.inpaint(
-        img_t,
-        mask_t,
-        noise,
+    let out = pipe.model.inpaint_image(
+        &rgb,
+        &mask,
+        w,
+        h,
+        a.seed,
         &SampleSettings {
             strength: a.strength,
             steps: a.steps,
             guidance: a.guidance,
             keep_known: true,
         },
+        &dev,
     )?;
-    let chw: Vec<f32> = out
-        .image
-        .into_data()
-        .try_to_vec_as::<f32>()
-        .map_err(|e| anyhow::anyhow!("reading the result: {e:?}"))?;
-    write_png(&a.out, w as u32, h as u32, &to_hwc(&chw, w, h))?;
+    write_png(&a.out, w as u32, h as u32, &out.rgb)?;
     println!(
         "wrote {} ({} DDIM steps from t = {} (noise level {:.3}) in {:.1} s)",
         a.out.display(),
@@ -1094,7 +1043,7 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
     if a.rank == 0 {
         bail!("--rank must be at least 1");
     }
-    let views = load_views(&a.scene, &a.split, a.factor, a.downscale)?;
+    let views = load_views(&a.scene, a.split, a.factor, a.downscale)?;
     let m = pipe.model.size_multiple();
     if a.crop == 0 || !a.crop.is_multiple_of(m) {
         bail!(
@@ -1203,22 +1152,22 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
 fn init(a: &InitArgs) -> anyhow::Result<()> {
     let dev = Device::flex();
     dev.seed(a.seed);
-    let pipe = match a.config.as_str() {
-        "tiny" => Pipeline::new(
+    let pipe = match a.config {
+        InitConfig::Tiny => Pipeline::new(
             UNetConfig::tiny_inpainting(),
             Some(VaeConfig::tiny()),
             SchedulerConfig::default(),
             4,
             &dev,
         )?,
-        "pixel" => Pipeline::new(
+        InitConfig::Pixel => Pipeline::new(
             prior_unet_config(&[32, 64, 96], 64)?,
             None,
             prior_scheduler(Prediction::V),
             4,
             &dev,
         )?,
-        _ => Pipeline::new(
+        InitConfig::Sd15Inpainting => Pipeline::new(
             UNetConfig::sd15_inpainting(),
             Some(VaeConfig::sd()),
             SchedulerConfig::default(),
@@ -1230,7 +1179,10 @@ fn init(a: &InitArgs) -> anyhow::Result<()> {
     println!(
         "wrote {} ({}; U-Net {} parameters, randomly initialised, seed {})",
         a.out.display(),
-        a.config,
+        a.config
+            .to_possible_value()
+            .map(|v| v.get_name().to_string())
+            .unwrap_or_default(),
         pipe.model.unet.num_params(),
         a.seed
     );

@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
+use extranerf_diffusion::device::Backend;
 use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
 use extranerf_extrapolate::eval::compare;
 use extranerf_extrapolate::inpaint::InpainterKind;
@@ -14,8 +15,8 @@ use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::metrics::{Lpips, LpipsNet};
-use extranerf_nerf::run::SceneSpec;
 
+use crate::nerf::SplitArgs;
 use crate::report::{Console, Logged};
 use crate::visibility::Measure;
 
@@ -46,15 +47,8 @@ pub struct ExtrapolateArgs {
     /// Scene: an LLFF folder or a transforms.json scene (not needed with --base).
     #[arg(long, value_name = "DIR", required_unless_present_any = ["base", "resume"])]
     scene: Option<PathBuf>,
-    /// Views to train the BaseNeRF on: extrapolation, fewshot or all.
-    #[arg(long, default_value = "extrapolation")]
-    split: String,
-    /// Training views of the few-shot split.
-    #[arg(long, default_value_t = 3)]
-    fewshot_views: usize,
-    /// LLFF downsampling factor (reads images_N).
-    #[arg(long, default_value_t = 8)]
-    factor: u32,
+    #[command(flatten)]
+    views: SplitArgs,
     /// Run folder: extrapolate.json (the manifest), base/, visibility/, stage2-NAME/,
     /// flythrough/, extrapolate.log.
     #[arg(long, value_name = "RUN")]
@@ -82,8 +76,8 @@ pub struct ExtrapolateArgs {
     diffusion_steps: usize,
     /// burn backend of the diffusion inpainter: auto (the engine's device, or burn's CPU
     /// backend on a CPU Vulkan driver such as lavapipe), device or cpu.
-    #[arg(long, default_value = "auto", value_parser = ["auto", "device", "cpu"])]
-    diffusion_backend: String,
+    #[arg(long, value_enum, default_value_t = Backend::Auto)]
+    diffusion_backend: Backend,
     /// Virtual views.
     #[arg(long = "virtual", default_value_t = 8, value_name = "N")]
     virtual_views: usize,
@@ -142,20 +136,13 @@ pub struct ExtrapolateArgs {
 impl ExtrapolateArgs {
     /// Whether burn may run on the engine's own device (the context must then be shareable).
     pub fn needs_wgpu(&self) -> bool {
-        self.inpainter.contains(&InpainterKind::Diffusion) && self.diffusion_backend != "cpu"
+        self.inpainter.contains(&InpainterKind::Diffusion) && self.diffusion_backend != Backend::Cpu
     }
 }
 
 /// `extranerf extrapolate`.
 pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
-    let scene = a.scene.as_ref().map(|dir| SceneSpec {
-        dir: dir.clone(),
-        split: a.split.clone(),
-        fewshot_views: a.fewshot_views,
-        factor: a.factor,
-        sparse_depth: true,
-        depth_dir: None,
-    });
+    let scene = a.scene.as_ref().map(|dir| a.views.spec(dir.clone(), true));
     let scene = match (scene, a.resume, &a.base) {
         (None, true, None) => {
             let m =
@@ -199,7 +186,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             model: m.clone(),
             lora: a.diffusion_lora.clone(),
             steps: a.diffusion_steps,
-            backend: a.diffusion_backend.clone(),
+            backend: a.diffusion_backend,
         }),
         flythrough: FlythroughSpec {
             frames: a.flythrough,

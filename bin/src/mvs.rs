@@ -248,8 +248,8 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
     }
     let mut doc = serde_json::json!({
         "scene": a.scene.scene,
-        "split": a.scene.split,
-        "factor": a.scene.factor,
+        "split": a.scene.views.split,
+        "factor": a.scene.views.factor,
         "downscale": a.downscale,
         "width": cams[0].width,
         "height": cams[0].height,

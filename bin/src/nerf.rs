@@ -8,14 +8,18 @@ use extranerf_extrapolate::driver::{
     default_lpips_dir, fit_budget, train_loop, view_indices, TrainRun,
 };
 use extranerf_gpu::Context;
+use extranerf_nerf::autoconfig::model_for_scene;
+use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
+use extranerf_nerf::model::Precision;
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
+use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_nerf::run::{
-    load_checkpoint, model_for_scene, training_views, write_png, write_ray_depth_exr, RunConfig,
-    SceneSpec,
+    load_checkpoint, training_views, write_png, write_ray_depth_exr, RunConfig, SceneSpec,
 };
-use extranerf_nerf::trainer::{March, Nerf, TrainConfig, TrainData, Trainer, STAT_SLOTS};
+use extranerf_nerf::trainer::{TrainConfig, Trainer, STAT_SLOTS};
+use extranerf_nerf::views::TrainData;
 use extranerf_prims::Prims;
 
 use crate::report::Console;
@@ -26,16 +30,8 @@ pub struct TrainArgs {
     /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
     #[arg(long, value_name = "DIR", required_unless_present = "resume")]
     scene: Option<PathBuf>,
-    /// Views to train on: extrapolation (6 central views; the 8 farthest are held out),
-    /// fewshot (RegNeRF: every 8th held out, --fewshot-views spread over the rest) or all.
-    #[arg(long, default_value = "extrapolation")]
-    split: String,
-    /// Training views of the few-shot split.
-    #[arg(long, default_value_t = 3)]
-    fewshot_views: usize,
-    /// LLFF downsampling factor (reads images_N).
-    #[arg(long, default_value_t = 8)]
-    factor: u32,
+    #[command(flatten)]
+    views: SplitArgs,
     /// Run folder: config.json, checkpoint.safetensors, progress.jsonl.
     #[arg(long, value_name = "RUN")]
     out: PathBuf,
@@ -83,8 +79,8 @@ pub struct TrainArgs {
     /// keeps its saved activations and gradients in f16 with per-segment power-of-two scales
     /// (f32 master weights and arithmetic; needs 2 features per level, MLP widths in multiples
     /// of 4, and a device with shaderFloat16 and 16-bit storage).
-    #[arg(long, value_parser = ["f32", "f16"])]
-    precision: Option<String>,
+    #[arg(long, value_enum)]
+    precision: Option<Precision>,
     /// Dense depth maps for the training views (`<image stem>.npy` or `.exr`, view depth in the
     /// capture's units); without it the COLMAP sparse points are used when present.
     #[arg(long, value_name = "DIR")]
@@ -131,8 +127,8 @@ pub struct TrainArgs {
     /// weight-gradient reduction; the default where the model allows it) or standalone (one
     /// kernel per stage, every sample in memory between them). precision f16 always uses
     /// standalone; both take --occupancy-res. May be given with --resume.
-    #[arg(long, value_name = "KIND", value_parser = ["fused", "standalone"])]
-    step: Option<String>,
+    #[arg(long, value_name = "KIND", value_enum)]
+    step: Option<KernelPath>,
     /// Steps between progress lines (1 to 64).
     #[arg(long, default_value_t = 25)]
     log_every: u32,
@@ -158,6 +154,36 @@ pub struct TrainArgs {
     /// Held-out views that --eval-every renders: test, or indices such as 0,8,16.
     #[arg(long, default_value = "test", value_name = "VIEWS")]
     eval_views: String,
+}
+
+/// `train --step` and `render --march`: one fused kernel, or the standalone chain.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KernelPath {
+    /// One kernel for the whole chain.
+    Fused,
+    /// One kernel per stage, every sample stored between them.
+    Standalone,
+}
+
+impl KernelPath {
+    /// The name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            KernelPath::Fused => "fused",
+            KernelPath::Standalone => "standalone",
+        }
+    }
+}
+
+/// `bench train --step`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BenchSteps {
+    /// The fused step only.
+    Fused,
+    /// The standalone chain only.
+    Standalone,
+    /// Both, the standalone chain last.
+    Both,
 }
 
 /// `train --background`.
@@ -239,9 +265,9 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         }
         let scene = SceneSpec {
             dir: a.scene.clone().unwrap_or_default(),
-            split: a.split.clone(),
-            fewshot_views: a.fewshot_views,
-            factor: a.factor,
+            split: a.views.split,
+            fewshot_views: a.views.fewshot_views,
+            factor: a.views.factor,
             sparse_depth: true,
             depth_dir: a.depth_dir.clone(),
         };
@@ -260,7 +286,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         apply(&mut model.log2_table, a.log2_table);
         apply(&mut model.levels, a.levels);
         apply(&mut model.max_res, a.max_res);
-        apply(&mut model.precision, a.precision.clone());
+        apply(&mut model.precision, a.precision);
         if let Some(w) = a.width {
             model.density_width = w;
             model.color_width = w;
@@ -315,8 +341,8 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             cfg.train.steps = s;
         }
     }
-    if let Some(step) = &a.step {
-        cfg.train.fused_step = step == "fused";
+    if let Some(step) = a.step {
+        cfg.train.fused_step = step == KernelPath::Fused;
     }
     let run = TrainRun {
         out: a.out.clone(),
@@ -341,8 +367,8 @@ pub struct MarchArgs {
     /// registers, with optional occupancy skipping and early termination). standalone: the
     /// training kernels, which store every sample between stages (no cuts; about as fast on
     /// lavapipe, results/bench_render_lavapipe).
-    #[arg(long, default_value = "fused", value_parser = ["fused", "standalone"])]
-    pub march: String,
+    #[arg(long, value_enum, default_value_t = KernelPath::Fused)]
+    pub march: KernelPath,
     /// Occupancy grid cells per axis, built from the field before rendering, so empty space is
     /// skipped (fused only; 0: no grid). Points outside the grid are always evaluated. Off by
     /// default: a BaseNeRF trained on fern fills 99.9% of a 64^3 grid above the threshold (a
@@ -372,7 +398,7 @@ pub struct MarchArgs {
 impl Default for MarchArgs {
     fn default() -> Self {
         MarchArgs {
-            march: "fused".into(),
+            march: KernelPath::Fused,
             occupancy_res: 0,
             occupancy_passes: 4,
             occupancy_threshold: 0.01,
@@ -385,9 +411,9 @@ impl Default for MarchArgs {
 impl MarchArgs {
     /// The evaluation path.
     pub fn march(&self) -> anyhow::Result<March> {
-        Ok(match self.march.as_str() {
-            "standalone" => March::Standalone,
-            _ => {
+        Ok(match self.march {
+            KernelPath::Standalone => March::Standalone,
+            KernelPath::Fused => {
                 for (flag, v) in [
                     ("--min-weight", self.min_weight),
                     ("--min-transmittance", self.min_transmittance),
@@ -410,7 +436,7 @@ impl MarchArgs {
         &self,
         model: &extranerf_nerf::model::ModelConfig,
     ) -> anyhow::Result<Option<OccupancyConfig>> {
-        if self.march == "standalone" || self.occupancy_res == 0 {
+        if self.march == KernelPath::Standalone || self.occupancy_res == 0 {
             return Ok(None);
         }
         if !(1..=512).contains(&self.occupancy_res) || self.occupancy_passes == 0 {
@@ -437,7 +463,7 @@ impl MarchArgs {
     /// The settings as JSON, for metrics files.
     pub fn json(&self) -> serde_json::Value {
         serde_json::json!({
-            "march": self.march,
+            "march": self.march.name(),
             "occupancy_res": self.occupancy_res,
             "occupancy_passes": self.occupancy_passes,
             "occupancy_threshold": self.occupancy_threshold,
@@ -548,7 +574,9 @@ fn render_views(
         let truth = extranerf_nerf::data::load_image(&cam.image)?;
         eprintln!(
             "rendered {role} view {i} ({}x{}, {} march) in {seconds:.2} s",
-            cam.width, cam.height, march.march
+            cam.width,
+            cam.height,
+            march.march.name()
         );
         each(&Rendered {
             index: i,
@@ -724,8 +752,8 @@ pub struct BenchTrainArgs {
     steps: u32,
     /// Step kernels to measure: fused, standalone, or both (the standalone chain is then the
     /// same-run reference of the fused step's speed).
-    #[arg(long, value_name = "KIND", default_value = "both", value_parser = ["fused", "standalone", "both"])]
-    step: String,
+    #[arg(long, value_name = "KIND", value_enum, default_value_t = BenchSteps::Both)]
+    step: BenchSteps,
     /// Train with an occupancy grid of this many cells per axis (0: none), with no warm-up:
     /// each step also runs its share of the grid's sweep, and once the first sweep has set
     /// the bits (step --occupancy-every) the strata cover only the rays' occupied probe
@@ -757,7 +785,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     }
     let spec = SceneSpec {
         dir: scene,
-        split: "extrapolation".into(),
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
         fewshot_views: 3,
         factor: 8,
         sparse_depth: true,
@@ -774,10 +802,10 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     let prims = Prims::new(ctx)?;
     println!("device: {}", ctx.info().name);
     // The standalone chain last.
-    let kinds: &[bool] = match a.step.as_str() {
-        "fused" => &[true],
-        "standalone" => &[false],
-        _ => &[true, false],
+    let kinds: &[bool] = match a.step {
+        BenchSteps::Fused => &[true],
+        BenchSteps::Standalone => &[false],
+        BenchSteps::Both => &[true, false],
     };
     let mut results = Vec::new();
     for &fused in kinds {
@@ -949,7 +977,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
     let cfg = RunConfig {
         scene: SceneSpec {
             dir: scene_dir,
-            split: "extrapolation".into(),
+            split: extranerf_nerf::data::split::SplitKind::Extrapolation,
             fewshot_views: 3,
             factor: 1,
             sparse_depth: false,
@@ -1055,7 +1083,7 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
         (
             "standalone kernels",
             MarchArgs {
-                march: "standalone".into(),
+                march: KernelPath::Standalone,
                 ..MarchArgs::default()
             },
         ),
@@ -1139,15 +1167,13 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A scene and the views of a split: for the commands that read a scene without a run.
+/// Which views of a scene train and which are held out, and the image size.
 #[derive(clap::Args, Debug, Clone)]
-pub struct SceneArgs {
-    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
-    #[arg(long, value_name = "DIR")]
-    pub scene: PathBuf,
-    /// Split whose training views are used (extrapolation, fewshot, all).
-    #[arg(long, default_value = "extrapolation")]
-    pub split: String,
+pub struct SplitArgs {
+    /// Views to train on: extrapolation (6 central views; the 8 farthest are held out),
+    /// fewshot (RegNeRF: every 8th held out, --fewshot-views spread over the rest) or all.
+    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
+    pub split: SplitKind,
     /// Training views of the few-shot split.
     #[arg(long, default_value_t = 3)]
     pub fewshot_views: usize,
@@ -1156,17 +1182,35 @@ pub struct SceneArgs {
     pub factor: u32,
 }
 
+impl SplitArgs {
+    /// The scene spec of `dir` with these views (depth supervision from the COLMAP sparse
+    /// points when `sparse_depth`).
+    pub fn spec(&self, dir: PathBuf, sparse_depth: bool) -> SceneSpec {
+        SceneSpec {
+            dir,
+            split: self.split,
+            fewshot_views: self.fewshot_views,
+            factor: self.factor,
+            sparse_depth,
+            depth_dir: None,
+        }
+    }
+}
+
+/// A scene and the views of a split: for the commands that read a scene without a run.
+#[derive(clap::Args, Debug, Clone)]
+pub struct SceneArgs {
+    /// Scene: an LLFF folder (poses_bounds.npy + images_N/) or a transforms.json scene.
+    #[arg(long, value_name = "DIR")]
+    pub scene: PathBuf,
+    #[command(flatten)]
+    pub views: SplitArgs,
+}
+
 impl SceneArgs {
     /// The scene spec (no depth supervision).
     pub fn spec(&self) -> SceneSpec {
-        SceneSpec {
-            dir: self.scene.clone(),
-            split: self.split.clone(),
-            fewshot_views: self.fewshot_views,
-            factor: self.factor,
-            sparse_depth: false,
-            depth_dir: None,
-        }
+        self.views.spec(self.scene.clone(), false)
     }
 }
 
@@ -1208,7 +1252,7 @@ pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
         a.trajectory,
         a.range,
         rig.len(),
-        a.scene.split,
+        a.scene.views.split,
         a.out.display()
     );
     Ok(())

@@ -10,11 +10,14 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::load_image;
+use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips};
+use extranerf_nerf::model::Precision;
 use extranerf_nerf::mvs::downscale_rgb;
 use extranerf_nerf::render::march::MarchCuts;
+use extranerf_nerf::renderer::March;
 use extranerf_nerf::run::{RunConfig, SceneSpec};
-use extranerf_nerf::trainer::{March, TrainConfig};
+use extranerf_nerf::trainer::TrainConfig;
 use extranerf_prims::Prims;
 
 /// Arguments of `extranerf bench tradeoff`.
@@ -24,8 +27,8 @@ pub struct TradeoffArgs {
     #[arg(long, value_name = "DIR")]
     scene: PathBuf,
     /// Split (extrapolation, fewshot, all).
-    #[arg(long, default_value = "extrapolation")]
-    split: String,
+    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
+    split: SplitKind,
     /// LLFF downsampling factor.
     #[arg(long, default_value_t = 8)]
     factor: u32,
@@ -166,7 +169,7 @@ fn points() -> Vec<Point> {
         Point {
             name: "f16",
             knob: "precision",
-            apply: |c| c.model.precision = "f16".into(),
+            apply: |c| c.model.precision = Precision::F16,
         },
         Point {
             name: "auto",
@@ -341,7 +344,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
     }
     let spec = SceneSpec {
         dir: a.scene.clone(),
-        split: a.split.clone(),
+        split: a.split,
         fewshot_views: 3,
         factor: a.factor,
         sparse_depth: true,
@@ -376,7 +379,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         Vec::new()
     };
     for p in chosen {
-        let mut model = extranerf_nerf::run::model_for_scene(&loaded.scene);
+        let mut model = extranerf_nerf::autoconfig::model_for_scene(&loaded.scene);
         model.log2_table = a.log2_table;
         let train = TrainConfig {
             steps: a.steps,

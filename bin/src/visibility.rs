@@ -5,18 +5,13 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context as _};
+use extranerf_extrapolate::visibility::{
+    complete_depth, map_summary, write_map, QuerySettings, RunVisibility,
+};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
-use extranerf_nerf::run::{
-    load_checkpoint, ray_depth_to_view_depth, write_depth_exr, write_png, write_ray_depth_exr,
-    Checkpoint, LoadedScene,
-};
-use extranerf_nerf::trainer::Nerf;
-use extranerf_prims::Prims;
-
 use extranerf_nerf::render::visibility::{
-    mask_all_but, Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap,
-    VisibilityMeasure, MAX_RANK, MAX_TRAIN_CAMERAS,
+    mask_all_but, VisibilityMap, VisibilityMeasure, MAX_RANK,
 };
 
 use crate::nerf::MarchArgs;
@@ -152,154 +147,57 @@ pub struct VisibilityArgs {
     vis: VisArgs,
 }
 
-/// A trained run ready for visibility queries.
-struct Loaded {
-    ck: Checkpoint,
-    scene: LoadedScene,
-    nerf: Nerf,
-    vis: Visibility,
-    /// The training cameras' transmittance volumes, once built.
-    volume: Option<TransmittanceVolume>,
-}
-
-impl Loaded {
-    fn new(ctx: &Context, run: &Path, a: &VisArgs) -> anyhow::Result<Loaded> {
-        let ck = load_checkpoint(run)?;
-        let scene = ck.config.scene.load()?;
-        let mut nerf = Nerf::new(
-            ctx,
-            ck.config.model.clone(),
-            &ck.params,
-            ck.config.train.background,
-        )?;
-        let march = MarchArgs {
-            occupancy_res: a.occupancy_res,
-            ..MarchArgs::default()
-        };
-        if let Some(occ) = march.occupancy(&ck.config.model)? {
-            let prims = Prims::new(ctx)?;
-            let t = Instant::now();
-            if let Some(st) =
-                nerf.build_occupancy(ctx, &prims, Some(occ), march.occupancy_passes)?
-            {
-                eprintln!(
-                    "occupancy grid {}^3: {} of {} cells occupied ({:.1}%), built in {:.1} s",
-                    occ.res,
-                    st.occupied,
-                    st.cells,
-                    100.0 * st.occupied as f64 / st.cells as f64,
-                    t.elapsed().as_secs_f64()
-                );
-            }
-        }
-        let vis = Visibility::new(ctx)?;
-        Ok(Loaded {
-            ck,
-            scene,
-            nerf,
-            vis,
-            volume: None,
-        })
-    }
-
-    fn train_cameras(&self) -> anyhow::Result<Vec<Camera>> {
-        let train: Vec<Camera> = self
-            .scene
-            .split
-            .train
-            .iter()
-            .map(|&i| self.scene.scene.cameras[i].clone())
-            .collect();
-        if train.len() > MAX_TRAIN_CAMERAS {
-            bail!(
-                "the run has {} training views; visibility supports at most {MAX_TRAIN_CAMERAS}",
-                train.len()
+/// Loads the run for visibility queries, with the occupancy grid `a` asks for.
+fn load(ctx: &Context, run: &Path, a: &VisArgs) -> anyhow::Result<RunVisibility> {
+    let mut l = RunVisibility::load(ctx, run)?;
+    let march = MarchArgs {
+        occupancy_res: a.occupancy_res,
+        ..MarchArgs::default()
+    };
+    if let Some(occ) = march.occupancy(&l.base.ck.config.model)? {
+        if let Some(b) = l.build_occupancy(ctx, occ, march.occupancy_passes)? {
+            eprintln!(
+                "occupancy grid {}^3: {} of {} cells occupied ({:.1}%), built in {:.1} s",
+                b.res,
+                b.stats.occupied,
+                b.stats.cells,
+                100.0 * b.stats.occupied as f64 / b.stats.cells as f64,
+                b.seconds
             );
         }
-        Ok(train)
     }
+    Ok(l)
+}
 
-    fn config(&self, a: &VisArgs, rank: u32) -> anyhow::Result<VisibilityConfig> {
-        if !(1..=MAX_RANK).contains(&rank) {
-            bail!("rank {rank}: use 1 to {MAX_RANK}");
+impl VisArgs {
+    fn query(&self) -> QuerySettings {
+        QuerySettings {
+            samples: self.samples,
+            vis_samples: self.vis_samples,
+            min_weight: self.min_weight,
+            min_transmittance: self.min_transmittance,
+            measure: self.measure.into(),
         }
-        for (flag, v) in [
-            ("--min-weight", a.min_weight),
-            ("--min-transmittance", a.min_transmittance),
-        ] {
-            if !(0.0..1.0).contains(&v) {
-                bail!("{flag} {v}: use a value in [0, 1)");
-            }
-        }
-        if a.vis_samples == 0 || a.samples == Some(0) {
-            bail!("--samples and --vis-samples must be positive");
-        }
-        Ok(VisibilityConfig {
-            samples: a.samples.unwrap_or(self.ck.config.train.samples),
-            vis_samples: a.vis_samples,
-            rank,
-            min_weight: a.min_weight,
-            min_transmittance: a.min_transmittance,
-            measure: a.measure.into(),
-        })
     }
+}
 
-    fn density(&self) -> anyhow::Result<Density<'_>> {
-        Ok(Density::Field {
-            field: self.nerf.field(),
-            params: self.nerf.field().layout().sections(self.nerf.params())?,
-            occupancy: self.nerf.occupancy(),
-        })
-    }
-
-    /// Builds the transmittance volumes of `train` (returns the seconds it took).
-    fn build_volume(
-        &mut self,
-        ctx: &Context,
-        train: &[Camera],
-        a: &VisArgs,
-    ) -> anyhow::Result<f64> {
-        if a.volume_res == 0 || a.volume_depth == 0 {
-            bail!("--volume-res and --volume-depth must be positive");
-        }
-        let t = Instant::now();
-        let vol =
-            self.vis
-                .build_volume(ctx, &self.density()?, train, a.volume_res, a.volume_depth)?;
-        let s = t.elapsed().as_secs_f64();
+/// Builds the transmittance volumes and prints their size; returns the seconds.
+fn build_volume(
+    ctx: &Context,
+    l: &mut RunVisibility,
+    train: &[Camera],
+    a: &VisArgs,
+) -> anyhow::Result<f64> {
+    let s = l.build_volume(ctx, train, a.volume_res, a.volume_depth)?;
+    if let Some(vol) = l.volume() {
         let [w, h, d] = vol.size();
         eprintln!(
             "transmittance volumes: {} cameras x {w}x{h} rays x {d} strata ({:.1} MiB), built in {s:.1} s",
             train.len(),
             vol.bytes() as f64 / (1 << 20) as f64
         );
-        self.volume = Some(vol);
-        Ok(s)
     }
-
-    #[allow(clippy::too_many_arguments)] // each is a distinct operand
-    fn map(
-        &self,
-        ctx: &Context,
-        cam: &Camera,
-        train: &[Camera],
-        mask: u32,
-        cfg: &VisibilityConfig,
-        volume: bool,
-        chunk: u32,
-    ) -> anyhow::Result<VisibilityMap> {
-        let vol = if volume {
-            let Some(v) = self.volume.as_ref() else {
-                bail!("the transmittance volumes have not been built");
-            };
-            Some(v)
-        } else {
-            None
-        };
-        Ok(self
-            .vis
-            .map(ctx, &self.density()?, cam, train, mask, cfg, vol, chunk)?)
-    }
+    Ok(s)
 }
 
 /// `cam` at 1/`factor` of its resolution (same field of view).
@@ -310,76 +208,18 @@ fn downscaled(cam: &Camera, factor: u32) -> anyhow::Result<Camera> {
     Ok(cam.downscaled(factor))
 }
 
-/// Writes `NAME_vis.png` (grey visibility), `NAME_vis.exr` (channels V: visibility,
-/// A: opacity) and `NAME_mask.png` (white where visibility < threshold).
-fn write_map(out: &Path, name: &str, m: &VisibilityMap, threshold: f32) -> anyhow::Result<()> {
-    let grey: Vec<f32> = m.visibility.iter().flat_map(|&v| [v, v, v]).collect();
-    write_png(
-        &out.join(format!("{name}_vis.png")),
-        m.width,
-        m.height,
-        &grey,
-    )?;
-    let mask: Vec<f32> = m
-        .visibility
-        .iter()
-        .flat_map(|&v| {
-            let x = if v < threshold { 1.0 } else { 0.0 };
-            [x, x, x]
-        })
-        .collect();
-    write_png(
-        &out.join(format!("{name}_mask.png")),
-        m.width,
-        m.height,
-        &mask,
-    )?;
-    extranerf_nerf::run::write_exr_channels(
-        &out.join(format!("{name}_vis.exr")),
-        m.width,
-        m.height,
-        &[("V", &m.visibility), ("A", &m.opacity)],
-    )?;
-    Ok(())
-}
-
-fn summary(
-    name: &str,
-    kind: &str,
-    m: &VisibilityMap,
-    seconds: f64,
-    threshold: f32,
-) -> serde_json::Value {
-    let px = (m.width as f64 * m.height as f64).max(1.0);
-    let evals: f64 = m.evals.iter().map(|&e| e as f64).sum();
-    serde_json::json!({
-        "view": name,
-        "kind": kind,
-        "width": m.width,
-        "height": m.height,
-        "mean_visibility": m.mean(),
-        "mean_opacity": m.mean_opacity(),
-        "visible_fraction": m.visible_fraction(),
-        "masked_fraction": m.masked_fraction(threshold),
-        "seconds": seconds,
-        "us_per_pixel": seconds * 1e6 / px,
-        // Field evaluations of the segment marches, or volume lookups.
-        "evals_per_pixel": evals / px,
-    })
-}
-
 /// `extranerf visibility`.
 pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
     let out = a.out.clone().unwrap_or_else(|| a.run.join("visibility"));
     if !(0.0..=1.0).contains(&a.threshold) {
         bail!("--threshold {}: use a value in [0, 1]", a.threshold);
     }
-    let mut l = Loaded::new(ctx, &a.run, &a.vis)?;
+    let mut l = load(ctx, &a.run, &a.vis)?;
     let train = l.train_cameras()?;
-    let cfg = l.config(&a.vis, a.vis.rank)?;
+    let cfg = l.config(&a.vis.query(), a.vis.rank)?;
     let volume = a.vis.method == Method::Volume;
     let build_seconds = if volume {
-        Some(l.build_volume(ctx, &train, &a.vis)?)
+        Some(build_volume(ctx, &mut l, &train, &a.vis)?)
     } else {
         None
     };
@@ -392,8 +232,8 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
         }
     }
     if let Some(list) = &a.views {
-        let split = &l.scene.split;
-        let n = l.scene.scene.cameras.len();
+        let split = &l.base.loaded.split;
+        let n = l.base.loaded.scene.cameras.len();
         let idx: Vec<usize> = match list.as_str() {
             "test" => split.test.clone(),
             "train" => split.train.clone(),
@@ -424,7 +264,7 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
             views.push((
                 format!("{kind}_{i:03}"),
                 kind,
-                l.scene.scene.cameras[i].clone(),
+                l.base.loaded.scene.cameras[i].clone(),
             ));
         }
     }
@@ -461,14 +301,26 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
             100.0 * m.visible_fraction(),
             100.0 * m.masked_fraction(a.threshold)
         );
-        let mut row = summary(name, kind, &m, s, a.threshold);
+        let mut row = map_summary(name, kind, &m, s, a.threshold);
         if a.complete_depth > 0 {
             let t = Instant::now();
-            let changed = complete_depth(ctx, &l, &cam, &m, a, &out, name)?;
+            let samples = a.vis.samples.unwrap_or(l.base.ck.config.train.samples);
+            let done = complete_depth(
+                ctx,
+                &l.base,
+                &cam,
+                &m,
+                a.threshold,
+                a.depth_sigma,
+                a.complete_depth,
+                samples,
+                a.vis.chunk,
+            )?;
+            done.write(&out, name, &cam)?;
             row["depth_completion"] = serde_json::json!({
                 "iterations": a.complete_depth,
                 "sigma": a.depth_sigma,
-                "mean_abs_change": changed,
+                "mean_abs_change": done.mean_abs_change,
                 "seconds": t.elapsed().as_secs_f64(),
             });
         }
@@ -489,8 +341,8 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
         } else {
             a.mask_rank
         };
-        let mcfg = l.config(&a.vis, rank)?;
-        for (k, &i) in l.scene.split.train.iter().enumerate() {
+        let mcfg = l.config(&a.vis.query(), rank)?;
+        for (k, &i) in l.base.loaded.split.train.iter().enumerate() {
             let cam = downscaled(&train[k], a.vis.downscale)?;
             let t = Instant::now();
             let m = l.map(
@@ -510,12 +362,12 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
                 train.len() - 1,
                 100.0 * m.masked_fraction(a.threshold)
             );
-            rows.push(summary(&name, "training-mask", &m, s, a.threshold));
+            rows.push(map_summary(&name, "training-mask", &m, s, a.threshold));
         }
     }
     let doc = serde_json::json!({
         "run": a.run,
-        "training_views": l.scene.split.train,
+        "training_views": l.base.loaded.split.train,
         "settings": {
             "rank": cfg.rank,
             "mask_rank": a.mask_rank,
@@ -540,93 +392,6 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Renders `cam`, keeps the depth where `m` says the training views saw it (visibility >=
-/// --threshold) and fills the rest with the colour-guided depth completion on the device.
-/// Writes NAME_depth.exr and NAME_depth_completed.exr; returns the mean |change| over the
-/// filled pixels.
-fn complete_depth(
-    ctx: &Context,
-    l: &Loaded,
-    cam: &Camera,
-    m: &VisibilityMap,
-    a: &VisibilityArgs,
-    out: &Path,
-    name: &str,
-) -> anyhow::Result<f64> {
-    use extranerf_gpu::Buffer;
-    use extranerf_nerf::depth_completion::DepthCompletion;
-    use extranerf_nerf::render::march::MarchCuts;
-    use extranerf_nerf::trainer::March;
-    let samples = a.vis.samples.unwrap_or(l.ck.config.train.samples);
-    let (rgb, depth, _) = l.nerf.render_with(
-        ctx,
-        cam,
-        a.vis.chunk,
-        samples,
-        March::Fused(MarchCuts::EXACT),
-    )?;
-    let known: Vec<u32> = m
-        .visibility
-        .iter()
-        .map(|&v| u32::from(v >= a.threshold))
-        .collect();
-    let guide: Vec<[f32; 4]> = rgb
-        .chunks_exact(3)
-        .map(|c| [c[0], c[1], c[2], 0.0])
-        .collect();
-    let n = depth.len();
-    let dc = DepthCompletion::new(ctx)?;
-    let d = Buffer::from_slice(ctx, "completed depth", &depth)?;
-    let scratch = Buffer::<f32>::new(ctx, "depth scratch", n)?;
-    let k = Buffer::from_slice(ctx, "known depth", &known)?;
-    let g = Buffer::from_slice(ctx, "depth guide", &guide)?;
-    let mut rec = ctx.recorder("depth completion")?;
-    dc.record(
-        &mut rec,
-        cam.width,
-        cam.height,
-        d.binding(),
-        scratch.binding(),
-        k.binding(),
-        g.binding(),
-        a.depth_sigma,
-        a.complete_depth,
-    )?;
-    ctx.run(rec)?;
-    let done = d.read()?;
-    write_ray_depth_exr(
-        &out.join(format!("{name}_depth.exr")),
-        cam.width,
-        cam.height,
-        &depth,
-    )?;
-    write_ray_depth_exr(
-        &out.join(format!("{name}_depth_completed.exr")),
-        cam.width,
-        cam.height,
-        &done,
-    )?;
-    // The completed depth as view depth in the capture's units (channel Z), the unit
-    // `train --depth-dir` reads.
-    let scale = l.scene.scene.world_from_source.x_axis.truncate().length();
-    let ndc = l.ck.config.model.space == "ndc";
-    write_depth_exr(
-        &out.join(format!("{name}_view_depth.exr")),
-        cam.width,
-        cam.height,
-        &ray_depth_to_view_depth(cam, &done, ndc, scale),
-    )?;
-    let filled = known.iter().filter(|&&k| k == 0).count().max(1);
-    Ok(depth
-        .iter()
-        .zip(&done)
-        .zip(&known)
-        .filter(|(_, &k)| k == 0)
-        .map(|((a, b), _)| (a - b).abs() as f64)
-        .sum::<f64>()
-        / filled as f64)
-}
-
 /// Arguments of `extranerf bench visibility`.
 #[derive(clap::Args, Debug)]
 pub struct BenchVisibilityArgs {
@@ -649,36 +414,36 @@ pub struct BenchVisibilityArgs {
 /// exact segment march and for transmittance volumes (with the volumes' build cost and their
 /// difference from the march).
 pub fn bench_visibility(ctx: &Context, a: &BenchVisibilityArgs) -> anyhow::Result<()> {
-    let mut l = Loaded::new(ctx, &a.run, &a.vis)?;
+    let mut l = load(ctx, &a.run, &a.vis)?;
     let train = l.train_cameras()?;
     let view = a
         .view
-        .or_else(|| l.scene.split.test.first().copied())
+        .or_else(|| l.base.loaded.split.test.first().copied())
         .unwrap_or(0);
-    let Some(cam) = l.scene.scene.cameras.get(view) else {
+    let Some(cam) = l.base.loaded.scene.cameras.get(view) else {
         bail!(
             "--view {view}: the scene has {} views",
-            l.scene.scene.cameras.len()
+            l.base.loaded.scene.cameras.len()
         );
     };
     let cam = downscaled(cam, a.vis.downscale)?;
     let px = cam.width as f64 * cam.height as f64;
     let repeats = a.repeats.max(1);
     // The volumes' build, timed (the first build also creates the pipeline).
-    l.build_volume(ctx, &train, &a.vis)?;
+    build_volume(ctx, &mut l, &train, &a.vis)?;
     let mut builds = Vec::new();
     for _ in 0..repeats {
-        builds.push(l.build_volume(ctx, &train, &a.vis)? * 1e3);
+        builds.push(build_volume(ctx, &mut l, &train, &a.vis)? * 1e3);
     }
     builds.sort_by(f64::total_cmp);
     let build_ms = builds[builds.len() / 2];
-    let [vw, vh, vd] = l.volume.as_ref().map(|v| v.size()).unwrap_or([0; 3]);
+    let [vw, vh, vd] = l.volume().map(|v| v.size()).unwrap_or([0; 3]);
     println!("device: {}", ctx.info().name);
     println!(
         "view {view} at {}x{}, {} samples per ray; march: {} samples per segment, cuts {} / {}; volumes: {vw}x{vh}x{vd} per camera, built for all {} cameras in {build_ms:.1} ms",
         cam.width,
         cam.height,
-        a.vis.samples.unwrap_or(l.ck.config.train.samples),
+        a.vis.samples.unwrap_or(l.base.ck.config.train.samples),
         a.vis.vis_samples,
         a.vis.min_weight,
         a.vis.min_transmittance,
@@ -701,7 +466,7 @@ pub fn bench_visibility(ctx: &Context, a: &BenchVisibilityArgs) -> anyhow::Resul
     // n = 0: the camera ray alone (no camera selected), the reference cost.
     for n in 0..=train.len() {
         let rank = if n >= 2 { a.vis.rank.min(n as u32) } else { 1 };
-        let cfg = l.config(&a.vis, rank)?;
+        let cfg = l.config(&a.vis.query(), rank)?;
         let mask = mask_all_but(n, None);
         let mut exact: Option<VisibilityMap> = None;
         for method in ["march", "volume"] {

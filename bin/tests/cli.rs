@@ -89,6 +89,48 @@ fn bad_arguments_are_clear_errors() {
         !ok && err.contains("--scene") && err.contains("--out"),
         "{err}"
     );
+    // Choices are enums that clap checks and lists before any device or file is touched.
+    let run = "/no/such/run";
+    for (args, bad, choices) in [
+        (
+            ["train", "--out", run, "--split"],
+            "everything",
+            ["extrapolation", "fewshot", "all"].as_slice(),
+        ),
+        (
+            ["train", "--out", run, "--precision"],
+            "f8",
+            &["f32", "f16"],
+        ),
+        (
+            ["train", "--out", run, "--step"],
+            "fast",
+            &["fused", "standalone"],
+        ),
+        (
+            ["extrapolate", "--out", run, "--diffusion-backend"],
+            "tpu",
+            &["auto", "device", "cpu"],
+        ),
+        (
+            ["render", run, "--chunk=64", "--march"],
+            "fast",
+            &["fused", "standalone"],
+        ),
+    ] {
+        let mut a = args.to_vec();
+        a.push(bad);
+        let (ok, _, err) = extranerf(&a);
+        assert!(
+            !ok && err.contains(bad) && choices.iter().all(|c| err.contains(c)),
+            "{a:?}: {err}"
+        );
+    }
+    let (ok, out, err) = extranerf(&["train", "--help"]);
+    assert!(
+        ok && out.contains("[default: extrapolation]") && out.contains("fewshot"),
+        "{out}{err}"
+    );
     let dir = std::env::temp_dir().join(format!("extranerf-cli-bad-{}", std::process::id()));
     let out = dir.join("run");
     let (ok, _, err) = extranerf(&[

@@ -84,7 +84,9 @@ impl TensorBuffer {
 }
 
 /// Where the diffusion model runs (`--diffusion-backend`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Backend {
     /// The engine's Vulkan device, unless that device is itself a CPU implementation (Mesa
     /// lavapipe), where burn's CPU backend measured several times faster (`bench diffusion`).
@@ -96,16 +98,6 @@ pub enum Backend {
 }
 
 impl Backend {
-    /// Parses `auto`, `device` or `cpu`.
-    pub fn parse(s: &str) -> Option<Backend> {
-        match s {
-            "auto" => Some(Backend::Auto),
-            "device" => Some(Backend::Device),
-            "cpu" => Some(Backend::Cpu),
-            _ => None,
-        }
-    }
-
     /// What `Auto` resolves to on a device of this Vulkan type ("CPU" for lavapipe).
     pub fn resolve(self, device_type: &str) -> Backend {
         match self {

@@ -132,6 +132,31 @@ pub struct Inpainted {
     pub noise_level: f64,
 }
 
+/// [`InpaintModel::inpaint_image`]'s result.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InpaintedImage {
+    /// `[h, w, 3]` in [0, 1]: the model's output (with `keep_known`, the known pixels are the
+    /// input's).
+    pub rgb: Vec<f32>,
+    /// The starting training timestep.
+    pub t_start: usize,
+    /// Its noise level sqrt(1 - alpha_bar).
+    pub noise_level: f64,
+}
+
+/// `v` (`[h, w, c]`) padded to `pw x ph` by repeating its last column and row.
+fn pad_edge(v: &[f32], w: usize, h: usize, c: usize, pw: usize, ph: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(pw * ph * c);
+    for y in 0..ph {
+        let sy = y.min(h - 1);
+        for x in 0..pw {
+            let sx = x.min(w - 1);
+            out.extend_from_slice(&v[(sy * w + sx) * c..(sy * w + sx + 1) * c]);
+        }
+    }
+    out
+}
+
 /// Standard-normal noise from a seed, generated on the host (identical on every backend) and
 /// uploaded once.
 pub fn seeded_noise(shape: [usize; 4], seed: u64, device: &Device) -> Tensor<4> {
@@ -202,6 +227,98 @@ impl InpaintModel {
     /// The image side must be a multiple of this.
     pub fn size_multiple(&self) -> usize {
         self.codec.factor() * (1 << (self.unet.down_blocks.len() - 1))
+    }
+
+    /// Inpaints one image on `device`: `rgb` `[h, w, 3]` in [0, 1], `mask` `[h, w]` (1 or
+    /// above 0.5: to be filled), noise from `seed`. Sides that are not multiples of
+    /// [`InpaintModel::size_multiple`] are padded by repeating the last row and column, and
+    /// the result is cropped back.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn inpaint_image(
+        &self,
+        rgb: &[f32],
+        mask: &[f32],
+        w: usize,
+        h: usize,
+        seed: u64,
+        s: &SampleSettings,
+        device: &Device,
+    ) -> Result<InpaintedImage> {
+        let mut out = self.inpaint_images(&[(rgb, mask)], w, h, seed, s, device)?;
+        Ok(out.remove(0))
+    }
+
+    /// [`InpaintModel::inpaint_image`] for a batch of same-sized images sampled together (one
+    /// noise tensor of the batch's shape from `seed`).
+    pub fn inpaint_images(
+        &self,
+        images: &[(&[f32], &[f32])],
+        w: usize,
+        h: usize,
+        seed: u64,
+        s: &SampleSettings,
+        device: &Device,
+    ) -> Result<Vec<InpaintedImage>> {
+        let n = images.len();
+        if n == 0 || w == 0 || h == 0 {
+            return Err(DiffusionError::Input(format!(
+                "inpaint: {n} images of {w}x{h}: need at least one non-empty image"
+            )));
+        }
+        let m = self.size_multiple();
+        let (pw, ph) = (w.div_ceil(m) * m, h.div_ceil(m) * m);
+        let plane = pw * ph;
+        let mut chw = Vec::with_capacity(n * 3 * plane);
+        let mut masks = Vec::with_capacity(n * plane);
+        for (k, (rgb, mask)) in images.iter().enumerate() {
+            if rgb.len() != w * h * 3 || mask.len() != w * h {
+                return Err(DiffusionError::Input(format!(
+                    "inpaint: image {k} of {w}x{h} needs {} colour values and {} mask values, not {} and {}",
+                    w * h * 3,
+                    w * h,
+                    rgb.len(),
+                    mask.len()
+                )));
+            }
+            let prgb = pad_edge(rgb, w, h, 3, pw, ph);
+            for c in 0..3 {
+                chw.extend((0..plane).map(|i| prgb[3 * i + c]));
+            }
+            masks.extend(
+                pad_edge(mask, w, h, 1, pw, ph)
+                    .into_iter()
+                    .map(|v| f32::from(v >= 0.5)),
+            );
+        }
+        let img = Tensor::<1>::from_floats(chw.as_slice(), device).reshape([n, 3, ph, pw]);
+        let mk = Tensor::<1>::from_floats(masks.as_slice(), device).reshape([n, 1, ph, pw]);
+        let c = self.codec.channels();
+        let f = self.codec.factor();
+        let noise = seeded_noise([n, c, ph / f, pw / f], seed, device);
+        let out = self.inpaint(img, mk, noise, s)?;
+        let res: Vec<f32> =
+            out.image.into_data().try_to_vec_as::<f32>().map_err(|e| {
+                DiffusionError::Input(format!("reading the inpainted images: {e:?}"))
+            })?;
+        Ok((0..n)
+            .map(|k| {
+                let img = &res[k * 3 * plane..(k + 1) * 3 * plane];
+                let mut rgb = vec![0f32; w * h * 3];
+                for y in 0..h {
+                    for x in 0..w {
+                        for ch in 0..3 {
+                            rgb[3 * (y * w + x) + ch] =
+                                img[ch * plane + y * pw + x].clamp(0.0, 1.0);
+                        }
+                    }
+                }
+                InpaintedImage {
+                    rgb,
+                    t_start: out.t_start,
+                    noise_level: out.noise_level,
+                }
+            })
+            .collect())
     }
 
     /// Inpaints `image [n, 3, H, W]` (in [0, 1]) where `mask [n, 1, H, W]` is 1, starting from

@@ -84,6 +84,22 @@ impl Pipeline {
         })
     }
 
+    /// Attaches the LoRA adapters in `dir` (from `diffusion finetune`) to the U-Net and, when
+    /// the folder holds them, the conditioning tokens fine-tuned with the adapters.
+    pub fn with_lora(mut self, dir: &Path, device: &Device) -> Result<Pipeline> {
+        let (_, unet) = crate::lora::load(dir, self.model.unet, device)?;
+        self.model.unet = unet;
+        self.notes
+            .push(format!("LoRA adapters from {}", dir.display()));
+        let tdir = dir.join("text_encoder");
+        if tdir.join(crate::text::TOKENS_FILE).is_file() {
+            self.model.tokens = LearnedTokens::load(&tdir, device)?;
+            self.notes
+                .push(format!("conditioning tokens from {}", tdir.display()));
+        }
+        Ok(self)
+    }
+
     /// Loads a pipeline folder. `prompt` conditions a Stable Diffusion folder through its CLIP
     /// text encoder (the embedding then becomes the learned tokens fine-tuning adapts; the empty
     /// prompt is the guidance baseline); this project's folders carry their tokens.

@@ -28,11 +28,13 @@ pub enum BetaSchedule {
 /// What the network predicts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Prediction {
     /// The added noise.
     Epsilon,
     /// v = sqrt(a) eps - sqrt(1 - a) x0 (Salimans & Ho).
     #[serde(rename = "v_prediction")]
+    #[cfg_attr(feature = "clap", value(name = "v_prediction"))]
     V,
     /// The clean image x0 itself (diffusers' "sample").
     Sample,

@@ -10,8 +10,10 @@ use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
 use extranerf_nerf::render::march::MarchCuts;
+use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_nerf::run::{save_checkpoint, training_views, Checkpoint, LoadedScene, RunConfig};
-use extranerf_nerf::trainer::{March, Nerf, StepStats, TrainData, Trainer};
+use extranerf_nerf::trainer::{StepStats, Trainer};
+use extranerf_nerf::views::TrainData;
 use extranerf_prims::Prims;
 
 /// Where the driver's progress and notes go (the command line draws them).

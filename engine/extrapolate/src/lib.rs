@@ -1,11 +1,13 @@
 //! The ExtraNeRF pipeline: the stages that turn a scene into an extrapolating field.
+//! - [`base`]: a trained run's BaseNeRF loaded from its checkpoint;
 //! - [`driver`]: the BaseNeRF training driver (budgets, checkpoints, held-out curves), which
 //!   `extranerf train`, `demo` and the trade-off sweeps run;
 //! - [`pipeline`]: `extranerf extrapolate`, stages over one run folder (BaseNeRF, visibility
 //!   of virtual views, the stage-2 inpainting loop per inpainter, the fly-through) with a manifest
 //!   ([`manifest`]) that makes every stage boundary resumable;
 //! - [`inpaint`]: the inpainters (depth-aware harmonic, exemplar PatchMatch, hybrid);
-//! - [`visibility`]: visibility settings, maps and masks over a trained field;
+//! - [`visibility`]: visibility settings, maps, masks and depth completion over a trained field
+//!   (what `extranerf visibility` runs);
 //! - [`eval`]: the comparison table of an extrapolate run.
 //!
 //! - [`anim`]: looping GIFs of rendered frames (the fly-through).
@@ -19,6 +21,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod anim;
+pub mod base;
 pub mod driver;
 pub mod eval;
 pub mod inpaint;

@@ -159,7 +159,7 @@ mod tests {
     fn scene(dir: &str) -> SceneSpec {
         SceneSpec {
             dir: dir.into(),
-            split: "extrapolation".into(),
+            split: extranerf_nerf::data::split::SplitKind::Extrapolation,
             fewshot_views: 3,
             factor: 8,
             sparse_depth: true,

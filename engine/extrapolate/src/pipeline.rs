@@ -24,18 +24,18 @@ use extranerf_nerf::data::{load_image, Camera, Image};
 use extranerf_nerf::demo::{demo_seen, DEMO_MARKER};
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::visibility::{mask_all_but, VisibilityMap};
+use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_nerf::run::{
-    load_checkpoint, save_checkpoint, training_views, write_png, Checkpoint, LoadedScene,
-    RunConfig, SceneSpec,
+    load_checkpoint, save_checkpoint, training_views, write_png, Checkpoint, RunConfig, SceneSpec,
 };
 use extranerf_nerf::safetensors::{SafeTensors, Tensor};
-use extranerf_nerf::trainer::{
-    March, Nerf, TrainConfig, TrainData, Trainer, View, ViewKind, ViewSampling,
-};
+use extranerf_nerf::trainer::{TrainConfig, Trainer};
+use extranerf_nerf::views::{TrainData, View, ViewKind, ViewSampling};
 use extranerf_prims::Prims;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
+use crate::base::BaseField;
 use crate::driver::{fit_budget, train_loop, Progress, Reporter, TrainRun, Unit};
 use crate::inpaint::{Fill, InpainterKind, Source, Target};
 use crate::manifest::{Manifest, StageRecord};
@@ -308,51 +308,6 @@ impl Stage for BaseStage {
 pub struct VisibilityStage {
     pub virt: VirtualSpec,
     pub vis: VisSettings,
-}
-
-/// The scene, field and views of a run's BaseNeRF.
-pub struct BaseField {
-    pub ck: Checkpoint,
-    pub loaded: LoadedScene,
-    pub nerf: Nerf,
-}
-
-impl std::fmt::Debug for BaseField {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("BaseField")
-            .field("step", &self.ck.step)
-            .finish_non_exhaustive()
-    }
-}
-
-impl BaseField {
-    /// Loads `dir`'s checkpoint and scene.
-    pub fn load(ctx: &Context, dir: &Path) -> anyhow::Result<BaseField> {
-        let ck = load_checkpoint(dir)?;
-        let loaded = ck.config.scene.load()?;
-        let nerf = Nerf::new(
-            ctx,
-            ck.config.model.clone(),
-            &ck.params,
-            ck.config.train.background,
-        )?;
-        Ok(BaseField { ck, loaded, nerf })
-    }
-
-    /// The training cameras.
-    pub fn train_cameras(&self) -> Vec<Camera> {
-        self.loaded
-            .split
-            .train
-            .iter()
-            .map(|&i| self.loaded.scene.cameras[i].clone())
-            .collect()
-    }
-
-    /// Whether the field is in NDC.
-    pub fn ndc(&self) -> bool {
-        self.ck.config.model.space == "ndc"
-    }
 }
 
 /// The virtual cameras of `spec` for `train`, at the virtual views' resolution.
@@ -636,8 +591,8 @@ pub struct DiffusionSpec {
     pub lora: Option<PathBuf>,
     /// DDIM steps per inpainting.
     pub steps: usize,
-    /// burn backend: auto, device or cpu.
-    pub backend: String,
+    /// burn backend.
+    pub backend: extranerf_diffusion::device::Backend,
 }
 
 /// One stage-2 variant.
@@ -795,11 +750,7 @@ impl Stage for InpaintStage {
                 let Some(d) = &self.diffusion else {
                     bail!("--inpainter diffusion needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
                 };
-                let backend = extranerf_diffusion::device::Backend::parse(&d.backend)
-                    .with_context(|| {
-                        format!("diffusion backend `{}`: use auto, device or cpu", d.backend)
-                    })?;
-                let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, backend)?;
+                let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, d.backend)?;
                 let inp = crate::inpaint::diffusion::DiffusionInpainter::load(
                     &d.model,
                     d.lora.as_deref(),

@@ -1,16 +1,29 @@
 //! Visibility of views against a trained field's training cameras (ExtraNeRF's multi-view
-//! transmittance), as the pipeline and `extranerf visibility` compute it: settings, the
-//! transmittance volumes, maps, and the inpainting mask a map implies.
+//! transmittance), as the pipeline and `extranerf visibility` compute it: settings, a run
+//! loaded for queries ([`RunVisibility`]), the transmittance volumes, maps and their files, the
+//! inpainting mask a map implies, and depth completion where the map says unseen.
+
+use std::path::Path;
+use std::time::Instant;
 
 use anyhow::bail;
-use extranerf_gpu::Context;
+use extranerf_gpu::{Buffer, Context};
 use extranerf_nerf::data::Camera;
+use extranerf_nerf::depth_completion::DepthCompletion;
+use extranerf_nerf::render::march::MarchCuts;
+use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::render::visibility::{
     Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap, VisibilityMeasure,
     MAX_RANK, MAX_TRAIN_CAMERAS,
 };
-use extranerf_nerf::trainer::Nerf;
+use extranerf_nerf::renderer::{March, Nerf, OccupancyStats};
+use extranerf_nerf::run::{
+    ray_depth_to_view_depth, write_depth_exr, write_exr_channels, write_png, write_ray_depth_exr,
+};
+use extranerf_prims::Prims;
 use serde::{Deserialize, Serialize};
+
+use crate::base::BaseField;
 
 /// How visibility is computed and turned into a mask.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -66,17 +79,6 @@ impl Default for VisSettings {
 impl VisSettings {
     /// The kernel configuration at `rank` for a field trained with `train_samples` per ray.
     pub fn config(&self, rank: u32, train_samples: u32) -> anyhow::Result<VisibilityConfig> {
-        if !(1..=MAX_RANK).contains(&rank) {
-            bail!("visibility rank {rank}: use 1 to {MAX_RANK}");
-        }
-        for (what, v) in [
-            ("min-weight", self.min_weight),
-            ("min-transmittance", self.min_transmittance),
-        ] {
-            if !(0.0..1.0).contains(&v) {
-                bail!("visibility {what} {v}: use a value in [0, 1)");
-            }
-        }
         if !(0.0..=1.0).contains(&self.threshold) || !(0.0..=1.0).contains(&self.min_opacity) {
             bail!(
                 "visibility threshold {} and minimum opacity {}: use values in [0, 1]",
@@ -87,18 +89,17 @@ impl VisSettings {
         if self.volume_res == 0 || self.volume_depth == 0 || self.chunk == 0 {
             bail!("the transmittance volume's size and the chunk must be positive");
         }
-        Ok(VisibilityConfig {
-            samples: if self.samples == 0 {
-                train_samples
-            } else {
-                self.samples
+        checked_config(
+            &QuerySettings {
+                samples: (self.samples != 0).then_some(self.samples),
+                vis_samples: 32,
+                min_weight: self.min_weight,
+                min_transmittance: self.min_transmittance,
+                measure: self.measure,
             },
-            vis_samples: 32,
             rank,
-            min_weight: self.min_weight,
-            min_transmittance: self.min_transmittance,
-            measure: self.measure,
-        })
+            train_samples,
+        )
     }
 
     /// The inpainting mask of a map: 1 where the pixel is to be filled.
@@ -183,4 +184,366 @@ impl FieldVisibility {
             chunk,
         )?)
     }
+}
+
+/// How `extranerf visibility` queries a run: the kernel settings apart from the rank.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct QuerySettings {
+    /// Samples per camera ray (`None`: the run's training setting).
+    pub samples: Option<u32>,
+    /// Samples per segment toward a training camera (segment march).
+    pub vis_samples: u32,
+    /// Samples whose weight is at most this are not marched toward the cameras.
+    pub min_weight: f32,
+    /// Segments stop once their transmittance falls below this.
+    pub min_transmittance: f32,
+    /// Absolute or relative transmittance.
+    pub measure: VisibilityMeasure,
+}
+
+/// The kernel configuration of `q` at `rank` (samples per ray `train_samples` unless `q`
+/// says), with every setting checked.
+pub fn checked_config(
+    q: &QuerySettings,
+    rank: u32,
+    train_samples: u32,
+) -> anyhow::Result<VisibilityConfig> {
+    if !(1..=MAX_RANK).contains(&rank) {
+        bail!("visibility rank {rank}: use 1 to {MAX_RANK}");
+    }
+    for (flag, v) in [
+        ("--min-weight", q.min_weight),
+        ("--min-transmittance", q.min_transmittance),
+    ] {
+        if !(0.0..1.0).contains(&v) {
+            bail!("visibility {flag} {v}: use a value in [0, 1)");
+        }
+    }
+    if q.vis_samples == 0 || q.samples == Some(0) || train_samples == 0 {
+        bail!("visibility: samples per ray and per segment must be positive");
+    }
+    Ok(VisibilityConfig {
+        samples: q.samples.unwrap_or(train_samples),
+        vis_samples: q.vis_samples,
+        rank,
+        min_weight: q.min_weight,
+        min_transmittance: q.min_transmittance,
+        measure: q.measure,
+    })
+}
+
+/// What building the occupancy grid of a loaded run found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OccupancyBuilt {
+    /// Cells per axis.
+    pub res: u32,
+    /// Cells, and how many are occupied.
+    pub stats: OccupancyStats,
+    /// Seconds the build took.
+    pub seconds: f64,
+}
+
+/// A trained run ready for visibility queries: checkpoint -> field (-> occupancy grid) ->
+/// the training cameras' transmittance volumes -> maps.
+pub struct RunVisibility {
+    /// The run's checkpoint, scene and field.
+    pub base: BaseField,
+    vis: Visibility,
+    volume: Option<TransmittanceVolume>,
+}
+
+impl std::fmt::Debug for RunVisibility {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RunVisibility")
+            .field("base", &self.base)
+            .field("volume", &self.volume.as_ref().map(|v| v.size()))
+            .finish_non_exhaustive()
+    }
+}
+
+impl RunVisibility {
+    /// Loads the run in `dir` (a folder of `extranerf train`).
+    pub fn load(ctx: &Context, dir: &Path) -> anyhow::Result<RunVisibility> {
+        Ok(RunVisibility {
+            base: BaseField::load(ctx, dir)?,
+            vis: Visibility::new(ctx)?,
+            volume: None,
+        })
+    }
+
+    /// Builds the field's occupancy grid (`config`, `passes` jittered evaluations per cell), so
+    /// segments skip empty space.
+    pub fn build_occupancy(
+        &mut self,
+        ctx: &Context,
+        config: OccupancyConfig,
+        passes: u32,
+    ) -> anyhow::Result<Option<OccupancyBuilt>> {
+        let prims = Prims::new(ctx)?;
+        let t = Instant::now();
+        let stats = self
+            .base
+            .nerf
+            .build_occupancy(ctx, &prims, Some(config), passes)?;
+        Ok(stats.map(|stats| OccupancyBuilt {
+            res: config.res,
+            stats,
+            seconds: t.elapsed().as_secs_f64(),
+        }))
+    }
+
+    /// The training cameras (at most [`MAX_TRAIN_CAMERAS`]).
+    pub fn train_cameras(&self) -> anyhow::Result<Vec<Camera>> {
+        let train = self.base.train_cameras();
+        if train.len() > MAX_TRAIN_CAMERAS {
+            bail!(
+                "the run has {} training views; visibility supports at most {MAX_TRAIN_CAMERAS}",
+                train.len()
+            );
+        }
+        Ok(train)
+    }
+
+    /// The kernel configuration of `q` at `rank`.
+    pub fn config(&self, q: &QuerySettings, rank: u32) -> anyhow::Result<VisibilityConfig> {
+        checked_config(q, rank, self.base.ck.config.train.samples)
+    }
+
+    /// Builds the transmittance volumes of `train`, `res` rays across and `depth` strata
+    /// (replacing earlier ones); returns the seconds it took.
+    pub fn build_volume(
+        &mut self,
+        ctx: &Context,
+        train: &[Camera],
+        res: u32,
+        depth: u32,
+    ) -> anyhow::Result<f64> {
+        if res == 0 || depth == 0 {
+            bail!("--volume-res and --volume-depth must be positive");
+        }
+        let t = Instant::now();
+        let vol = self
+            .vis
+            .build_volume(ctx, &density(&self.base.nerf)?, train, res, depth)?;
+        self.volume = Some(vol);
+        Ok(t.elapsed().as_secs_f64())
+    }
+
+    /// The transmittance volumes, once built.
+    pub fn volume(&self) -> Option<&TransmittanceVolume> {
+        self.volume.as_ref()
+    }
+
+    /// The map of `cam` against the cameras of `mask` in `train`, through the volumes
+    /// (`volume`, built first) or the segment march.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn map(
+        &self,
+        ctx: &Context,
+        cam: &Camera,
+        train: &[Camera],
+        mask: u32,
+        cfg: &VisibilityConfig,
+        volume: bool,
+        chunk: u32,
+    ) -> anyhow::Result<VisibilityMap> {
+        let vol = if volume {
+            let Some(v) = self.volume.as_ref() else {
+                bail!("the transmittance volumes have not been built");
+            };
+            Some(v)
+        } else {
+            None
+        };
+        Ok(self.vis.map(
+            ctx,
+            &density(&self.base.nerf)?,
+            cam,
+            train,
+            mask,
+            cfg,
+            vol,
+            chunk,
+        )?)
+    }
+}
+
+/// Writes `NAME_vis.png` (grey visibility), `NAME_vis.exr` (channels V: visibility,
+/// A: opacity) and `NAME_mask.png` (white where visibility < threshold) into `out`.
+pub fn write_map(out: &Path, name: &str, m: &VisibilityMap, threshold: f32) -> anyhow::Result<()> {
+    let grey: Vec<f32> = m.visibility.iter().flat_map(|&v| [v, v, v]).collect();
+    write_png(
+        &out.join(format!("{name}_vis.png")),
+        m.width,
+        m.height,
+        &grey,
+    )?;
+    let mask: Vec<f32> = m
+        .visibility
+        .iter()
+        .flat_map(|&v| {
+            let x = if v < threshold { 1.0 } else { 0.0 };
+            [x, x, x]
+        })
+        .collect();
+    write_png(
+        &out.join(format!("{name}_mask.png")),
+        m.width,
+        m.height,
+        &mask,
+    )?;
+    write_exr_channels(
+        &out.join(format!("{name}_vis.exr")),
+        m.width,
+        m.height,
+        &[("V", &m.visibility), ("A", &m.opacity)],
+    )?;
+    Ok(())
+}
+
+/// A map's summary row of `visibility.json`.
+pub fn map_summary(
+    name: &str,
+    kind: &str,
+    m: &VisibilityMap,
+    seconds: f64,
+    threshold: f32,
+) -> serde_json::Value {
+    let px = (m.width as f64 * m.height as f64).max(1.0);
+    let evals: f64 = m.evals.iter().map(|&e| e as f64).sum();
+    serde_json::json!({
+        "view": name,
+        "kind": kind,
+        "width": m.width,
+        "height": m.height,
+        "mean_visibility": m.mean(),
+        "mean_opacity": m.mean_opacity(),
+        "visible_fraction": m.visible_fraction(),
+        "masked_fraction": m.masked_fraction(threshold),
+        "seconds": seconds,
+        "us_per_pixel": seconds * 1e6 / px,
+        // Field evaluations of the segment marches, or volume lookups.
+        "evals_per_pixel": evals / px,
+    })
+}
+
+/// A view's depth, rendered and completed where the training views did not see it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CompletedDepth {
+    /// The field's ray-space depth (NDC t for forward-facing scenes).
+    pub rendered: Vec<f32>,
+    /// The same with the unseen pixels filled.
+    pub completed: Vec<f32>,
+    /// The completed depth as view depth in the capture's units.
+    pub view_depth: Vec<f32>,
+    /// Mean |completed - rendered| over the filled pixels.
+    pub mean_abs_change: f64,
+}
+
+impl CompletedDepth {
+    /// Writes NAME_depth.exr and NAME_depth_completed.exr (ray-space depth, channel T, which
+    /// `train --depth-dir` refuses) and NAME_view_depth.exr (channel Z, what it reads).
+    pub fn write(&self, out: &Path, name: &str, cam: &Camera) -> anyhow::Result<()> {
+        write_ray_depth_exr(
+            &out.join(format!("{name}_depth.exr")),
+            cam.width,
+            cam.height,
+            &self.rendered,
+        )?;
+        write_ray_depth_exr(
+            &out.join(format!("{name}_depth_completed.exr")),
+            cam.width,
+            cam.height,
+            &self.completed,
+        )?;
+        write_depth_exr(
+            &out.join(format!("{name}_view_depth.exr")),
+            cam.width,
+            cam.height,
+            &self.view_depth,
+        )?;
+        Ok(())
+    }
+}
+
+/// Renders `cam` from `base` (`samples` per ray, `chunk` rays per pass), keeps the depth where
+/// `m` says the training views saw it (visibility >= `threshold`) and fills the rest with
+/// `iterations` Jacobi sweeps of the colour-guided depth completion on the device, guided by
+/// the rendered colour (a neighbour's weight falls to 1/e at colour difference `sigma`).
+#[allow(clippy::too_many_arguments)] // each is a distinct operand
+pub fn complete_depth(
+    ctx: &Context,
+    base: &BaseField,
+    cam: &Camera,
+    m: &VisibilityMap,
+    threshold: f32,
+    sigma: f32,
+    iterations: u32,
+    samples: u32,
+    chunk: u32,
+) -> anyhow::Result<CompletedDepth> {
+    if (m.width, m.height) != (cam.width, cam.height) {
+        bail!(
+            "depth completion: the map is {}x{}, the camera {}x{}",
+            m.width,
+            m.height,
+            cam.width,
+            cam.height
+        );
+    }
+    let (rgb, depth, _) =
+        base.nerf
+            .render_with(ctx, cam, chunk, samples, March::Fused(MarchCuts::EXACT))?;
+    let known: Vec<u32> = m
+        .visibility
+        .iter()
+        .map(|&v| u32::from(v >= threshold))
+        .collect();
+    let guide: Vec<[f32; 4]> = rgb
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2], 0.0])
+        .collect();
+    let n = depth.len();
+    let dc = DepthCompletion::new(ctx)?;
+    let d = Buffer::from_slice(ctx, "completed depth", &depth)?;
+    let scratch = Buffer::<f32>::new(ctx, "depth scratch", n)?;
+    let k = Buffer::from_slice(ctx, "known depth", &known)?;
+    let g = Buffer::from_slice(ctx, "depth guide", &guide)?;
+    let mut rec = ctx.recorder("depth completion")?;
+    dc.record(
+        &mut rec,
+        cam.width,
+        cam.height,
+        d.binding(),
+        scratch.binding(),
+        k.binding(),
+        g.binding(),
+        sigma,
+        iterations,
+    )?;
+    ctx.run(rec)?;
+    let completed = d.read()?;
+    let scale = base
+        .loaded
+        .scene
+        .world_from_source
+        .x_axis
+        .truncate()
+        .length();
+    let view_depth = ray_depth_to_view_depth(cam, &completed, base.ndc(), scale);
+    let filled = known.iter().filter(|&&k| k == 0).count().max(1);
+    let mean_abs_change = depth
+        .iter()
+        .zip(&completed)
+        .zip(&known)
+        .filter(|(_, &k)| k == 0)
+        .map(|((a, b), _)| (a - b).abs() as f64)
+        .sum::<f64>()
+        / filled as f64;
+    Ok(CompletedDepth {
+        rendered: depth,
+        completed,
+        view_depth,
+        mean_abs_change,
+    })
 }

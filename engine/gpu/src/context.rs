@@ -383,6 +383,7 @@ impl Context {
         } else {
             vec![]
         };
+        #[cfg_attr(not(feature = "wgpu"), allow(unused_mut))] // extended only for wgpu sharing
         let mut instance_exts: Vec<&'static CStr> = if has_debug_utils {
             vec![ash::ext::debug_utils::NAME]
         } else {

@@ -7,8 +7,8 @@
 use glam::DVec3;
 
 use crate::data::{Camera, Scene};
-use crate::model::ModelConfig;
-use crate::run::model_for_scene;
+use crate::field::encodings::Contraction;
+use crate::model::{ModelConfig, Space};
 
 /// What [`auto_model`] chose and why.
 #[derive(Clone, Debug, PartialEq)]
@@ -28,11 +28,51 @@ const GROWTH: f64 = 1.5;
 /// Occupancy-grid cascades a model's sampling range needs: 1 in NDC (bounded); in world space
 /// enough that the largest cascade (2^(c-1) scene radii) reaches the far bound, 1 to 8.
 pub fn occupancy_cascades(model: &ModelConfig) -> u32 {
-    if model.space == "ndc" {
+    if model.space == Space::Ndc {
         return 1;
     }
     let ratio = (model.far as f64 / model.radius.max(1e-9) as f64).max(1.0);
     (ratio.log2().ceil() as u32 + 1).clamp(1, 8)
+}
+
+/// The model configuration a scene needs: NDC for forward-facing captures; otherwise world
+/// space with the L2 contraction around the cameras, sampled between the cameras' bounds.
+pub fn model_for_scene(scene: &Scene) -> ModelConfig {
+    if scene.forward_facing {
+        return ModelConfig::default();
+    }
+    let n = scene.cameras.len().max(1) as f64;
+    let centre = scene.cameras.iter().map(Camera::centre).sum::<DVec3>() / n;
+    let radius = scene
+        .cameras
+        .iter()
+        .map(|c| c.centre().distance(centre))
+        .fold(0.0f64, f64::max)
+        .max(1e-3);
+    let near = scene
+        .cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.0))
+        .fold(f64::INFINITY, f64::min);
+    let far = scene
+        .cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.1))
+        .fold(0.0f64, f64::max);
+    let (near, far) = if near.is_finite() && far > near {
+        (near, far)
+    } else {
+        (0.05 * radius, 100.0 * radius)
+    };
+    ModelConfig {
+        space: Space::World,
+        near: near.max(1e-4) as f32,
+        far: far as f32,
+        center: centre.as_vec3().to_array(),
+        radius: radius as f32,
+        contraction: Contraction::L2,
+        ..ModelConfig::default()
+    }
 }
 
 /// Chooses the model for `scene` trained on the cameras `train` (indices).
@@ -146,8 +186,8 @@ mod tests {
             forward_facing: true,
         };
         let a = auto_model(&scene, &[0, 1, 2]);
-        assert_eq!(a.model.space, "ndc");
-        assert_eq!(a.model.contraction, "none");
+        assert_eq!(a.model.space, Space::Ndc);
+        assert_eq!(a.model.contraction, Contraction::None);
         assert_eq!(a.model.max_res, 512);
         assert_eq!(a.model.levels, 10);
         assert_eq!(a.model.log2_table, 17);
@@ -192,8 +232,8 @@ mod tests {
             forward_facing: false,
         };
         let a = auto_model(&scene, &[0, 1, 2, 3, 4, 5, 6, 7]);
-        assert_eq!(a.model.space, "world");
-        assert_eq!(a.model.contraction, "l2");
+        assert_eq!(a.model.space, Space::World);
+        assert_eq!(a.model.contraction, Contraction::L2);
         assert!((64..=8192).contains(&a.model.max_res));
         assert!(a.model.max_res.is_power_of_two());
         // far 60 over radius 4: 15 radii -> 4 + 1 cascades.

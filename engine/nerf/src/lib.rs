@@ -3,8 +3,8 @@
 //! [`data`]: scene loaders (LLFF, `transforms.json`, COLMAP) and splits; [`field`] and
 //! [`render`]: the device kernels (hash grid, MLPs, rays, sampling, compositing, losses,
 //! occupancy); [`model`]: the BaseNeRF field over one flat parameter buffer; [`trainer`]: the
-//! training step and rendering; [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM,
-//! LPIPS; [`reference`]: plain-Rust f64 definitions the kernels are tested against.
+//! training step; [`renderer`]: rendering a field; [`views`]: the views training reads;
+//! [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM, LPIPS; [`reference`]: plain-Rust f64 definitions the kernels are tested against.
 #![forbid(unsafe_code)]
 
 pub mod autoconfig;
@@ -19,6 +19,8 @@ pub mod mvs;
 pub mod optim;
 pub mod reference;
 pub mod render;
+pub mod renderer;
 pub mod run;
 pub mod safetensors;
 pub mod trainer;
+pub mod views;

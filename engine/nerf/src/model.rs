@@ -42,8 +42,8 @@ pub struct ModelConfig {
     pub color_width: u32,
     /// Colour MLP hidden layers.
     pub color_layers: u32,
-    /// Ray space: "ndc" (forward-facing captures) or "world".
-    pub space: String,
+    /// Ray space: NDC (forward-facing captures) or world.
+    pub space: Space,
     /// Sampling range along each ray (NDC: 0 to 1; world: depth along the viewing axis).
     pub near: f32,
     /// See `near`.
@@ -52,18 +52,71 @@ pub struct ModelConfig {
     pub center: [f32; 3],
     /// See `center`.
     pub radius: f32,
-    /// "none", "l2" (mip-NeRF 360) or "linf".
-    pub contraction: String,
-    /// "f32", or "f16": hash-table reads in the forward pass from an f16 copy of the f32 master
+    /// none, l2 (mip-NeRF 360) or linf.
+    pub contraction: Contraction,
+    /// f32, or f16: hash-table reads in the forward pass from an f16 copy of the f32 master
     /// table, and the MLP backward's saved activations and pre-activation gradients in f16
     /// with a power-of-two scale per point and segment (training and the standalone kernels;
     /// the fused march reads the f32 table). Arithmetic stays f32.
-    #[serde(default = "default_precision")]
-    pub precision: String,
+    #[serde(default)]
+    pub precision: Precision,
 }
 
-fn default_precision() -> String {
-    "f32".into()
+/// The space rays are marched in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum Space {
+    /// Normalised device coordinates of a forward-facing capture (the frustum out to infinity
+    /// maps to a cube; t runs 0 to 1).
+    #[default]
+    Ndc,
+    /// World space, optionally contracted.
+    World,
+}
+
+impl Space {
+    /// The name in configs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Space::Ndc => "ndc",
+            Space::World => "world",
+        }
+    }
+}
+
+impl std::fmt::Display for Space {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Storage precision of the hash table's forward reads and the MLP backward's saved values.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum Precision {
+    /// Everything f32.
+    #[default]
+    F32,
+    /// f16 copies where `ModelConfig::precision` says.
+    F16,
+}
+
+impl Precision {
+    /// The name in configs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::F16 => "f16",
+        }
+    }
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 impl Default for ModelConfig {
@@ -80,13 +133,13 @@ impl Default for ModelConfig {
             geo_dims: 16,
             color_width: 64,
             color_layers: 2,
-            space: "ndc".into(),
+            space: Space::Ndc,
             near: 0.0,
             far: 1.0,
             center: [0.0; 3],
             radius: 1.0,
-            contraction: "none".into(),
-            precision: default_precision(),
+            contraction: Contraction::None,
+            precision: Precision::F32,
         }
     }
 }
@@ -126,22 +179,12 @@ impl ModelConfig {
     }
 
     /// The scene box of the contraction.
-    pub fn scene_box(&self) -> Result<SceneBox> {
-        let contraction = match self.contraction.as_str() {
-            "none" => Contraction::None,
-            "l2" => Contraction::L2,
-            "linf" => Contraction::LInf,
-            other => {
-                return Err(GpuError::Usage(format!(
-                    "contraction `{other}`: use none, l2 or linf"
-                )))
-            }
-        };
-        Ok(SceneBox {
+    pub fn scene_box(&self) -> SceneBox {
+        SceneBox {
             center: self.center,
             radius: self.radius,
-            contraction,
-        })
+            contraction: self.contraction,
+        }
     }
 
     /// Checks every setting.
@@ -155,12 +198,6 @@ impl ModelConfig {
                 self.geo_dims
             )));
         }
-        if !matches!(self.space.as_str(), "ndc" | "world") {
-            return Err(GpuError::Usage(format!(
-                "space `{}`: use ndc or world",
-                self.space
-            )));
-        }
         if !(self.near.is_finite()
             && self.far.is_finite()
             && self.near >= 0.0
@@ -171,7 +208,6 @@ impl ModelConfig {
                 self.near, self.far
             )));
         }
-        self.scene_box()?;
         if !(self.radius.is_finite() && self.radius > 0.0)
             || self.center.iter().any(|c| !c.is_finite())
         {
@@ -180,16 +216,11 @@ impl ModelConfig {
                 self.center, self.radius
             )));
         }
-        match self.precision.as_str() {
-            "f32" => {}
-            "f16" if self.features == 2 => {}
-            "f16" => {
-                return Err(GpuError::Usage(format!(
-                    "precision f16 needs 2 features per level, not {}",
-                    self.features
-                )))
-            }
-            o => return Err(GpuError::Usage(format!("precision `{o}`: use f32 or f16"))),
+        if self.precision == Precision::F16 && self.features != 2 {
+            return Err(GpuError::Usage(format!(
+                "precision f16 needs 2 features per level, not {}",
+                self.features
+            )));
         }
         Ok(())
     }
@@ -321,9 +352,9 @@ pub struct FieldIo<'a> {
 }
 
 /// An MLP of the field at `precision` (its backward record in f16 for "f16").
-fn mlp(ctx: &Context, config: MlpConfig, precision: &str) -> Result<Mlp> {
+fn mlp(ctx: &Context, config: MlpConfig, precision: Precision) -> Result<Mlp> {
     let m = Mlp::new(ctx, config)?;
-    if precision == "f16" {
+    if precision == Precision::F16 {
         m.with_f16(ctx)
     } else {
         Ok(m)
@@ -373,17 +404,17 @@ impl Field {
         config.validate()?;
         Ok(Field {
             layout: ParamLayout::new(&config),
-            scene: config.scene_box()?,
+            scene: config.scene_box(),
             grid: {
                 let g = HashGrid::new(ctx, config.grid())?;
-                if config.precision == "f16" {
+                if config.precision == Precision::F16 {
                     g.with_f16(ctx)?
                 } else {
                     g
                 }
             },
-            density: mlp(ctx, config.density_mlp(), &config.precision)?,
-            color: mlp(ctx, config.color_mlp(), &config.precision)?,
+            density: mlp(ctx, config.density_mlp(), config.precision)?,
+            color: mlp(ctx, config.color_mlp(), config.precision)?,
             enc: Encodings::new(ctx)?,
             density_fwd: Kernel::new(ctx, &kh::density_head_fwd::DESC)?,
             color_fwd: Kernel::new(ctx, &kh::color_head_fwd::DESC)?,

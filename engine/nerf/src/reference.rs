@@ -578,27 +578,7 @@ pub fn hash_decay(cfg: &HashGridConfig, table: &[f32], lambda: f32) -> (f64, Vec
     (loss, grad)
 }
 
-/// PCG hash (as `common/rng.wgsl`).
-pub fn pcg_hash(v: u32) -> u32 {
-    let state = v.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
-    let word = ((state >> ((state >> 28) + 4)) ^ state).wrapping_mul(277_803_737);
-    (word >> 22) ^ word
-}
-
-/// Uniform in [0, 1) from the hash (as `rand01`).
-pub fn rand01(v: u32) -> f32 {
-    (pcg_hash(v) >> 8) as f32 * (1.0 / 16_777_216.0)
-}
-
-/// The random background of batch ray `r` for seed `seed` (as `ray_background`).
-pub fn ray_background(seed: u32, r: u32) -> [f32; 3] {
-    let h = pcg_hash(seed ^ 0x6a09_e667 ^ pcg_hash(r ^ 0xbb67_ae85));
-    [
-        rand01(h),
-        rand01(h.wrapping_add(1)),
-        rand01(h.wrapping_add(2)),
-    ]
-}
+pub use crate::render::composite::{pcg_hash, rand01, ray_background};
 
 /// Occupancy cell of a scene-normalised point (f32 arithmetic as the kernel), or `None`
 /// outside the grid; the flag is true when the point lies within 1e-4 cells of a cell face,
@@ -755,7 +735,7 @@ pub fn field_forward(
     per_ray: usize,
 ) -> Vec<(f64, [f64; 3])> {
     let lay = crate::model::ParamLayout::new(cfg);
-    let scene = cfg.scene_box().expect("valid model configuration");
+    let scene = cfg.scene_box();
     let table = &params[lay.table.0..lay.table.0 + lay.table.1];
     let wd = &params[lay.density.0..lay.density.0 + lay.density.1];
     let wc = &params[lay.color.0..lay.color.0 + lay.color.1];
@@ -813,7 +793,7 @@ pub fn march_pixel(
         (pixel / cam.width) as f64 + 0.5,
     ];
     let (wo, wd) = camera_ray(cam, px);
-    let ndc = cfg.space == "ndc";
+    let ndc = cfg.space == crate::model::Space::Ndc;
     let (o, d) = if ndc {
         ndc_ray(cam, wo, wd, 1.0)
     } else {

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
 use crate::data::llff::{load_llff, LlffOptions};
-use crate::data::split::{Split, SplitIndices};
+use crate::data::split::{Split, SplitIndices, SplitKind};
 use crate::data::transforms::load_transforms;
 use crate::data::{colmap, load_image, Camera, DataError, Scene};
 use crate::model::{ModelConfig, ParamLayout};
@@ -40,8 +40,8 @@ pub type Result<T, E = RunError> = std::result::Result<T, E>;
 pub struct SceneSpec {
     /// LLFF folder (poses_bounds.npy) or a folder / file with transforms.json.
     pub dir: PathBuf,
-    /// "extrapolation", "fewshot" or "all".
-    pub split: String,
+    /// Which split.
+    pub split: SplitKind,
     /// Training views of the few-shot split.
     pub fewshot_views: usize,
     /// LLFF downsampling factor (images_N).
@@ -77,15 +77,8 @@ pub struct LoadedScene {
 
 impl SceneSpec {
     /// The split.
-    pub fn split(&self) -> Result<Split> {
-        match self.split.as_str() {
-            "extrapolation" => Ok(Split::Extrapolation),
-            "fewshot" => Ok(Split::FewShot(self.fewshot_views)),
-            "all" => Ok(Split::All),
-            o => Err(RunError::Config(format!(
-                "split `{o}`: use extrapolation, fewshot or all"
-            ))),
-        }
+    pub fn split(&self) -> Split {
+        self.split.split(self.fewshot_views)
     }
 
     /// Loads the cameras and applies the split.
@@ -111,52 +104,12 @@ impl SceneSpec {
             }
             .into());
         };
-        let split = self.split()?.apply(&scene.cameras)?;
+        let split = self.split().apply(&scene.cameras)?;
         Ok(LoadedScene { scene, split })
     }
 }
 
-/// The model configuration a scene needs: NDC for forward-facing captures; otherwise world
-/// space with the L2 contraction around the cameras, sampled between the cameras' bounds.
-pub fn model_for_scene(scene: &Scene) -> ModelConfig {
-    if scene.forward_facing {
-        return ModelConfig::default();
-    }
-    let n = scene.cameras.len().max(1) as f64;
-    let centre = scene.cameras.iter().map(Camera::centre).sum::<DVec3>() / n;
-    let radius = scene
-        .cameras
-        .iter()
-        .map(|c| c.centre().distance(centre))
-        .fold(0.0f64, f64::max)
-        .max(1e-3);
-    let near = scene
-        .cameras
-        .iter()
-        .filter_map(|c| c.bounds.map(|b| b.0))
-        .fold(f64::INFINITY, f64::min);
-    let far = scene
-        .cameras
-        .iter()
-        .filter_map(|c| c.bounds.map(|b| b.1))
-        .fold(0.0f64, f64::max);
-    let (near, far) = if near.is_finite() && far > near {
-        (near, far)
-    } else {
-        (0.05 * radius, 100.0 * radius)
-    };
-    ModelConfig {
-        space: "world".into(),
-        near: near.max(1e-4) as f32,
-        far: far as f32,
-        center: centre.as_vec3().to_array(),
-        radius: radius as f32,
-        contraction: "l2".into(),
-        ..ModelConfig::default()
-    }
-}
-
-pub use crate::trainer::View;
+pub use crate::views::View;
 
 /// Loads the training views' images and, when asked and available, sparse depth targets in
 /// the model's ray space (NDC t for `space == "ndc"`, view depth otherwise).
@@ -189,7 +142,7 @@ pub fn training_views(
             .into());
         }
         let target = |x: u32, y: u32, depth: f64| -> Option<f32> {
-            if model.space != "ndc" {
+            if model.space != crate::model::Space::Ndc {
                 return Some(depth as f32);
             }
             // World point of the pixel centre at that view depth; NDC t = 1 + near / z
@@ -392,10 +345,7 @@ pub fn write_depth_exr(path: &Path, width: u32, height: u32, depth: &[f32]) -> R
     write_exr_channels(path, width, height, &[("Z", depth)])
 }
 
-/// The channel that holds a field's ray-space depth (NDC t for forward-facing scenes, view
-/// depth in scene units otherwise). `train --depth-dir` refuses it by name, so a render's depth
-/// can never be read as capture-space depth.
-pub const RAY_DEPTH_CHANNEL: &str = "T";
+pub use crate::data::depth::RAY_DEPTH_CHANNEL;
 
 /// Writes a field's ray-space depth (renders, visibility) as a single-channel f32 OpenEXR
 /// file (channel [`RAY_DEPTH_CHANNEL`]).
@@ -467,4 +417,76 @@ pub fn write_exr_channels(
         .map_err(|e| RunError::Config(format!("{}: cannot encode EXR: {e}", path.display())))?;
     write_atomic(path, &bytes)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::encodings::Contraction;
+    use crate::model::{Precision, Space};
+    use crate::trainer::RgbLossKind;
+
+    fn config() -> RunConfig {
+        RunConfig {
+            scene: SceneSpec {
+                dir: "scene".into(),
+                split: SplitKind::FewShot,
+                fewshot_views: 3,
+                factor: 8,
+                sparse_depth: true,
+                depth_dir: None,
+            },
+            model: ModelConfig {
+                space: Space::World,
+                contraction: Contraction::LInf,
+                precision: Precision::F16,
+                ..ModelConfig::default()
+            },
+            train: TrainConfig {
+                rgb_loss: RgbLossKind::Huber,
+                ..TrainConfig::default()
+            },
+        }
+    }
+
+    /// The choices are enums in code and the same lower-case names on disk as when they were
+    /// strings, so run folders written before keep loading.
+    #[test]
+    fn choices_keep_their_names_on_disk() {
+        let json = serde_json::to_value(config()).unwrap();
+        assert_eq!(json["scene"]["split"], "fewshot");
+        assert_eq!(json["model"]["space"], "world");
+        assert_eq!(json["model"]["contraction"], "linf");
+        assert_eq!(json["model"]["precision"], "f16");
+        assert_eq!(json["train"]["rgb_loss"], "huber");
+        let back: RunConfig = serde_json::from_value(json.clone()).unwrap();
+        assert_eq!(back, config());
+        // A config from before `precision` existed reads as f32.
+        let mut old = json;
+        old["model"].as_object_mut().unwrap().remove("precision");
+        let back: RunConfig = serde_json::from_value(old.clone()).unwrap();
+        assert_eq!(back.model.precision, Precision::F32);
+        // A value that names no choice is refused, naming the choices.
+        old["model"]["space"] = "spherical".into();
+        let e = serde_json::from_value::<RunConfig>(old)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("spherical") && e.contains("ndc") && e.contains("world"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn split_kinds_map_to_splits() {
+        let mut spec = config().scene;
+        assert_eq!(spec.split(), Split::FewShot(3));
+        spec.split = SplitKind::Extrapolation;
+        assert_eq!(spec.split(), Split::Extrapolation);
+        spec.split = SplitKind::All;
+        assert_eq!(spec.split(), Split::All);
+        for k in [SplitKind::Extrapolation, SplitKind::FewShot, SplitKind::All] {
+            assert_eq!(serde_json::to_value(k).unwrap(), k.name());
+        }
+    }
 }

@@ -1,4 +1,5 @@
-//! Training and rendering of the BaseNeRF field on the device. A training step is one recording
+//! Training of the BaseNeRF field on the device (rendering: [`crate::renderer`]; the views it
+//! trains on: [`crate::views`]). A training step is one recording
 //! with no host traffic: draw a batch of pixels from the training images, generate rays,
 //! sample them, evaluate the field, composite, take the losses, back-propagate, zero-and-fill
 //! the flat gradient buffer and update it with Adam; the batch loss and MSE land in a small
@@ -7,21 +8,18 @@
 use serde::{Deserialize, Serialize};
 
 use extranerf_gpu::kernels::render::{batch as kb, pixels as kp};
-use extranerf_gpu::{
-    count_u32, Binding, Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result,
-};
+use extranerf_gpu::{Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result};
 use extranerf_prims::{Prims, ReducePlan};
 
-use crate::data::{Camera, Image};
-use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler};
+use crate::model::{mark, Profiler};
 use crate::optim::{Adam, AdamConfig, TableDecay};
-use crate::render::composite::{Background, Compositor, RayGrads, Samples};
+use crate::render::composite::{Background, RayGrads};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
-use crate::render::march::{MarchCuts, Marcher};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
-use crate::render::rays::{gpu_camera, GpuCamera, RayGen, RaySpace};
-use crate::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing, MAX_PROBES};
+use crate::render::sample::{SkipEmpty, MAX_PROBES};
 use crate::render::train_step::{FusedStep, StepLosses, StepOutputs};
+use crate::renderer::{Nerf, Workspace};
+use crate::views::{DrawnBatch, TrainData};
 
 /// Steps whose loss and MSE the device keeps between progress reads.
 pub const STAT_SLOTS: u32 = 64;
@@ -38,8 +36,8 @@ pub struct TrainConfig {
     pub rays: u32,
     /// Samples per ray.
     pub samples: u32,
-    /// "l2" or "huber".
-    pub rgb_loss: String,
+    /// The photometric loss.
+    pub rgb_loss: RgbLossKind,
     /// Huber threshold.
     pub huber_delta: f32,
     /// Depth loss weight (rays with a depth target only).
@@ -95,6 +93,33 @@ pub struct TrainConfig {
     pub fused_step: bool,
 }
 
+/// The photometric loss of captured views, as configs and the command line name it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum RgbLossKind {
+    /// Squared error.
+    L2,
+    /// Huber with `TrainConfig::huber_delta`.
+    Huber,
+}
+
+impl RgbLossKind {
+    /// The name in configs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            RgbLossKind::L2 => "l2",
+            RgbLossKind::Huber => "huber",
+        }
+    }
+}
+
+impl std::fmt::Display for RgbLossKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 fn default_fused_step() -> bool {
     true
 }
@@ -124,7 +149,7 @@ impl Default for TrainConfig {
             // more steps of a smaller batch beat fewer of 1024 rays.
             rays: 256,
             samples: 32,
-            rgb_loss: "l2".into(),
+            rgb_loss: RgbLossKind::L2,
             huber_delta: 0.1,
             depth_lambda: 0.1,
             distortion_lambda: 1e-3,
@@ -154,10 +179,9 @@ impl Default for TrainConfig {
 impl TrainConfig {
     /// The loss settings.
     pub fn loss(&self) -> Result<LossConfig> {
-        let rgb = match self.rgb_loss.as_str() {
-            "l2" => RgbLoss::L2,
-            "huber" => RgbLoss::Huber(self.huber_delta),
-            o => return Err(GpuError::Usage(format!("rgb loss `{o}`: use l2 or huber"))),
+        let rgb = match self.rgb_loss {
+            RgbLossKind::L2 => RgbLoss::L2,
+            RgbLossKind::Huber => RgbLoss::Huber(self.huber_delta),
         };
         Ok(LossConfig {
             rgb,
@@ -218,709 +242,6 @@ impl TrainConfig {
             ));
         }
         Ok(())
-    }
-}
-
-/// Where a training view comes from, which decides its colour loss.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum ViewKind {
-    /// A photograph: the configured colour loss (L2 or Huber), scaled by the pixel's weight.
-    Captured,
-    /// A virtual view (an inpainted render): L1 on colour scaled by the pixel's weight, as
-    /// ExtraNeRF supervises with its w(t)-weighted L1.
-    Virtual,
-}
-
-/// One training view.
-#[derive(Clone, Debug)]
-pub struct View {
-    pub camera: Camera,
-    pub image: Image,
-    /// Per-pixel `(depth, confidence)` target in the ray space's units (view depth in world
-    /// space, t in NDC); confidence 0 = no target.
-    pub depth: Option<Vec<[f32; 2]>>,
-    /// Per-pixel colour weight (finite, >= 0; 0 = the pixel's colour is not supervised);
-    /// None = 1 everywhere.
-    pub weight: Option<Vec<f32>>,
-    pub kind: ViewKind,
-}
-
-impl View {
-    /// A photograph with every pixel's colour weighted 1.
-    pub fn captured(camera: Camera, image: Image, depth: Option<Vec<[f32; 2]>>) -> View {
-        View {
-            camera,
-            image,
-            depth,
-            weight: None,
-            kind: ViewKind::Captured,
-        }
-    }
-
-    /// Pixels of the view.
-    pub fn pixels(&self) -> usize {
-        self.image.width as usize * self.image.height as usize
-    }
-}
-
-/// The signed colour weight that a training pixel carries in its fourth channel (the kernels'
-/// encoding, common/ray_loss.wgsl): `w` for captured views, `-w` for virtual views (L1).
-pub fn colour_weight(kind: ViewKind, w: f32) -> f32 {
-    match kind {
-        ViewKind::Captured => w,
-        ViewKind::Virtual => -w,
-    }
-}
-
-/// How a batch's rays are spread over the training views.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum ViewSampling {
-    /// Every view equally likely (then every pixel of it).
-    Uniform,
-    /// This fraction of the rays from virtual views, the rest from captured ones, each kind
-    /// spread evenly over its views (all rays from the kind present when only one is).
-    VirtualFraction(f32),
-}
-
-impl ViewSampling {
-    /// Each view's probability of being drawn for a ray (summing to 1).
-    pub fn probabilities(&self, views: &[View]) -> Result<Vec<f64>> {
-        let n = views.len();
-        let virt = views.iter().filter(|v| v.kind == ViewKind::Virtual).count();
-        let capt = n - virt;
-        match *self {
-            ViewSampling::Uniform => Ok(vec![1.0 / n as f64; n]),
-            ViewSampling::VirtualFraction(f) => {
-                if !(0.0..=1.0).contains(&f) {
-                    return Err(GpuError::Usage(format!(
-                        "the fraction of rays from virtual views is {f}; give one from 0 to 1"
-                    )));
-                }
-                let f = match (capt, virt) {
-                    (_, 0) => 0.0,
-                    (0, _) => 1.0,
-                    _ => f as f64,
-                };
-                Ok(views
-                    .iter()
-                    .map(|v| match v.kind {
-                        ViewKind::Captured => (1.0 - f) / capt as f64,
-                        ViewKind::Virtual => f / virt as f64,
-                    })
-                    .collect())
-            }
-        }
-    }
-}
-
-/// A batch as the batch kernel drew it ([`Trainer::draw_batch`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct DrawnBatch {
-    /// Per ray: the view's index and the pixel's y * width + x.
-    pub pixels: Vec<[u32; 2]>,
-    /// Per ray: the target colour and its signed colour weight ([`colour_weight`]).
-    pub targets: Vec<[f32; 4]>,
-}
-
-/// Fixed-point bits of the batch kernel's cumulative image probabilities (render/batch.wgsl).
-const CDF_BITS: u32 = 24;
-
-/// The batch kernel's cumulative bounds for probabilities `p` (render/batch.wgsl): image i owns
-/// [cdf[i - 1], cdf[i]) of [0, 2^24); the last bound is 2^24 and a zero probability gives an
-/// empty share.
-pub fn image_cdf(p: &[f64]) -> Result<Vec<u32>> {
-    let total: f64 = p.iter().sum();
-    if p.is_empty() || p.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || total <= 0.0 {
-        return Err(GpuError::Usage(format!(
-            "view sampling probabilities must be finite, non-negative and not all zero: {p:?}"
-        )));
-    }
-    let scale = (1u64 << CDF_BITS) as f64;
-    let mut acc = 0.0;
-    let mut cdf: Vec<u32> = p
-        .iter()
-        .map(|v| {
-            acc += v / total;
-            (acc * scale).round().min(scale) as u32
-        })
-        .collect();
-    // Rounding must not leave the top of the range unowned: the last image with a share ends it.
-    let top = 1u32 << CDF_BITS;
-    let last = p.iter().rposition(|v| *v > 0.0).unwrap_or(p.len() - 1);
-    for c in &mut cdf[last..] {
-        *c = top;
-    }
-    Ok(cdf)
-}
-
-/// The training views on the device: cameras, packed pixels (with their signed colour
-/// weights), depth targets and the images' sampling table.
-#[derive(Debug)]
-pub struct TrainData {
-    cameras: Buffer<GpuCamera>,
-    info: Buffer<[u32; 4]>,
-    rgb: Buffer<[f32; 4]>,
-    depth: Buffer<[f32; 2]>,
-    cdf: Buffer<u32>,
-    n_images: u32,
-}
-
-impl TrainData {
-    /// Uploads `views`, every view equally likely per ray.
-    pub fn new(ctx: &Context, views: &[View]) -> Result<TrainData> {
-        TrainData::with_sampling(ctx, views, ViewSampling::Uniform)
-    }
-
-    /// Uploads `views`, drawn per ray as `sampling` says.
-    pub fn with_sampling(
-        ctx: &Context,
-        views: &[View],
-        sampling: ViewSampling,
-    ) -> Result<TrainData> {
-        if views.is_empty() {
-            return Err(GpuError::Usage("no training views".into()));
-        }
-        let probabilities = sampling.probabilities(views)?;
-        let mut info = Vec::new();
-        let mut rgb = Vec::new();
-        let mut depth = Vec::new();
-        for (i, v) in views.iter().enumerate() {
-            let (cam, img) = (&v.camera, &v.image);
-            let px = v.pixels();
-            if (cam.width, cam.height) != (img.width, img.height) {
-                return Err(GpuError::Usage(format!(
-                    "view {i}: camera is {}x{} but its image {} is {}x{}",
-                    cam.width,
-                    cam.height,
-                    cam.image.display(),
-                    img.width,
-                    img.height
-                )));
-            }
-            info.push([rgb.len() as u32, img.width, img.height, i as u32]);
-            match &v.weight {
-                None => {
-                    let w = colour_weight(v.kind, 1.0);
-                    rgb.extend(img.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2], w]));
-                }
-                Some(w) if w.len() == px => {
-                    if let Some(bad) = w.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
-                        return Err(GpuError::Usage(format!(
-                            "view {i} ({}): colour weight {} at pixel {bad}; weights must be finite and >= 0",
-                            cam.image.display(),
-                            w[bad]
-                        )));
-                    }
-                    rgb.extend(
-                        img.rgb
-                            .chunks_exact(3)
-                            .zip(w)
-                            .map(|(c, &w)| [c[0], c[1], c[2], colour_weight(v.kind, w)]),
-                    );
-                }
-                Some(w) => {
-                    return Err(GpuError::Usage(format!(
-                        "view {i} ({}): {} colour weights for {px} pixels",
-                        cam.image.display(),
-                        w.len()
-                    )))
-                }
-            }
-            match &v.depth {
-                Some(d) if d.len() == px => depth.extend_from_slice(d),
-                Some(d) => {
-                    return Err(GpuError::Usage(format!(
-                        "view {i}: {} depth targets for {px} pixels",
-                        d.len()
-                    )))
-                }
-                None => depth.extend(std::iter::repeat_n([0.0, 0.0], px)),
-            }
-        }
-        count_u32(rgb.len() as u64, "training pixels")?;
-        let cams: Vec<GpuCamera> = views.iter().map(|v| gpu_camera(&v.camera)).collect();
-        Ok(TrainData {
-            cameras: Buffer::from_slice(ctx, "train cameras", &cams)?,
-            info: Buffer::from_slice(ctx, "train image info", &info)?,
-            rgb: Buffer::from_slice(ctx, "train pixels", &rgb)?,
-            depth: Buffer::from_slice(ctx, "train depth targets", &depth)?,
-            cdf: Buffer::from_slice(ctx, "train image sampling", &image_cdf(&probabilities)?)?,
-            n_images: views.len() as u32,
-        })
-    }
-}
-
-/// Per-ray and per-sample buffers for batches of up to `rays` rays of `samples` samples.
-#[derive(Debug)]
-struct Workspace {
-    rays: u32,
-    samples: u32,
-    pixels: Buffer<[u32; 2]>,
-    origins: Buffer<[f32; 4]>,
-    dirs: Buffer<[f32; 4]>,
-    world_origins: Buffer<[f32; 4]>,
-    world_dirs: Buffer<[f32; 4]>,
-    near_far: Buffer<[f32; 2]>,
-    spans: Buffer<[u32; 2]>,
-    t_dt: Buffer<[f32; 2]>,
-    s_ds: Buffer<[f32; 2]>,
-    out_rgba: Buffer<[f32; 4]>,
-    out_depth: Buffer<f32>,
-    target_rgb: Buffer<[f32; 4]>,
-    target_depth: Buffer<[f32; 2]>,
-    loss: Buffer<f32>,
-    mse: Buffer<f32>,
-    dist_loss: Buffer<f32>,
-    d_rgba: Buffer<[f32; 4]>,
-    d_depth: Buffer<f32>,
-    d_weight: Buffer<f32>,
-    d_sigma: Buffer<f32>,
-    d_rgb: Buffer<[f32; 4]>,
-    /// Per-sample buffers of [`Field::per_sample`], in that order.
-    per_sample: Vec<Buffer<f32>>,
-}
-
-impl Workspace {
-    fn new(
-        ctx: &Context,
-        field: &Field,
-        cfg: &ModelConfig,
-        rays: u32,
-        samples: u32,
-        grads: bool,
-        per_sample_buffers: bool,
-    ) -> Result<Workspace> {
-        let r = rays as usize;
-        // The fused step keeps every sample in registers: its per-sample buffers are stubs of
-        // one element that no kernel binds.
-        let n = if per_sample_buffers {
-            r * samples as usize
-        } else {
-            1
-        };
-        count_u32(r as u64 * samples as u64, "samples per batch")?;
-        let gr = |len: usize| if grads { len } else { 1 };
-        let mut per_sample = Vec::new();
-        for (i, (name, w)) in field.per_sample().into_iter().enumerate() {
-            // The last six are gradient scratch.
-            let len = if i >= 8 { gr(n * w) } else { n * w };
-            per_sample.push(Buffer::new(ctx, name, len)?);
-        }
-        Ok(Workspace {
-            rays,
-            samples,
-            pixels: Buffer::new(ctx, "pixels", r)?,
-            origins: Buffer::new(ctx, "ray origins", r)?,
-            dirs: Buffer::new(ctx, "ray directions", r)?,
-            world_origins: Buffer::new(ctx, "world ray origins", r)?,
-            world_dirs: Buffer::new(ctx, "world ray directions", r)?,
-            near_far: Buffer::from_slice(ctx, "near/far", &vec![[cfg.near, cfg.far]; r])?,
-            spans: Buffer::new(ctx, "ray spans", r)?,
-            t_dt: Buffer::new(ctx, "t_dt", n)?,
-            s_ds: Buffer::new(ctx, "s_ds", n)?,
-            out_rgba: Buffer::new(ctx, "rendered rgba", r)?,
-            out_depth: Buffer::new(ctx, "rendered depth", r)?,
-            target_rgb: Buffer::new(ctx, "target rgb", r)?,
-            target_depth: Buffer::new(ctx, "target depth", r)?,
-            loss: Buffer::new(ctx, "ray loss", gr(r))?,
-            mse: Buffer::new(ctx, "ray mse", gr(r))?,
-            dist_loss: Buffer::new(ctx, "distortion loss", gr(r))?,
-            d_rgba: Buffer::new(ctx, "dL/drgba", gr(r))?,
-            d_depth: Buffer::new(ctx, "dL/ddepth", gr(r))?,
-            d_weight: Buffer::new(ctx, "dL/dweight", gr(n))?,
-            d_sigma: Buffer::new(ctx, "dL/dsigma", gr(n))?,
-            d_rgb: Buffer::new(ctx, "dL/drgb", gr(n))?,
-            per_sample,
-        })
-    }
-
-    fn io(&self) -> FieldIo<'_> {
-        let p = |i: usize| self.per_sample[i].binding();
-        FieldIo {
-            positions: p(0),
-            dirs: self.world_dirs.binding(),
-            contracted: p(1),
-            encoded: p(2),
-            dens: p(3),
-            color_in: p(4),
-            color_out: p(5),
-            sigma: p(6),
-            rgb: p(7),
-        }
-    }
-
-    fn field_grads(&self) -> FieldGrads<'_> {
-        let p = |i: usize| self.per_sample[i].binding();
-        FieldGrads {
-            d_sigma: self.d_sigma.binding(),
-            d_rgb: self.d_rgb.binding(),
-            d_color_out: p(8),
-            d_color_in: p(9),
-            d_dens: p(10),
-            d_encoded: p(11),
-            saved_density: p(12),
-            saved_color: p(13),
-        }
-    }
-
-    fn samples(&self, n_rays: u64) -> Samples<'_> {
-        Samples {
-            rays: self.spans.binding(),
-            sigma: self.per_sample[6].binding(),
-            rgb: self.per_sample[7].binding(),
-            t_dt: self.t_dt.binding(),
-            n_rays,
-            n_samples: n_rays * self.samples as u64,
-        }
-    }
-}
-
-/// A field with its parameters and the kernels that render it.
-#[derive(Debug)]
-pub struct Nerf {
-    field: Field,
-    space: RaySpace,
-    params: Buffer<f32>,
-    raygen: RayGen,
-    sampler: Sampler,
-    comp: Compositor,
-    pixel_range: Kernel,
-    background: [f32; 3],
-    marcher: Marcher,
-    occupancy: Option<Occupancy>,
-}
-
-/// How [`Nerf::render_with`] evaluates the field.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum March {
-    /// The training chain: rays, samples, the field's standalone kernels, compositing (every
-    /// sample stored in memory between kernels; no cuts, no occupancy).
-    Standalone,
-    /// The fused march kernel with these cuts, skipping empty space when the occupancy grid
-    /// has been built ([`Nerf::build_occupancy`]).
-    Fused(MarchCuts),
-}
-
-/// The per-chunk buffers of one render path.
-#[allow(clippy::large_enum_variant)] // one short-lived value per render call
-enum RenderIo {
-    /// Every stage's per-sample buffers.
-    Standalone(Workspace),
-    /// Pixels in, colour and depth out, per ray.
-    Fused {
-        cuts: MarchCuts,
-        pixels: Buffer<[u32; 2]>,
-        rgba: Buffer<[f32; 4]>,
-        depth: Buffer<f32>,
-    },
-}
-
-/// What [`Nerf::build_occupancy`] found.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct OccupancyStats {
-    /// Cells in the grid.
-    pub cells: u64,
-    /// Cells marked occupied.
-    pub occupied: u64,
-}
-
-impl Nerf {
-    /// A field with the given parameters (`ParamLayout::total` floats).
-    pub fn new(
-        ctx: &Context,
-        config: ModelConfig,
-        params: &[f32],
-        background: [f32; 3],
-    ) -> Result<Nerf> {
-        let field = Field::new(ctx, config)?;
-        let total = field.layout().total;
-        if params.len() != total {
-            return Err(GpuError::Usage(format!(
-                "{} parameters given, the configuration has {total}",
-                params.len()
-            )));
-        }
-        let space = match field.config().space.as_str() {
-            "ndc" => RaySpace::Ndc { near: 1.0 },
-            _ => RaySpace::World,
-        };
-        Ok(Nerf {
-            space,
-            params: Buffer::from_slice(ctx, "field parameters", params)?,
-            raygen: RayGen::new(ctx)?,
-            sampler: Sampler::new(ctx)?,
-            comp: Compositor::new(ctx)?,
-            pixel_range: Kernel::new(ctx, &kp::pixel_range::DESC)?,
-            field,
-            background,
-            marcher: Marcher::new(ctx)?,
-            occupancy: None,
-        })
-    }
-
-    /// The field.
-    pub fn field(&self) -> &Field {
-        &self.field
-    }
-
-    /// The flat parameter buffer.
-    pub fn params(&self) -> &Buffer<f32> {
-        &self.params
-    }
-
-    fn sections<'a>(&'a self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 3]> {
-        self.field.layout().sections(buf)
-    }
-
-    /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`), the field and the
-    /// compositing into `ws.out_rgba` / `ws.out_depth`.
-    #[allow(clippy::too_many_arguments)] // each is a distinct operand
-    fn record_forward<'a>(
-        &'a self,
-        rec: &mut Recorder<'a>,
-        ws: &'a Workspace,
-        cameras: Binding<'a>,
-        n_cameras: u32,
-        n: u64,
-        seed: Option<u32>,
-        skip: Option<&SkipEmpty<'a>>,
-        background: Background,
-        prof: &mut Option<Profiler<'a>>,
-    ) -> Result<()> {
-        let space = self.space;
-        self.raygen.generate(
-            rec,
-            cameras,
-            n_cameras,
-            ws.pixels.binding(),
-            ws.origins.binding(),
-            ws.dirs.binding(),
-            n,
-            space,
-        )?;
-        self.raygen.generate(
-            rec,
-            cameras,
-            n_cameras,
-            ws.pixels.binding(),
-            ws.world_origins.binding(),
-            ws.world_dirs.binding(),
-            n,
-            RaySpace::World,
-        )?;
-        mark(prof, rec, "rays (NDC + world)")?;
-        let io = ws.io();
-        let out = SampleOutputs {
-            positions: io.positions,
-            t_dt: ws.t_dt.binding(),
-            s_ds: ws.s_ds.binding(),
-            rays: ws.spans.binding(),
-        };
-        let spacing = match space {
-            RaySpace::Ndc { .. } => Spacing::Linear,
-            RaySpace::World => Spacing::Disparity,
-        };
-        self.sampler.record(
-            rec,
-            ws.origins.binding(),
-            ws.dirs.binding(),
-            ws.near_far.binding(),
-            &out,
-            n,
-            ws.samples,
-            spacing,
-            seed,
-            skip,
-        )?;
-        mark(
-            prof,
-            rec,
-            if skip.is_some() {
-                "stratified samples (occupied space)"
-            } else {
-                "stratified samples"
-            },
-        )?;
-        let ns = n * ws.samples as u64;
-        self.field
-            .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples, prof)?;
-        self.comp.forward(
-            rec,
-            &ws.samples(n),
-            background,
-            ws.out_rgba.binding(),
-            ws.out_depth.binding(),
-        )?;
-        mark(prof, rec, "composite fwd")
-    }
-
-    /// The occupancy grid fused renders use, when built.
-    pub fn occupancy(&self) -> Option<&Occupancy> {
-        self.occupancy.as_ref()
-    }
-
-    /// Builds the occupancy grid from the field: `passes` jittered density evaluations per
-    /// cell (the maximum is kept), thresholded as [`Occupancy::record_bits`] does. Fused
-    /// renders skip the empty cells from then on; `None` removes the grid.
-    pub fn build_occupancy(
-        &mut self,
-        ctx: &Context,
-        prims: &Prims,
-        config: Option<OccupancyConfig>,
-        passes: u32,
-    ) -> Result<Option<OccupancyStats>> {
-        let Some(config) = config else {
-            self.occupancy = None;
-            return Ok(None);
-        };
-        if passes == 0 {
-            return Err(GpuError::Usage(
-                "the occupancy grid needs at least one pass".into(),
-            ));
-        }
-        let occ = Occupancy::new(ctx, config)?;
-        let cells = config.cells();
-        let mut rec = ctx.recorder("occupancy build")?;
-        for pass in 0..passes {
-            let decay = if pass == 0 { 0.0 } else { 1.0 };
-            self.marcher.update_occupancy(
-                &mut rec,
-                &self.field,
-                self.sections(&self.params)?,
-                &occ,
-                0,
-                cells,
-                pass,
-                decay,
-            )?;
-        }
-        occ.record_bits(&mut rec, prims)?;
-        ctx.run(rec)?;
-        let occupied = occ
-            .bits()
-            .read()?
-            .iter()
-            .map(|w| w.count_ones() as u64)
-            .sum();
-        self.occupancy = Some(occ);
-        Ok(Some(OccupancyStats { cells, occupied }))
-    }
-
-    /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
-    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass, midpoint samples,
-    /// through the standalone training kernels (see [`Nerf::render_with`]).
-    pub fn render(
-        &self,
-        ctx: &Context,
-        camera: &Camera,
-        chunk_rays: u32,
-        samples: u32,
-    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-        self.render_with(ctx, camera, chunk_rays, samples, March::Standalone)
-    }
-
-    /// [`Nerf::render`] with a choice of evaluation path.
-    pub fn render_with(
-        &self,
-        ctx: &Context,
-        camera: &Camera,
-        chunk_rays: u32,
-        samples: u32,
-        march: March,
-    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-        if chunk_rays == 0 {
-            return Err(GpuError::Usage("the render chunk must be positive".into()));
-        }
-        // The standalone chain needs per-sample buffers; the fused march only per-ray ones.
-        let io = match march {
-            March::Standalone => RenderIo::Standalone(Workspace::new(
-                ctx,
-                &self.field,
-                self.field.config(),
-                chunk_rays,
-                samples,
-                false,
-                true,
-            )?),
-            March::Fused(cuts) => RenderIo::Fused {
-                cuts,
-                pixels: Buffer::new(ctx, "march pixels", chunk_rays as usize)?,
-                rgba: Buffer::new(ctx, "march colour", chunk_rays as usize)?,
-                depth: Buffer::new(ctx, "march depth", chunk_rays as usize)?,
-            },
-        };
-        let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
-        let total = camera.width as u64 * camera.height as u64;
-        count_u32(total, "pixels")?;
-        let rgba_all = Buffer::<[f32; 4]>::new(ctx, "rendered image", total as usize)?;
-        let depth_all = Buffer::<f32>::new(ctx, "rendered depth", total as usize)?;
-        let mut first = 0u64;
-        while first < total {
-            let n = (total - first).min(chunk_rays as u64);
-            let mut rec = ctx.recorder("render")?;
-            let p = kp::Params {
-                n: n as u32,
-                camera: 0,
-                first: first as u32,
-                _pad: 0,
-            };
-            let (rgba, depth) = match &io {
-                RenderIo::Fused {
-                    cuts,
-                    pixels,
-                    rgba,
-                    depth,
-                } => {
-                    let b = kp::pixel_range::Bindings {
-                        pixels: pixels.binding(),
-                    };
-                    rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-                    self.marcher.render(
-                        &mut rec,
-                        &self.field,
-                        self.sections(&self.params)?,
-                        cams.binding(),
-                        1,
-                        pixels.binding(),
-                        n,
-                        samples,
-                        *cuts,
-                        self.occupancy.as_ref(),
-                        self.background,
-                        rgba.binding(),
-                        depth.binding(),
-                    )?;
-                    (rgba.binding(), depth.binding())
-                }
-                RenderIo::Standalone(ws) => {
-                    let b = kp::pixel_range::Bindings {
-                        pixels: ws.pixels.binding(),
-                    };
-                    rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-                    self.record_forward(
-                        &mut rec,
-                        ws,
-                        cams.binding(),
-                        1,
-                        n,
-                        None,
-                        None,
-                        Background::Fixed(self.background),
-                        &mut None,
-                    )?;
-                    (ws.out_rgba.binding(), ws.out_depth.binding())
-                }
-            };
-            rec.copy(rgba, 0, rgba_all.binding(), first * 16, n * 16)?;
-            rec.copy(depth, 0, depth_all.binding(), first * 4, n * 4)?;
-            ctx.run(rec)?;
-            first += n;
-        }
-        let rgba = rgba_all.read()?;
-        let depth = depth_all.read()?;
-        let rgb = rgba.iter().flat_map(|p| [p[0], p[1], p[2]]).collect();
-        let opacity = rgba.iter().map(|p| p[3]).collect();
-        Ok((rgb, depth, opacity))
     }
 }
 

@@ -7,8 +7,8 @@
 
 use std::path::Path;
 
-use burn::tensor::{Device, Tensor};
-use extranerf_diffusion::inpaint::{seeded_noise, SampleSettings};
+use burn::tensor::Device;
+use extranerf_diffusion::inpaint::SampleSettings;
 use extranerf_diffusion::pipeline::Pipeline;
 
 use super::harmonic::{far_side_seeds, solve};
@@ -46,14 +46,7 @@ impl DiffusionInpainter {
         }
         let mut pipe = Pipeline::load(dir, &device, "")?;
         if let Some(l) = lora {
-            let (_, unet) = extranerf_diffusion::lora::load(l, pipe.model.unet, &device)?;
-            pipe.model.unet = unet;
-            pipe.notes
-                .push(format!("LoRA adapters from {}", l.display()));
-            let tdir = l.join("text_encoder");
-            if tdir.join(extranerf_diffusion::text::TOKENS_FILE).is_file() {
-                pipe.model.tokens = extranerf_diffusion::text::LearnedTokens::load(&tdir, &device)?;
-            }
+            pipe = pipe.with_lora(l, &device)?;
         }
         let notes = pipe.notes.clone();
         Ok(DiffusionInpainter {
@@ -63,19 +56,6 @@ impl DiffusionInpainter {
             notes,
         })
     }
-}
-
-/// `v` (`[h, w, c]`) padded to `pw x ph` by repeating its last column and row.
-fn pad(v: &[f32], w: usize, h: usize, c: usize, pw: usize, ph: usize) -> Vec<f32> {
-    let mut out = Vec::with_capacity(pw * ph * c);
-    for y in 0..ph {
-        let sy = y.min(h - 1);
-        for x in 0..pw {
-            let sx = x.min(w - 1);
-            out.extend_from_slice(&v[(sy * w + sx) * c..(sy * w + sx + 1) * c]);
-        }
-    }
-    out
 }
 
 impl Inpainter for DiffusionInpainter {
@@ -96,55 +76,29 @@ impl Inpainter for DiffusionInpainter {
                 depth,
             });
         }
-        let m = self.pipe.model.size_multiple();
-        let (pw, ph) = (w.div_ceil(m) * m, h.div_ceil(m) * m);
-        let rgb = pad(target.rgb, w, h, 3, pw, ph);
-        let mask: Vec<f32> = pad(target.mask, w, h, 1, pw, ph)
-            .into_iter()
-            .map(|v| f32::from(v >= 0.5))
-            .collect();
-        let mut chw = vec![0f32; 3 * pw * ph];
-        for i in 0..pw * ph {
-            for c in 0..3 {
-                chw[c * pw * ph + i] = rgb[3 * i + c];
-            }
-        }
-        let dev = &self.device;
-        let img = Tensor::<1>::from_floats(chw.as_slice(), dev).reshape([1, 3, ph, pw]);
-        let mk = Tensor::<1>::from_floats(mask.as_slice(), dev).reshape([1, 1, ph, pw]);
-        let c = self.pipe.model.codec.channels();
-        let f = self.pipe.model.codec.factor();
-        let noise = seeded_noise([1, c, ph / f, pw / f], seed, dev);
         let strength = (target.t as f64).clamp(0.02, 1.0);
         let out = self
             .pipe
             .model
-            .inpaint(
-                img,
-                mk,
-                noise,
+            .inpaint_image(
+                target.rgb,
+                target.mask,
+                w,
+                h,
+                seed,
                 &SampleSettings {
                     strength,
                     steps: self.steps,
                     guidance: 1.0,
                     keep_known: true,
                 },
+                &self.device,
             )
             .map_err(|e| InpaintError(format!("diffusion: {e}")))?;
-        let res: Vec<f32> = out
-            .image
-            .into_data()
-            .try_to_vec_as::<f32>()
-            .map_err(|e| InpaintError(format!("diffusion: reading the result: {e:?}")))?;
         let mut filled = target.rgb.to_vec();
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                if is_hole(target.mask, i) {
-                    for ch in 0..3 {
-                        filled[3 * i + ch] = res[ch * pw * ph + y * pw + x].clamp(0.0, 1.0);
-                    }
-                }
+        for i in 0..n {
+            if is_hole(target.mask, i) {
+                filled[3 * i..3 * i + 3].copy_from_slice(&out.rgb[3 * i..3 * i + 3]);
             }
         }
         Ok(Fill { rgb: filled, depth })

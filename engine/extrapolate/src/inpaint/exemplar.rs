@@ -518,6 +518,7 @@ impl Inpainter for Exemplar {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::inpaint::rect_mask;
 
     fn stripes(w: usize, h: usize, period: usize) -> Vec<f32> {
         (0..w * h)
@@ -537,23 +538,14 @@ mod tests {
         let (w, h) = (64, 64);
         let rgb = stripes(w, h, 8);
         let depth = vec![1.0f32; w * h];
-        let mask: Vec<f32> = (0..w * h)
-            .map(|i| f32::from((24..40).contains(&(i % w)) && (24..40).contains(&(i / w))))
-            .collect();
+        let mask: Vec<f32> = rect_mask(w, h, 24..40, 24..40);
         let mut hole_view = rgb.clone();
         for i in 0..w * h {
             if mask[i] > 0.5 {
                 hole_view[3 * i..3 * i + 3].copy_from_slice(&[0.0, 0.0, 0.0]);
             }
         }
-        let t = Target {
-            width: w,
-            height: h,
-            rgb: &hole_view,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let t = Target::new(w, h, &hole_view, &depth, &mask, 0.5);
         let f = Exemplar::default().inpaint(&t, &[], 7).unwrap();
         let (mut err, mut grey, mut n) = (0f64, 0f64, 0f64);
         for i in 0..w * h {
@@ -591,14 +583,7 @@ mod tests {
             }
         }
         let src_depth = vec![0.7f32; w * h];
-        let t = Target {
-            width: w,
-            height: h,
-            rgb: &rgb,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let t = Target::new(w, h, &rgb, &depth, &mask, 0.5);
         let s = Source {
             width: w,
             height: h,

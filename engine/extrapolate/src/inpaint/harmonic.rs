@@ -249,17 +249,7 @@ pub(crate) fn solve(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn rect_mask(
-        w: usize,
-        h: usize,
-        x: std::ops::Range<usize>,
-        y: std::ops::Range<usize>,
-    ) -> Vec<f32> {
-        (0..w * h)
-            .map(|i| f32::from(x.contains(&(i % w)) && y.contains(&(i / w))))
-            .collect()
-    }
+    use crate::inpaint::rect_mask;
 
     #[test]
     fn a_linear_ramp_is_filled_exactly() {
@@ -273,14 +263,7 @@ mod tests {
             .collect();
         let depth: Vec<f32> = (0..w * h).map(|i| 2.0 + 0.01 * (i % w) as f32).collect();
         let mask = rect_mask(w, h, 10..30, 8..28);
-        let t = Target {
-            width: w,
-            height: h,
-            rgb: &rgb,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let t = Target::new(w, h, &rgb, &depth, &mask, 0.5);
         let f = Harmonic {
             tol: 1e-7,
             ..Harmonic::default()
@@ -329,14 +312,7 @@ mod tests {
             .map(|i| if near(i) { 0.3 } else { 0.9 })
             .collect();
         let mask = rect_mask(w, h, 16..26, 8..22);
-        let t = Target {
-            width: w,
-            height: h,
-            rgb: &rgb,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let t = Target::new(w, h, &rgb, &depth, &mask, 0.5);
         let f = Harmonic::default().inpaint(&t, &[], 0).unwrap();
         for i in 0..w * h {
             if mask[i] > 0.5 {
@@ -391,14 +367,7 @@ mod tests {
                 f32::from((5..10).contains(&y) && ((5..15).contains(&x) || (36..44).contains(&x)))
             })
             .collect();
-        let t = Target {
-            width: w,
-            height: h,
-            rgb: &rgb,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let t = Target::new(w, h, &rgb, &depth, &mask, 0.5);
         let (seed, comps) = far_side_seeds(&t, 0.1);
         assert_eq!(comps, 2);
         assert!(

@@ -37,6 +37,40 @@ pub struct Target<'a> {
     pub t: f32,
 }
 
+impl<'a> Target<'a> {
+    /// The view `width x height` with its render, depth, mask and noise level (checked when an
+    /// inpainter runs).
+    pub fn new(
+        width: usize,
+        height: usize,
+        rgb: &'a [f32],
+        depth: &'a [f32],
+        mask: &'a [f32],
+        t: f32,
+    ) -> Target<'a> {
+        Target {
+            width,
+            height,
+            rgb,
+            depth,
+            mask,
+            t,
+        }
+    }
+}
+
+/// A `[h, w]` mask that is 1 inside the rectangle `x` by `y` (pixel ranges) and 0 outside.
+pub fn rect_mask(
+    w: usize,
+    h: usize,
+    x: std::ops::Range<usize>,
+    y: std::ops::Range<usize>,
+) -> Vec<f32> {
+    (0..w * h)
+        .map(|i| f32::from(x.contains(&(i % w)) && y.contains(&(i / w))))
+        .collect()
+}
+
 /// An image whose texture an exemplar-based inpainter may copy (an input photo at the target's
 /// scale), with its depth when known.
 #[derive(Clone, Copy, Debug)]
@@ -269,14 +303,7 @@ mod tests {
         let rgb = vec![0.5f32; 4 * 4 * 3];
         let depth = vec![1.0f32; 16];
         let mask = vec![0.0f32; 15];
-        let t = Target {
-            width: 4,
-            height: 4,
-            rgb: &rgb,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let t = Target::new(4, 4, &rgb, &depth, &mask, 0.5);
         for kind in [
             InpainterKind::Harmonic,
             InpainterKind::Exemplar,
@@ -318,14 +345,7 @@ mod tests {
             InpainterKind::Exemplar,
             InpainterKind::Hybrid,
         ] {
-            let t = Target {
-                width: w,
-                height: h,
-                rgb: &rgb,
-                depth: &depth,
-                mask: &empty,
-                t: 0.5,
-            };
+            let t = Target::new(w, h, &rgb, &depth, &empty, 0.5);
             let f = kind.build().unwrap().inpaint(&t, &[], 1).unwrap();
             assert_eq!(f.rgb, rgb, "{kind}");
             assert_eq!(f.depth, depth, "{kind}");
@@ -346,20 +366,8 @@ mod tests {
             })
             .collect();
         let depth = vec![1.0f32; w * h];
-        let mask: Vec<f32> = (0..w * h)
-            .map(|i| {
-                let (x, y) = (i % w, i / w);
-                f32::from((15..25).contains(&x) && (10..20).contains(&y))
-            })
-            .collect();
-        let t = Target {
-            width: w,
-            height: h,
-            rgb: &rgb,
-            depth: &depth,
-            mask: &mask,
-            t: 0.5,
-        };
+        let mask: Vec<f32> = rect_mask(w, h, 15..25, 10..20);
+        let t = Target::new(w, h, &rgb, &depth, &mask, 0.5);
         let f = Hybrid::default().inpaint(&t, &[], 3).unwrap();
         let mut worst = 0f32;
         for i in 0..w * h {

@@ -7,6 +7,11 @@ use super::colmap::Point3D;
 use super::npy::read_npy;
 use super::{Camera, DataError, Result, Scene};
 
+/// The channel that holds a field's ray-space depth (NDC t for forward-facing scenes, view
+/// depth in scene units otherwise). `train --depth-dir` refuses it by name, so a render's depth
+/// can never be read as capture-space depth.
+pub const RAY_DEPTH_CHANNEL: &str = "T";
+
 /// One depth target: pixel centre coordinates, depth along the viewing axis, confidence in
 /// (0, 1] from the point's reprojection error.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -98,8 +103,8 @@ pub fn read_depth_exr(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
     let pick = DEPTH_CHANNELS
         .iter()
         .find_map(|want| names.iter().position(|n| n == want))
-        .or((channels.len() == 1 && names[0] != crate::run::RAY_DEPTH_CHANNEL).then_some(0));
-    if pick.is_none() && names.iter().any(|n| n == crate::run::RAY_DEPTH_CHANNEL) {
+        .or((channels.len() == 1 && names[0] != RAY_DEPTH_CHANNEL).then_some(0));
+    if pick.is_none() && names.iter().any(|n| n == RAY_DEPTH_CHANNEL) {
         return Err(DataError::malformed(
             path,
             "holds a field's ray-space depth (channel T: NDC t for forward-facing scenes, as \

@@ -39,7 +39,7 @@ pub fn write_npy_f64(path: &Path, shape: &[usize], data: &[f64]) -> Result<()> {
     for v in data {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    crate::safetensors::write_atomic(path, &out)
+    super::write_atomic(path, &out)
 }
 
 /// Reads a `.npy` file with dtype `<f8` or `<f4` in C order.

@@ -23,6 +23,46 @@ pub enum Split {
     All,
 }
 
+/// The split's name, as configs and the command line give it (the few-shot count apart).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum SplitKind {
+    /// [`Split::Extrapolation`].
+    Extrapolation,
+    /// [`Split::FewShot`].
+    #[cfg_attr(feature = "clap", value(name = "fewshot"))]
+    FewShot,
+    /// [`Split::All`].
+    All,
+}
+
+impl SplitKind {
+    /// The split, with `fewshot_views` training views for the few-shot one.
+    pub fn split(self, fewshot_views: usize) -> Split {
+        match self {
+            SplitKind::Extrapolation => Split::Extrapolation,
+            SplitKind::FewShot => Split::FewShot(fewshot_views),
+            SplitKind::All => Split::All,
+        }
+    }
+
+    /// The name in configs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            SplitKind::Extrapolation => "extrapolation",
+            SplitKind::FewShot => "fewshot",
+            SplitKind::All => "all",
+        }
+    }
+}
+
+impl std::fmt::Display for SplitKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Number of training views of the extrapolation protocol.
 pub const EXTRAPOLATION_TRAIN: usize = 6;
 /// Number of test views of the extrapolation protocol.

@@ -5,14 +5,34 @@ use extranerf_gpu::kernels::field::encodings as k;
 use extranerf_gpu::{count_u32, Binding, Context, GpuError, Kernel, Recorder, Result};
 
 /// How world positions are mapped into the hash grid's unit cube.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Contraction {
     /// Bounded scene: [-1, 1]^3 (after centring and scaling) maps to [0, 1]^3, outside clamps.
     None = 0,
     /// mip-NeRF 360: Euclidean norm, all of space into the ball of radius 2.
     L2 = 1,
     /// The same with the max norm: all of space into the cube [-2, 2]^3.
+    #[cfg_attr(feature = "clap", value(name = "linf"))]
     LInf = 2,
+}
+
+impl Contraction {
+    /// The name in configs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Contraction::None => "none",
+            Contraction::L2 => "l2",
+            Contraction::LInf => "linf",
+        }
+    }
+}
+
+impl std::fmt::Display for Contraction {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 /// Where the scene is: world points are mapped as `(x - center) / radius` before contraction.

@@ -6,6 +6,12 @@ use extranerf_gpu::kernels::field::mlp as k;
 use extranerf_gpu::kernels::field::mlp_f16 as k16;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
+/// The identity table that the push constants of every kernel evaluating MLPs from the uniform
+/// weight block carry as `lut` (`mlp_uni` in `kernels/wgsl/common/mlp_block.wgsl`: weight
+/// offsets rebuilt from it count as uniform across lanes on lavapipe, so their loads run once
+/// per SIMD group instead of once per lane).
+pub const UNIFORM_LUT: [u32; 4] = [0, 1, 2, 3];
+
 pub use k::MlpShape;
 
 /// Layer widths: `[inputs, hidden..., outputs]`, 1 to 4 layers, every width 1..=64.
@@ -274,7 +280,7 @@ impl Mlp {
                 self.saved_words() as u32
             },
             groups: self.groups,
-            lut: crate::render::march::UNIFORM_LUT,
+            lut: UNIFORM_LUT,
         })
     }
 

@@ -60,7 +60,7 @@ pub enum Background {
     /// One colour for every ray.
     Fixed([f32; 3]),
     /// A colour per ray, uniform in [0, 1)^3, from this seed and the ray's index in its batch
-    /// ([`crate::reference::ray_background`]); training with it keeps a ray from passing for a
+    /// ([`ray_background`]); training with it keeps a ray from passing for a
     /// dark or light surface by staying transparent.
     Random(u32),
 }
@@ -78,7 +78,7 @@ impl Background {
     pub fn colour(self, r: u32) -> [f32; 3] {
         match self {
             Background::Fixed(c) => c,
-            Background::Random(seed) => crate::reference::ray_background(seed, r),
+            Background::Random(seed) => ray_background(seed, r),
         }
     }
 }
@@ -202,4 +202,26 @@ impl Compositor {
             s.n_rays,
         )
     }
+}
+
+/// PCG hash (as `common/rng.wgsl`).
+pub fn pcg_hash(v: u32) -> u32 {
+    let state = v.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+    let word = ((state >> ((state >> 28) + 4)) ^ state).wrapping_mul(277_803_737);
+    (word >> 22) ^ word
+}
+
+/// Uniform in [0, 1) from the hash (as `rand01` in `common/rng.wgsl`).
+pub fn rand01(v: u32) -> f32 {
+    (pcg_hash(v) >> 8) as f32 * (1.0 / 16_777_216.0)
+}
+
+/// The random background of batch ray `r` for seed `seed` (as the kernels' `ray_background`; the f64 reference uses it too).
+pub fn ray_background(seed: u32, r: u32) -> [f32; 3] {
+    let h = pcg_hash(seed ^ 0x6a09_e667 ^ pcg_hash(r ^ 0xbb67_ae85));
+    [
+        rand01(h),
+        rand01(h.wrapping_add(1)),
+        rand01(h.wrapping_add(2)),
+    ]
 }

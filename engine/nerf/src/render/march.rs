@@ -51,11 +51,7 @@ impl MarchCuts {
 
 use crate::field::mlp::BLOCK_FLOATS as MLP_BLOCK_FLOATS;
 
-/// The identity table that the push constants of every kernel evaluating MLPs from the uniform
-/// weight block carry as `lut` (`mlp_uni` in `kernels/wgsl/common/mlp_block.wgsl`: weight
-/// offsets rebuilt from it count as uniform across lanes on lavapipe, so their loads run once
-/// per SIMD group instead of once per lane).
-pub const UNIFORM_LUT: [u32; 4] = [0, 1, 2, 3];
+pub use crate::field::mlp::UNIFORM_LUT;
 
 /// The fused kernels' sampling range: world space is linear in disparity, so it needs
 /// 0 < near < far (NDC takes any range).
@@ -142,7 +138,7 @@ impl Marcher {
         if samples == 0 {
             return Err(GpuError::Usage("samples per ray must be positive".into()));
         }
-        let ndc = cfg.space == "ndc";
+        let ndc = cfg.space == crate::model::Space::Ndc;
         check_sampling_range(ndc, cfg.near, cfg.far)?;
         Ok(k::Params {
             n: 0,

@@ -85,7 +85,7 @@ impl FusedStep {
             ));
         }
         let cfg = field.config();
-        check_sampling_range(cfg.space == "ndc", cfg.near, cfg.far)
+        check_sampling_range(cfg.space == crate::model::Space::Ndc, cfg.near, cfg.far)
     }
 
     /// The kernel and its scratch for batches of `rays` rays with `samples` samples each.
@@ -175,7 +175,7 @@ impl FusedStep {
                 "fused step loss weights must be finite and >= 0: {losses:?}"
             )));
         }
-        let ndc = cfg.space == "ndc";
+        let ndc = cfg.space == crate::model::Space::Ndc;
         let scene = field.scene();
         let (probes, occ_res, occ_cascades, occ_bits) = match skip {
             None => (0, 0, 0, self.no_bits.binding()),

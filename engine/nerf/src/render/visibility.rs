@@ -449,7 +449,7 @@ impl Visibility {
                         d.param_count()
                     )));
                 }
-                let ndc = c.space == "ndc";
+                let ndc = c.space == crate::model::Space::Ndc;
                 check_sampling_range(ndc, c.near, c.far)?;
                 let scene = field.scene();
                 if ndc {

@@ -1,0 +1,498 @@
+//! Rendering a trained BaseNeRF field: [`Nerf`] holds the field, its parameters and the
+//! kernels that render it, either through the fused march (the default, skipping empty space
+//! once the occupancy grid is built) or through the standalone training chain that stores
+//! every sample between kernels.
+
+use extranerf_gpu::kernels::render::pixels as kp;
+use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_prims::Prims;
+
+use crate::data::Camera;
+use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler, Space};
+use crate::render::composite::{Background, Compositor, Samples};
+use crate::render::march::{MarchCuts, Marcher};
+use crate::render::occupancy::{Occupancy, OccupancyConfig};
+use crate::render::rays::{gpu_camera, RayGen, RaySpace};
+use crate::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing};
+
+/// Per-ray and per-sample buffers for batches of up to `rays` rays of `samples` samples.
+#[derive(Debug)]
+pub(crate) struct Workspace {
+    pub(crate) rays: u32,
+    pub(crate) samples: u32,
+    pub(crate) pixels: Buffer<[u32; 2]>,
+    pub(crate) origins: Buffer<[f32; 4]>,
+    pub(crate) dirs: Buffer<[f32; 4]>,
+    pub(crate) world_origins: Buffer<[f32; 4]>,
+    pub(crate) world_dirs: Buffer<[f32; 4]>,
+    pub(crate) near_far: Buffer<[f32; 2]>,
+    pub(crate) spans: Buffer<[u32; 2]>,
+    pub(crate) t_dt: Buffer<[f32; 2]>,
+    pub(crate) s_ds: Buffer<[f32; 2]>,
+    pub(crate) out_rgba: Buffer<[f32; 4]>,
+    pub(crate) out_depth: Buffer<f32>,
+    pub(crate) target_rgb: Buffer<[f32; 4]>,
+    pub(crate) target_depth: Buffer<[f32; 2]>,
+    pub(crate) loss: Buffer<f32>,
+    pub(crate) mse: Buffer<f32>,
+    pub(crate) dist_loss: Buffer<f32>,
+    pub(crate) d_rgba: Buffer<[f32; 4]>,
+    pub(crate) d_depth: Buffer<f32>,
+    pub(crate) d_weight: Buffer<f32>,
+    pub(crate) d_sigma: Buffer<f32>,
+    pub(crate) d_rgb: Buffer<[f32; 4]>,
+    /// Per-sample buffers of [`Field::per_sample`], in that order.
+    pub(crate) per_sample: Vec<Buffer<f32>>,
+}
+
+impl Workspace {
+    pub(crate) fn new(
+        ctx: &Context,
+        field: &Field,
+        cfg: &ModelConfig,
+        rays: u32,
+        samples: u32,
+        grads: bool,
+        per_sample_buffers: bool,
+    ) -> Result<Workspace> {
+        let r = rays as usize;
+        // The fused step keeps every sample in registers: its per-sample buffers are stubs of
+        // one element that no kernel binds.
+        let n = if per_sample_buffers {
+            r * samples as usize
+        } else {
+            1
+        };
+        count_u32(r as u64 * samples as u64, "samples per batch")?;
+        let gr = |len: usize| if grads { len } else { 1 };
+        let mut per_sample = Vec::new();
+        for (i, (name, w)) in field.per_sample().into_iter().enumerate() {
+            // The last six are gradient scratch.
+            let len = if i >= 8 { gr(n * w) } else { n * w };
+            per_sample.push(Buffer::new(ctx, name, len)?);
+        }
+        Ok(Workspace {
+            rays,
+            samples,
+            pixels: Buffer::new(ctx, "pixels", r)?,
+            origins: Buffer::new(ctx, "ray origins", r)?,
+            dirs: Buffer::new(ctx, "ray directions", r)?,
+            world_origins: Buffer::new(ctx, "world ray origins", r)?,
+            world_dirs: Buffer::new(ctx, "world ray directions", r)?,
+            near_far: Buffer::from_slice(ctx, "near/far", &vec![[cfg.near, cfg.far]; r])?,
+            spans: Buffer::new(ctx, "ray spans", r)?,
+            t_dt: Buffer::new(ctx, "t_dt", n)?,
+            s_ds: Buffer::new(ctx, "s_ds", n)?,
+            out_rgba: Buffer::new(ctx, "rendered rgba", r)?,
+            out_depth: Buffer::new(ctx, "rendered depth", r)?,
+            target_rgb: Buffer::new(ctx, "target rgb", r)?,
+            target_depth: Buffer::new(ctx, "target depth", r)?,
+            loss: Buffer::new(ctx, "ray loss", gr(r))?,
+            mse: Buffer::new(ctx, "ray mse", gr(r))?,
+            dist_loss: Buffer::new(ctx, "distortion loss", gr(r))?,
+            d_rgba: Buffer::new(ctx, "dL/drgba", gr(r))?,
+            d_depth: Buffer::new(ctx, "dL/ddepth", gr(r))?,
+            d_weight: Buffer::new(ctx, "dL/dweight", gr(n))?,
+            d_sigma: Buffer::new(ctx, "dL/dsigma", gr(n))?,
+            d_rgb: Buffer::new(ctx, "dL/drgb", gr(n))?,
+            per_sample,
+        })
+    }
+
+    pub(crate) fn io(&self) -> FieldIo<'_> {
+        let p = |i: usize| self.per_sample[i].binding();
+        FieldIo {
+            positions: p(0),
+            dirs: self.world_dirs.binding(),
+            contracted: p(1),
+            encoded: p(2),
+            dens: p(3),
+            color_in: p(4),
+            color_out: p(5),
+            sigma: p(6),
+            rgb: p(7),
+        }
+    }
+
+    pub(crate) fn field_grads(&self) -> FieldGrads<'_> {
+        let p = |i: usize| self.per_sample[i].binding();
+        FieldGrads {
+            d_sigma: self.d_sigma.binding(),
+            d_rgb: self.d_rgb.binding(),
+            d_color_out: p(8),
+            d_color_in: p(9),
+            d_dens: p(10),
+            d_encoded: p(11),
+            saved_density: p(12),
+            saved_color: p(13),
+        }
+    }
+
+    pub(crate) fn samples(&self, n_rays: u64) -> Samples<'_> {
+        Samples {
+            rays: self.spans.binding(),
+            sigma: self.per_sample[6].binding(),
+            rgb: self.per_sample[7].binding(),
+            t_dt: self.t_dt.binding(),
+            n_rays,
+            n_samples: n_rays * self.samples as u64,
+        }
+    }
+}
+
+/// A field with its parameters and the kernels that render it.
+#[derive(Debug)]
+pub struct Nerf {
+    pub(crate) field: Field,
+    pub(crate) space: RaySpace,
+    pub(crate) params: Buffer<f32>,
+    pub(crate) raygen: RayGen,
+    pub(crate) sampler: Sampler,
+    pub(crate) comp: Compositor,
+    pub(crate) pixel_range: Kernel,
+    pub(crate) background: [f32; 3],
+    pub(crate) marcher: Marcher,
+    pub(crate) occupancy: Option<Occupancy>,
+}
+
+/// How [`Nerf::render_with`] evaluates the field (by default the fused march, no cuts).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum March {
+    /// The training chain: rays, samples, the field's standalone kernels, compositing (every
+    /// sample stored in memory between kernels; no cuts, no occupancy).
+    Standalone,
+    /// The fused march kernel with these cuts, skipping empty space when the occupancy grid
+    /// has been built ([`Nerf::build_occupancy`]).
+    Fused(MarchCuts),
+}
+
+impl Default for March {
+    fn default() -> Self {
+        March::Fused(MarchCuts::EXACT)
+    }
+}
+
+/// The per-chunk buffers of one render path.
+#[allow(clippy::large_enum_variant)] // one short-lived value per render call
+enum RenderIo {
+    /// Every stage's per-sample buffers.
+    Standalone(Workspace),
+    /// Pixels in, colour and depth out, per ray.
+    Fused {
+        cuts: MarchCuts,
+        pixels: Buffer<[u32; 2]>,
+        rgba: Buffer<[f32; 4]>,
+        depth: Buffer<f32>,
+    },
+}
+
+/// What [`Nerf::build_occupancy`] found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OccupancyStats {
+    /// Cells in the grid.
+    pub cells: u64,
+    /// Cells marked occupied.
+    pub occupied: u64,
+}
+
+impl Nerf {
+    /// A field with the given parameters (`ParamLayout::total` floats).
+    pub fn new(
+        ctx: &Context,
+        config: ModelConfig,
+        params: &[f32],
+        background: [f32; 3],
+    ) -> Result<Nerf> {
+        let field = Field::new(ctx, config)?;
+        let total = field.layout().total;
+        if params.len() != total {
+            return Err(GpuError::Usage(format!(
+                "{} parameters given, the configuration has {total}",
+                params.len()
+            )));
+        }
+        let space = match field.config().space {
+            Space::Ndc => RaySpace::Ndc { near: 1.0 },
+            Space::World => RaySpace::World,
+        };
+        Ok(Nerf {
+            space,
+            params: Buffer::from_slice(ctx, "field parameters", params)?,
+            raygen: RayGen::new(ctx)?,
+            sampler: Sampler::new(ctx)?,
+            comp: Compositor::new(ctx)?,
+            pixel_range: Kernel::new(ctx, &kp::pixel_range::DESC)?,
+            field,
+            background,
+            marcher: Marcher::new(ctx)?,
+            occupancy: None,
+        })
+    }
+
+    /// The field.
+    pub fn field(&self) -> &Field {
+        &self.field
+    }
+
+    /// The flat parameter buffer.
+    pub fn params(&self) -> &Buffer<f32> {
+        &self.params
+    }
+
+    pub(crate) fn sections<'a>(&'a self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 3]> {
+        self.field.layout().sections(buf)
+    }
+
+    /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`), the field and the
+    /// compositing into `ws.out_rgba` / `ws.out_depth`.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub(crate) fn record_forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        n: u64,
+        seed: Option<u32>,
+        skip: Option<&SkipEmpty<'a>>,
+        background: Background,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let space = self.space;
+        self.raygen.generate(
+            rec,
+            cameras,
+            n_cameras,
+            ws.pixels.binding(),
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            n,
+            space,
+        )?;
+        self.raygen.generate(
+            rec,
+            cameras,
+            n_cameras,
+            ws.pixels.binding(),
+            ws.world_origins.binding(),
+            ws.world_dirs.binding(),
+            n,
+            RaySpace::World,
+        )?;
+        mark(prof, rec, "rays (NDC + world)")?;
+        let io = ws.io();
+        let out = SampleOutputs {
+            positions: io.positions,
+            t_dt: ws.t_dt.binding(),
+            s_ds: ws.s_ds.binding(),
+            rays: ws.spans.binding(),
+        };
+        let spacing = match space {
+            RaySpace::Ndc { .. } => Spacing::Linear,
+            RaySpace::World => Spacing::Disparity,
+        };
+        self.sampler.record(
+            rec,
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            ws.near_far.binding(),
+            &out,
+            n,
+            ws.samples,
+            spacing,
+            seed,
+            skip,
+        )?;
+        mark(
+            prof,
+            rec,
+            if skip.is_some() {
+                "stratified samples (occupied space)"
+            } else {
+                "stratified samples"
+            },
+        )?;
+        let ns = n * ws.samples as u64;
+        self.field
+            .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples, prof)?;
+        self.comp.forward(
+            rec,
+            &ws.samples(n),
+            background,
+            ws.out_rgba.binding(),
+            ws.out_depth.binding(),
+        )?;
+        mark(prof, rec, "composite fwd")
+    }
+
+    /// The occupancy grid fused renders use, when built.
+    pub fn occupancy(&self) -> Option<&Occupancy> {
+        self.occupancy.as_ref()
+    }
+
+    /// Builds the occupancy grid from the field: `passes` jittered density evaluations per
+    /// cell (the maximum is kept), thresholded as [`Occupancy::record_bits`] does. Fused
+    /// renders skip the empty cells from then on; `None` removes the grid.
+    pub fn build_occupancy(
+        &mut self,
+        ctx: &Context,
+        prims: &Prims,
+        config: Option<OccupancyConfig>,
+        passes: u32,
+    ) -> Result<Option<OccupancyStats>> {
+        let Some(config) = config else {
+            self.occupancy = None;
+            return Ok(None);
+        };
+        if passes == 0 {
+            return Err(GpuError::Usage(
+                "the occupancy grid needs at least one pass".into(),
+            ));
+        }
+        let occ = Occupancy::new(ctx, config)?;
+        let cells = config.cells();
+        let mut rec = ctx.recorder("occupancy build")?;
+        for pass in 0..passes {
+            let decay = if pass == 0 { 0.0 } else { 1.0 };
+            self.marcher.update_occupancy(
+                &mut rec,
+                &self.field,
+                self.sections(&self.params)?,
+                &occ,
+                0,
+                cells,
+                pass,
+                decay,
+            )?;
+        }
+        occ.record_bits(&mut rec, prims)?;
+        ctx.run(rec)?;
+        let occupied = occ
+            .bits()
+            .read()?
+            .iter()
+            .map(|w| w.count_ones() as u64)
+            .sum();
+        self.occupancy = Some(occ);
+        Ok(Some(OccupancyStats { cells, occupied }))
+    }
+
+    /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
+    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass, midpoint samples,
+    /// through the fused march with no cuts (as the command line renders; skipping empty space
+    /// once [`Nerf::build_occupancy`] has built the grid). [`Nerf::render_with`] chooses the
+    /// path.
+    pub fn render(
+        &self,
+        ctx: &Context,
+        camera: &Camera,
+        chunk_rays: u32,
+        samples: u32,
+    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        self.render_with(ctx, camera, chunk_rays, samples, March::default())
+    }
+
+    /// [`Nerf::render`] with a choice of evaluation path.
+    pub fn render_with(
+        &self,
+        ctx: &Context,
+        camera: &Camera,
+        chunk_rays: u32,
+        samples: u32,
+        march: March,
+    ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        if chunk_rays == 0 {
+            return Err(GpuError::Usage("the render chunk must be positive".into()));
+        }
+        // The standalone chain needs per-sample buffers; the fused march only per-ray ones.
+        let io = match march {
+            March::Standalone => RenderIo::Standalone(Workspace::new(
+                ctx,
+                &self.field,
+                self.field.config(),
+                chunk_rays,
+                samples,
+                false,
+                true,
+            )?),
+            March::Fused(cuts) => RenderIo::Fused {
+                cuts,
+                pixels: Buffer::new(ctx, "march pixels", chunk_rays as usize)?,
+                rgba: Buffer::new(ctx, "march colour", chunk_rays as usize)?,
+                depth: Buffer::new(ctx, "march depth", chunk_rays as usize)?,
+            },
+        };
+        let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
+        let total = camera.width as u64 * camera.height as u64;
+        count_u32(total, "pixels")?;
+        let rgba_all = Buffer::<[f32; 4]>::new(ctx, "rendered image", total as usize)?;
+        let depth_all = Buffer::<f32>::new(ctx, "rendered depth", total as usize)?;
+        let mut first = 0u64;
+        while first < total {
+            let n = (total - first).min(chunk_rays as u64);
+            let mut rec = ctx.recorder("render")?;
+            let p = kp::Params {
+                n: n as u32,
+                camera: 0,
+                first: first as u32,
+                _pad: 0,
+            };
+            let (rgba, depth) = match &io {
+                RenderIo::Fused {
+                    cuts,
+                    pixels,
+                    rgba,
+                    depth,
+                } => {
+                    let b = kp::pixel_range::Bindings {
+                        pixels: pixels.binding(),
+                    };
+                    rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
+                    self.marcher.render(
+                        &mut rec,
+                        &self.field,
+                        self.sections(&self.params)?,
+                        cams.binding(),
+                        1,
+                        pixels.binding(),
+                        n,
+                        samples,
+                        *cuts,
+                        self.occupancy.as_ref(),
+                        self.background,
+                        rgba.binding(),
+                        depth.binding(),
+                    )?;
+                    (rgba.binding(), depth.binding())
+                }
+                RenderIo::Standalone(ws) => {
+                    let b = kp::pixel_range::Bindings {
+                        pixels: ws.pixels.binding(),
+                    };
+                    rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
+                    self.record_forward(
+                        &mut rec,
+                        ws,
+                        cams.binding(),
+                        1,
+                        n,
+                        None,
+                        None,
+                        Background::Fixed(self.background),
+                        &mut None,
+                    )?;
+                    (ws.out_rgba.binding(), ws.out_depth.binding())
+                }
+            };
+            rec.copy(rgba, 0, rgba_all.binding(), first * 16, n * 16)?;
+            rec.copy(depth, 0, depth_all.binding(), first * 4, n * 4)?;
+            ctx.run(rec)?;
+            first += n;
+        }
+        let rgba = rgba_all.read()?;
+        let depth = depth_all.read()?;
+        let rgb = rgba.iter().flat_map(|p| [p[0], p[1], p[2]]).collect();
+        let opacity = rgba.iter().map(|p| p[3]).collect();
+        Ok((rgb, depth, opacity))
+    }
+}
