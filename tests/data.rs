@@ -217,6 +217,26 @@ fn bad_llff_input_gives_errors_naming_the_file() {
         "{e}"
     );
 
+    // A degenerate rotation (row 5's first column zeroed; then a mirror: one column negated)
+    // is refused where it is read, not later as a NaN loss.
+    for (name, edit) in [("llff-rot-zero", 0.0f64), ("llff-rot-mirror", -1.0)] {
+        let dir = scratch_dir(name);
+        copy_fern_subset(&dir, 20);
+        let mut bytes = std::fs::read(dir.join("poses_bounds.npy")).unwrap();
+        for r in 0..3 {
+            let at = header + (5 * 17 + 5 * r) * 8; // row 5, rotation column 0
+            let v = f64::from_le_bytes(bytes[at..at + 8].try_into().unwrap());
+            bytes[at..at + 8].copy_from_slice(&(v * edit).to_le_bytes());
+        }
+        std::fs::write(dir.join("poses_bounds.npy"), &bytes).unwrap();
+        let e = err_text(load_llff(&dir, &opts).unwrap_err());
+        assert!(
+            e.contains("poses_bounds.npy") && e.contains("row 5") && e.contains("rotation"),
+            "{name}: {e}"
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
     let wrong_shape = scratch_dir("llff-shape");
     copy_fern_subset(&wrong_shape, 20);
     let mut bytes = std::fs::read(wrong_shape.join("poses_bounds.npy")).unwrap();

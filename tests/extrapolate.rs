@@ -169,7 +169,7 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         log_every: 50,
         checkpoint_every: 300,
         eval_every: 0,
-        eval_views: "test".into(),
+        eval_views: extranerf_extrapolate::driver::ViewSet::Test,
         budget: None,
     };
     train_loop(ctx, &cfg, &run, None, None, &mut Record::default()).unwrap();

@@ -356,3 +356,35 @@ fn fused_march_extremes_stay_finite() {
     }
     assert_no_validation_messages(ctx);
 }
+
+/// `Nerf::render` takes the fused march (no cuts) where the field allows it, and the
+/// standalone chain where it does not (a colour MLP width that is not a multiple of 4).
+#[test]
+fn render_defaults_to_the_fused_march_and_falls_back() {
+    use extranerf_nerf::render::march::{MarchCuts, Marcher};
+    let e = engine();
+    let cam = camera([0.0, 0.0, 0.0]);
+    let cfg = model("ndc");
+    let nerf = Nerf::new(&e.ctx, cfg.clone(), &params(&cfg, 5, 1.0), BACKGROUND).unwrap();
+    assert!(Marcher::supports(nerf.field()).is_ok());
+    let (rgb, depth, opacity) = nerf.render(&e.ctx, &cam, 50, 24).unwrap();
+    let fused = render(&nerf, &cam, 24, March::Fused(MarchCuts::EXACT));
+    assert_eq!(
+        (rgb, depth, opacity),
+        (fused.rgb, fused.depth, fused.opacity)
+    );
+    let odd = ModelConfig {
+        color_width: 18,
+        ..cfg
+    };
+    let nerf = Nerf::new(&e.ctx, odd.clone(), &params(&odd, 5, 1.0), BACKGROUND).unwrap();
+    let why = Marcher::supports(nerf.field()).unwrap_err().to_string();
+    assert!(why.contains("multiples of 4"), "{why}");
+    let (rgb, depth, opacity) = nerf.render(&e.ctx, &cam, 50, 24).unwrap();
+    let chain = render(&nerf, &cam, 24, March::Standalone);
+    assert_eq!(
+        (rgb, depth, opacity),
+        (chain.rgb, chain.depth, chain.opacity)
+    );
+    assert_no_validation_messages(&e.ctx);
+}

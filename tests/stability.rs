@@ -96,22 +96,59 @@ fn learning_rates_at_both_ends_stay_finite() {
         .map(|(a, b)| (a - b).abs())
         .fold(0f32, f32::max);
     assert!(moved <= 1e-9, "parameters moved by {moved}");
-    // Huge: Adam bounds each step by about the learning rate, so parameters stay finite even
-    // when the fit is poor.
+    // Huge: Adam bounds each step, so parameters stay finite even when the fit is poor. By
+    // Cauchy-Schwarz, |m_hat / sqrt(v_hat)| at step t is at most
+    // (1 - b1) / sqrt(1 - b2) * sqrt((1 - r^t) / (1 - r)) * sqrt(1 - b2^t) / (1 - b1^t) with
+    // r = b1^2 / b2: exactly 1 at the first step, about 2.3 at most later (b1 0.9, b2 0.99).
+    // Each step is checked against it, and the first must move some parameter by the whole
+    // learning rate (Adam's first step is lr * g / |g|).
+    let adam = extranerf_nerf::optim::AdamConfig::default();
+    let (b1, b2) = (adam.beta1 as f64, adam.beta2 as f64);
+    let bound = |t: i32| {
+        let r = b1 * b1 / b2;
+        (1.0 - b1) / (1.0 - b2).sqrt()
+            * ((1.0 - r.powi(t)) / (1.0 - r)).sqrt()
+            * (1.0 - b2.powi(t)).sqrt()
+            / (1.0 - b1.powi(t))
+    };
+    assert!((bound(1) - 1.0).abs() < 1e-12 && bound(30) < 2.4);
+    let e = engine();
     for lr in [1.0f32, 100.0] {
-        let (_, _, _, p) = train(
-            &views,
-            TrainConfig {
-                lr_start: lr,
-                lr_end: lr,
-                ..base.clone()
-            },
-        );
-        let worst = p.iter().map(|v| v.abs()).fold(0f32, f32::max);
-        assert!(
-            p.iter().all(|v| v.is_finite()) && worst <= 40.0 * lr,
-            "lr {lr}: largest parameter {worst}"
-        );
+        let cfg = TrainConfig {
+            lr_start: lr,
+            lr_end: lr,
+            ..base.clone()
+        };
+        let p0 = init_params(&tiny(), 2);
+        let nerf = Nerf::new(&e.ctx, tiny(), &p0, cfg.background).unwrap();
+        let data = TrainData::new(&e.ctx, &views).unwrap();
+        let mut t = Trainer::new(&e.ctx, nerf, cfg.clone(), 0, None).unwrap();
+        let mut prev = p0;
+        for step in 1..=cfg.steps as i32 {
+            let st = t.run_steps(&e.ctx, &e.prims, &data, 1).unwrap();
+            let p = t.nerf().params().read().unwrap();
+            assert!(
+                st.loss.is_finite() && p.iter().all(|v| v.is_finite()),
+                "lr {lr} step {step}"
+            );
+            let moved = p
+                .iter()
+                .zip(&prev)
+                .map(|(a, b)| (a - b).abs() as f64)
+                .fold(0.0, f64::max);
+            let most = lr as f64 * bound(step);
+            assert!(
+                moved <= most * (1.0 + 1e-4),
+                "lr {lr} step {step}: a parameter moved {moved}, Adam allows {most}"
+            );
+            if step == 1 {
+                assert!(
+                    moved >= lr as f64 * (1.0 - 1e-4),
+                    "lr {lr}: the first step moved at most {moved}"
+                );
+            }
+            prev = p;
+        }
     }
     // Settings that cannot work are refused with the reason.
     for (a, b) in [(0.0f32, 1e-3), (1e-2, f32::NAN), (-1.0, 1e-3)] {

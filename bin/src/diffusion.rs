@@ -188,7 +188,7 @@ pub struct FinetuneArgs {
     pub scene: PathBuf,
     /// Folder of pseudo-disocclusion masks (white = disoccluded): `trainmask_NNN_mask.png` as
     /// `extranerf visibility RUN --training-masks` writes them (NNN = the view's index in the
-    /// scene), or `<image stem>_mask.png`; resampled to the view's size. Without it, random
+    /// scene), or `<image stem>_mask.png`; resampled to the view's size (it must have the view's aspect). Without it, random
     /// masks only.
     #[arg(long)]
     pub masks: Option<PathBuf>,
@@ -408,6 +408,39 @@ struct Hole {
     h: usize,
 }
 
+/// Checks held-out regions read from a file against the views they name: each names one of
+/// them and lies inside it (a prior trained on another scene, split or --downscale does not).
+fn check_holes(holes: &[Hole], views: &[View], path: &Path) -> anyhow::Result<()> {
+    for (k, h) in holes.iter().enumerate() {
+        let Some(v) = views.get(h.view) else {
+            bail!(
+                "{}: region {k} is in training view {}, but this split has {} training views (a prior of another scene or split?)",
+                path.display(),
+                h.view,
+                views.len()
+            );
+        };
+        let inside = h.w > 0
+            && h.h > 0
+            && h.x.checked_add(h.w).is_some_and(|e| e <= v.width)
+            && h.y.checked_add(h.h).is_some_and(|e| e <= v.height);
+        if !inside {
+            bail!(
+                "{}: region {k} ({}x{} at {}, {}) does not lie inside view {} ({}x{}; a prior of another scene or --downscale?)",
+                path.display(),
+                h.w,
+                h.h,
+                h.x,
+                h.y,
+                v.name,
+                v.width,
+                v.height
+            );
+        }
+    }
+    Ok(())
+}
+
 /// `count` random rectangles of about `size` pixels per view, at least 2 pixels from the border
 /// and fitting a `window` around them.
 fn random_holes(
@@ -588,9 +621,29 @@ fn windows_for(
         .collect()
 }
 
+/// Refuses an --out that already holds what the command would write (`marker` exists), as
+/// `train` refuses a run folder: a model is hours of work.
+fn refuse_to_replace(marker: &Path, out: &Path, what: &str) -> anyhow::Result<()> {
+    if marker.exists() {
+        bail!(
+            "{} already holds {what} ({}); choose another --out or remove it first",
+            out.display(),
+            marker.display()
+        );
+    }
+    Ok(())
+}
+
 /// `extranerf diffusion prior`.
 fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    if a.model.is_none() {
+        refuse_to_replace(
+            &a.out.join("model").join("model_index.json"),
+            &a.out,
+            "a prior",
+        )?;
+    }
     if a.holes == 0 || a.hole_size < 2 {
         bail!(
             "--holes must be at least 1 and --hole-size at least 2 (the evaluation needs regions)"
@@ -639,7 +692,10 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
             let p = dir.join("prior_holes.json");
             let text = std::fs::read_to_string(&p)
                 .with_context(|| format!("{}: the held-out regions of this prior", p.display()))?;
-            serde_json::from_str(&text).with_context(|| format!("{}: malformed", p.display()))?
+            let holes: Vec<Hole> = serde_json::from_str(&text)
+                .with_context(|| format!("{}: malformed", p.display()))?;
+            check_holes(&holes, &views, &p)?;
+            holes
         }
         None => random_holes(&views, a.holes, a.hole_size, window, &mut rng),
     };
@@ -1033,6 +1089,7 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
 
 /// `extranerf diffusion finetune`.
 fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
+    refuse_to_replace(&a.out.join(lora::LORA_CONFIG), &a.out, "LoRA adapters")?;
     let (_, dev) = a.backend.device(ctx)?;
     let ad = dev.clone().autodiff();
     ad.seed(a.seed);
@@ -1072,7 +1129,26 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
             match candidates.iter().find(|p| p.is_file()) {
                 Some(p) => {
                     let (mw, mh, m) = read_rgb(p)?;
-                    // Nearest resampling to the view (the visibility maps may be smaller).
+                    // Nearest resampling to the view (the visibility maps may be smaller), but
+                    // only of a mask with the view's shape: another aspect is another view.
+                    let (sx, sy) = (mw as f64 / v.width as f64, mh as f64 / v.height as f64);
+                    if (sx / sy - 1.0).abs() > 0.02 {
+                        bail!(
+                            "{} is {mw}x{mh}, which does not have the aspect of view {} ({}x{} after --downscale): a mask of another view or scene?",
+                            p.display(),
+                            v.name,
+                            v.width,
+                            v.height
+                        );
+                    }
+                    if (mw, mh) != (v.width, v.height) {
+                        eprintln!(
+                            "{}: {mw}x{mh} resampled to the view's {}x{}",
+                            p.display(),
+                            v.width,
+                            v.height
+                        );
+                    }
                     let mut mask = vec![0f32; v.width * v.height];
                     for y in 0..v.height {
                         for x in 0..v.width {
@@ -1150,6 +1226,7 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
 
 /// `extranerf diffusion init`.
 fn init(a: &InitArgs) -> anyhow::Result<()> {
+    refuse_to_replace(&a.out.join("model_index.json"), &a.out, "a model")?;
     let dev = Device::flex();
     dev.seed(a.seed);
     let pipe = match a.config {

@@ -4,9 +4,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context as _};
-use extranerf_extrapolate::driver::{
-    default_lpips_dir, fit_budget, train_loop, view_indices, TrainRun,
-};
+use extranerf_extrapolate::driver::{default_lpips_dir, fit_budget, train_loop, TrainRun, ViewSet};
 use extranerf_gpu::Context;
 use extranerf_nerf::autoconfig::model_for_scene;
 use extranerf_nerf::data::split::SplitKind;
@@ -151,9 +149,9 @@ pub struct TrainArgs {
     /// with the training seconds so far, which leave out the evaluations themselves (0: off).
     #[arg(long, default_value_t = 0, value_name = "STEPS")]
     eval_every: u32,
-    /// Held-out views that --eval-every renders: test, or indices such as 0,8,16.
+    /// Views that --eval-every renders: test, train, all, or indices such as 0,8,16.
     #[arg(long, default_value = "test", value_name = "VIEWS")]
-    eval_views: String,
+    eval_views: ViewSet,
 }
 
 /// `train --step` and `render --march`: one fused kernel, or the standalone chain.
@@ -480,7 +478,7 @@ pub struct RenderArgs {
     run: PathBuf,
     /// Which views: test, train, all, or indices such as 0,4,9.
     #[arg(long, default_value = "test")]
-    views: String,
+    views: ViewSet,
     /// Output folder (default RUN/render).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -510,7 +508,7 @@ struct Rendered {
 fn render_views(
     ctx: &Context,
     run: &Path,
-    which: &str,
+    which: &ViewSet,
     samples: Option<u32>,
     chunk: u32,
     march: &MarchArgs,
@@ -528,26 +526,11 @@ fn render_views(
             "other"
         }
     };
-    let list: Vec<(usize, &'static str)> = match which {
-        "test" => loaded.split.test.iter().map(|&i| (i, "test")).collect(),
-        "train" => loaded.split.train.iter().map(|&i| (i, "train")).collect(),
-        "all" => loaded
-            .split
-            .test
-            .iter()
-            .chain(&loaded.split.train)
-            .map(|&i| (i, role(i)))
-            .collect(),
-        list => view_indices(
-            list,
-            loaded.scene.cameras.len(),
-            "--views",
-            "test, train, all",
-        )?
+    let list: Vec<(usize, &'static str)> = which
+        .indices(&loaded.split, loaded.scene.cameras.len(), "--views")?
         .into_iter()
         .map(|i| (i, role(i)))
-        .collect(),
-    };
+        .collect();
     let mut nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
     let samples = samples.unwrap_or(cfg.train.samples);
     let how = march.march()?;
@@ -631,7 +614,7 @@ pub struct EvalArgs {
     save_images: bool,
     /// Which views: all (held-out and training), test, train, or indices such as 0,4,9.
     #[arg(long, default_value = "all")]
-    views: String,
+    views: ViewSet,
     /// LPIPS backbones to run: alex, vgg or alex,vgg (VGG costs about 10 s per 504x378 view
     /// on two cores).
     #[arg(long, default_value = "alex,vgg", value_delimiter = ',')]
@@ -1008,7 +991,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             log_every: 25,
             checkpoint_every: a.steps.max(1),
             eval_every: 0,
-            eval_views: "test".into(),
+            eval_views: ViewSet::Test,
             budget: None,
         },
         None,
@@ -1034,7 +1017,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             samples: None,
             chunk: 8192,
             save_images: true,
-            views: "all".into(),
+            views: ViewSet::All,
             lpips_nets: nets,
             march: MarchArgs::default(),
         },
@@ -1056,7 +1039,7 @@ pub struct BenchRenderArgs {
     run: PathBuf,
     /// Which views: test, train, all, or indices such as 0,4,9.
     #[arg(long, default_value = "test")]
-    views: String,
+    views: ViewSet,
     /// Samples per ray (default: the training setting).
     #[arg(long)]
     samples: Option<u32>,
@@ -1158,7 +1141,7 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
             &serde_json::json!({
                 "device": ctx.info().name,
                 "run": a.run,
-                "views": a.views,
+                "views": a.views.to_string(),
                 "results": rows,
             }),
         )?;
@@ -1170,8 +1153,9 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
 /// Which views of a scene train and which are held out, and the image size.
 #[derive(clap::Args, Debug, Clone)]
 pub struct SplitArgs {
-    /// Views to train on: extrapolation (6 central views; the 8 farthest are held out),
-    /// fewshot (RegNeRF: every 8th held out, --fewshot-views spread over the rest) or all.
+    /// How the scene's views divide into training and held-out views: extrapolation (6
+    /// central views train; the 8 farthest are held out), fewshot (RegNeRF: every 8th held out,
+    /// --fewshot-views spread over the rest) or all (every view trains).
     #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
     pub split: SplitKind,
     /// Training views of the few-shot split.

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context as _};
+use extranerf_extrapolate::driver::ViewSet;
 use extranerf_extrapolate::visibility::{
     complete_depth, map_summary, write_map, QuerySettings, RunVisibility,
 };
@@ -113,9 +114,10 @@ pub struct VisibilityArgs {
     /// writes one).
     #[arg(long, value_name = "FILE")]
     cameras: Option<PathBuf>,
-    /// The run's own views instead (or as well): test, train, all, or indices such as 0,4.
+    /// The run's own views instead (or as well): test, train, all (every view of the scene),
+    /// or indices such as 0,4.
     #[arg(long)]
-    views: Option<String>,
+    views: Option<ViewSet>,
     /// Also write pseudo-disocclusion masks for every training view: the view tested against
     /// the other training views (for fine-tuning the inpainting model).
     #[arg(long)]
@@ -231,27 +233,13 @@ pub fn visibility(ctx: &Context, a: &VisibilityArgs) -> anyhow::Result<()> {
             views.push((format!("virtual_{i:03}"), "virtual", c));
         }
     }
-    if let Some(list) = &a.views {
+    if let Some(set) = &a.views {
         let split = &l.base.loaded.split;
         let n = l.base.loaded.scene.cameras.len();
-        let idx: Vec<usize> = match list.as_str() {
-            "test" => split.test.clone(),
-            "train" => split.train.clone(),
-            "all" => (0..n).collect(),
-            s => s
-                .split(',')
-                .map(|v| {
-                    v.trim()
-                        .parse::<usize>()
-                        .ok()
-                        .filter(|&i| i < n)
-                        .ok_or_else(|| {
-                            anyhow::anyhow!(
-                                "--views {s}: use test, train, all or view indices below {n}"
-                            )
-                        })
-                })
-                .collect::<anyhow::Result<_>>()?,
+        // `all` here is every view of the scene, also those in neither half of the split.
+        let idx = match set {
+            ViewSet::All => (0..n).collect(),
+            set => set.indices(split, n, "--views")?,
         };
         for i in idx {
             let kind = if split.train.contains(&i) {

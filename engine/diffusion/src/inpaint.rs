@@ -229,8 +229,8 @@ impl InpaintModel {
         self.codec.factor() * (1 << (self.unet.down_blocks.len() - 1))
     }
 
-    /// Inpaints one image on `device`: `rgb` `[h, w, 3]` in [0, 1], `mask` `[h, w]` (1 or
-    /// above 0.5: to be filled), noise from `seed`. Sides that are not multiples of
+    /// Inpaints one image on `device`: `rgb` `[h, w, 3]` in [0, 1], `mask` `[h, w]` (at least 0.5:
+    /// to be filled), noise from `seed`. Sides that are not multiples of
     /// [`InpaintModel::size_multiple`] are padded by repeating the last row and column, and
     /// the result is cropped back.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand

@@ -182,8 +182,8 @@ pub struct TrainRun {
     pub checkpoint_every: u32,
     /// Steps between held-out evaluations into `curve.jsonl` (0: none).
     pub eval_every: u32,
-    /// Which views those evaluations render ("test" or indices).
-    pub eval_views: String,
+    /// Which views those evaluations render.
+    pub eval_views: ViewSet,
     /// A time budget in training seconds (evaluations left out): the steps are re-fitted to
     /// it from the pace measured as the run goes, so the run ends when it is spent.
     pub budget: Option<f64>,
@@ -368,20 +368,73 @@ pub fn train_loop(
     Ok(())
 }
 
-/// The view indices of a comma-separated `list` (such as 0,8,16) for a scene of `n` views;
-/// errors name `flag` and the words it also takes (`words`).
-pub fn view_indices(list: &str, n: usize, flag: &str, words: &str) -> anyhow::Result<Vec<usize>> {
-    let mut v = Vec::new();
-    for item in list.split(',') {
-        let i: usize = item.trim().parse().map_err(|_| {
-            anyhow::anyhow!("{flag} {list}: use {words} or view indices like 0,8,16")
-        })?;
-        if i >= n {
-            bail!("{flag}: view {i} does not exist (the scene has {n})");
+/// Which of a scene's views a command reads: `test`, `train`, `all` or indices such as
+/// `0,8,16`, parsed when the command line is (before any device or file is touched).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ViewSet {
+    /// The split's held-out views.
+    Test,
+    /// The split's training views.
+    Train,
+    /// The held-out views, then the training views.
+    All,
+    /// These views, in this order.
+    Indices(Vec<usize>),
+}
+
+impl std::str::FromStr for ViewSet {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<ViewSet, String> {
+        match s.trim() {
+            "test" => Ok(ViewSet::Test),
+            "train" => Ok(ViewSet::Train),
+            "all" => Ok(ViewSet::All),
+            list => list
+                .split(',')
+                .map(|v| v.trim().parse::<usize>())
+                .collect::<Result<Vec<_>, _>>()
+                .map(ViewSet::Indices)
+                .map_err(|_| format!("`{s}`: use test, train, all or view indices like 0,8,16")),
         }
-        v.push(i);
     }
-    Ok(v)
+}
+
+impl std::fmt::Display for ViewSet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ViewSet::Test => f.write_str("test"),
+            ViewSet::Train => f.write_str("train"),
+            ViewSet::All => f.write_str("all"),
+            ViewSet::Indices(v) => {
+                let s: Vec<String> = v.iter().map(usize::to_string).collect();
+                f.write_str(&s.join(","))
+            }
+        }
+    }
+}
+
+impl ViewSet {
+    /// The view indices in `split` of a scene of `n` views; an index past the scene is an error
+    /// naming `flag`.
+    pub fn indices(
+        &self,
+        split: &extranerf_nerf::data::split::SplitIndices,
+        n: usize,
+        flag: &str,
+    ) -> anyhow::Result<Vec<usize>> {
+        Ok(match self {
+            ViewSet::Test => split.test.clone(),
+            ViewSet::Train => split.train.clone(),
+            ViewSet::All => split.test.iter().chain(&split.train).copied().collect(),
+            ViewSet::Indices(v) => {
+                if let Some(i) = v.iter().find(|&&i| i >= n) {
+                    bail!("{flag}: view {i} does not exist (the scene has {n})");
+                }
+                v.clone()
+            }
+        })
+    }
 }
 
 /// Held-out evaluations during training (`train --eval-every`): each renders the chosen views
@@ -404,20 +457,16 @@ impl std::fmt::Debug for HeldOut {
 }
 
 impl HeldOut {
-    /// The held-out views `which` ("test" or indices) of `loaded`, with LPIPS when its weights
-    /// are found, appending to `out/curve.jsonl` (replaced when `start` is 0).
+    /// The views `which` of `loaded`, with LPIPS when its weights are found, appending to
+    /// `out/curve.jsonl` (replaced when `start` is 0).
     pub fn new(
         loaded: &LoadedScene,
-        which: &str,
+        which: &ViewSet,
         out: &Path,
         start: u32,
         rep: &mut dyn Reporter,
     ) -> anyhow::Result<HeldOut> {
-        let indices: Vec<usize> = if which == "test" {
-            loaded.split.test.clone()
-        } else {
-            view_indices(which, loaded.scene.cameras.len(), "--eval-views", "test")?
-        };
+        let indices = which.indices(&loaded.split, loaded.scene.cameras.len(), "--eval-views")?;
         if indices.is_empty() {
             bail!("--eval-every: the split holds no held-out view to evaluate");
         }

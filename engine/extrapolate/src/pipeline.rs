@@ -278,7 +278,7 @@ impl Stage for BaseStage {
                     log_every: 25,
                     checkpoint_every: 500,
                     eval_every: 0,
-                    eval_views: "test".into(),
+                    eval_views: crate::driver::ViewSet::Test,
                     budget,
                 },
                 params,
@@ -361,7 +361,7 @@ fn save_maps(path: &Path, maps: &[(String, VisibilityMap)]) -> anyhow::Result<()
     Ok(())
 }
 
-/// Reads map `name` from a [`save_maps`] file.
+/// Reads map `name` from a `save_maps` file.
 pub fn load_map(st: &SafeTensors, path: &Path, name: &str) -> anyhow::Result<VisibilityMap> {
     let get = |what: &str| -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
         let t = st

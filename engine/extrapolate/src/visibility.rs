@@ -99,6 +99,7 @@ impl VisSettings {
             },
             rank,
             train_samples,
+            "visibility ",
         )
     }
 
@@ -202,25 +203,27 @@ pub struct QuerySettings {
 }
 
 /// The kernel configuration of `q` at `rank` (samples per ray `train_samples` unless `q`
-/// says), with every setting checked.
+/// says), with every setting checked; errors name a setting as `prefix` + its flag's name
+/// (`--` for the command line's flags).
 pub fn checked_config(
     q: &QuerySettings,
     rank: u32,
     train_samples: u32,
+    prefix: &str,
 ) -> anyhow::Result<VisibilityConfig> {
     if !(1..=MAX_RANK).contains(&rank) {
         bail!("visibility rank {rank}: use 1 to {MAX_RANK}");
     }
-    for (flag, v) in [
-        ("--min-weight", q.min_weight),
-        ("--min-transmittance", q.min_transmittance),
+    for (name, v) in [
+        ("min-weight", q.min_weight),
+        ("min-transmittance", q.min_transmittance),
     ] {
         if !(0.0..1.0).contains(&v) {
-            bail!("visibility {flag} {v}: use a value in [0, 1)");
+            bail!("{prefix}{name} {v}: use a value in [0, 1)");
         }
     }
     if q.vis_samples == 0 || q.samples == Some(0) || train_samples == 0 {
-        bail!("visibility: samples per ray and per segment must be positive");
+        bail!("{prefix}samples and {prefix}vis-samples must be positive");
     }
     Ok(VisibilityConfig {
         samples: q.samples.unwrap_or(train_samples),
@@ -306,7 +309,7 @@ impl RunVisibility {
 
     /// The kernel configuration of `q` at `rank`.
     pub fn config(&self, q: &QuerySettings, rank: u32) -> anyhow::Result<VisibilityConfig> {
-        checked_config(q, rank, self.base.ck.config.train.samples)
+        checked_config(q, rank, self.base.ck.config.train.samples, "--")
     }
 
     /// Builds the transmittance volumes of `train`, `res` rays across and `depth` strata

@@ -4,7 +4,7 @@
 //! [`render`]: the device kernels (hash grid, MLPs, rays, sampling, compositing, losses,
 //! occupancy); [`model`]: the BaseNeRF field over one flat parameter buffer; [`trainer`]: the
 //! training step; [`renderer`]: rendering a field; [`views`]: the views training reads;
-//! [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM, LPIPS; [`reference`]: plain-Rust f64 definitions the kernels are tested against.
+//! [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM, LPIPS; [`reference`](mod@reference): plain-Rust f64 definitions the kernels are tested against.
 #![forbid(unsafe_code)]
 
 pub mod autoconfig;

@@ -96,10 +96,10 @@ impl std::fmt::Display for Space {
 #[serde(rename_all = "lowercase")]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Precision {
-    /// Everything f32.
+    /// Everything in f32.
     #[default]
     F32,
-    /// f16 copies where `ModelConfig::precision` says.
+    /// f16 hash-table reads and MLP backward records (f32 master weights and arithmetic).
     F16,
 }
 

@@ -379,9 +379,11 @@ impl Nerf {
 
     /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
     /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass, midpoint samples,
-    /// through the fused march with no cuts (as the command line renders; skipping empty space
-    /// once [`Nerf::build_occupancy`] has built the grid). [`Nerf::render_with`] chooses the
-    /// path.
+    /// through the fused march with no cuts, as the command line renders (skipping empty space
+    /// once [`Nerf::build_occupancy`] has built the grid; it reads the f32 hash table also for
+    /// an f16 model). A field the fused march cannot take ([`Marcher::supports`]: MLP widths
+    /// that are not multiples of 4 or overflow its weight block, world space with near 0)
+    /// renders through the standalone training kernels. [`Nerf::render_with`] chooses the path.
     pub fn render(
         &self,
         ctx: &Context,
@@ -389,7 +391,11 @@ impl Nerf {
         chunk_rays: u32,
         samples: u32,
     ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-        self.render_with(ctx, camera, chunk_rays, samples, March::default())
+        let march = match Marcher::supports(&self.field) {
+            Ok(()) => March::default(),
+            Err(_) => March::Standalone,
+        };
+        self.render_with(ctx, camera, chunk_rays, samples, march)
     }
 
     /// [`Nerf::render`] with a choice of evaluation path.

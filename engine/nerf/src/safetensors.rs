@@ -101,11 +101,13 @@ impl SafeTensors {
                     data.len()
                 )));
             }
-            if offs[1] - offs[0] != count as u64 * 4 {
+            let need = (count as u64)
+                .checked_mul(4)
+                .ok_or_else(|| bad(&format!("shape {shape:?} overflows")))?;
+            if offs[1] - offs[0] != need {
                 return Err(bad(&format!(
-                    "{} bytes for shape {shape:?} ({} expected)",
-                    offs[1] - offs[0],
-                    count * 4
+                    "{} bytes for shape {shape:?} ({need} expected)",
+                    offs[1] - offs[0]
                 )));
             }
             let raw = &data[offs[0] as usize..offs[1] as usize];
@@ -217,6 +219,16 @@ mod tests {
         let mut bad = bytes.clone();
         bad[9] = b'!';
         assert!(SafeTensors::parse(&bad, p).is_err());
+        // A shape whose element count fits a u64 but whose bytes do not is refused by name.
+        let header = r#"{"t":{"dtype":"F32","shape":[4611686018427387905],"data_offsets":[0,4]}}"#;
+        let mut huge = (header.len() as u64).to_le_bytes().to_vec();
+        huge.extend(header.as_bytes());
+        huge.extend([0u8; 4]);
+        let e = SafeTensors::parse(&huge, p).unwrap_err().to_string();
+        assert!(
+            e.contains("mem.safetensors") && e.contains("overflows"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -498,7 +498,7 @@ impl Trainer {
 
     /// The batch that step `step` (1-based) draws from `data`: per ray the view's index and
     /// the pixel's (y * width + x), and the target colour with its signed colour weight
-    /// ([`colour_weight`]).
+    /// ([`crate::views::colour_weight`]).
     pub fn draw_batch(&self, ctx: &Context, data: &TrainData, step: u32) -> Result<DrawnBatch> {
         let mut rec = ctx.recorder("draw batch")?;
         self.record_batch(&mut rec, data, step)?;

@@ -100,7 +100,7 @@ impl ViewSampling {
     }
 }
 
-/// A batch as the batch kernel drew it ([`Trainer::draw_batch`]).
+/// A batch as the batch kernel drew it ([`crate::trainer::Trainer::draw_batch`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct DrawnBatch {
     /// Per ray: the view's index and the pixel's y * width + x.
@@ -113,7 +113,7 @@ pub struct DrawnBatch {
 const CDF_BITS: u32 = 24;
 
 /// The batch kernel's cumulative bounds for probabilities `p` (render/batch.wgsl): image i owns
-/// [cdf[i - 1], cdf[i]) of [0, 2^24); the last bound is 2^24 and a zero probability gives an
+/// \[cdf\[i - 1\], cdf\[i\]) of [0, 2^24); the last bound is 2^24 and a zero probability gives an
 /// empty share.
 pub fn image_cdf(p: &[f64]) -> Result<Vec<u32>> {
     let total: f64 = p.iter().sum();

@@ -67,6 +67,30 @@ pub fn load_llff(dir: &Path, opts: &LlffOptions) -> Result<Scene> {
                 format!("row {i}: depth bounds near {near}, far {far} must satisfy 0 < near < far"),
             ));
         }
+        // The 3x3 block must be a rotation: anything else (a zero row, a scale, a mirror) makes
+        // the cameras' rays and the NDC warp wrong far from here, as NaN losses or a smeared
+        // field. COLMAP writes them orthonormal to ~1e-7.
+        let col = |c: usize| DVec3::new(row[c], row[5 + c], row[10 + c]);
+        let (a, b, c) = (col(0), col(1), col(2));
+        let off = [
+            (a.length_squared() - 1.0).abs(),
+            (b.length_squared() - 1.0).abs(),
+            (c.length_squared() - 1.0).abs(),
+            a.dot(b).abs(),
+            a.dot(c).abs(),
+            b.dot(c).abs(),
+        ]
+        .into_iter()
+        .fold(0.0f64, f64::max);
+        let det = a.cross(b).dot(c);
+        if off > 1e-3 || det <= 0.0 {
+            return Err(DataError::malformed(
+                &npy_path,
+                format!(
+                    "row {i} (image {i}): the rotation is not orthonormal and right-handed (largest deviation {off:.3e}, determinant {det:.3}); columns 0-2 of the 3x5 pose must be a rotation"
+                ),
+            ));
+        }
         if row[4] <= 0.0 || row[9] <= 0.0 || row[14] <= 0.0 {
             return Err(DataError::malformed(
                 &npy_path,

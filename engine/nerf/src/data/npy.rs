@@ -113,12 +113,14 @@ pub fn parse_npy(bytes: &[u8], path: &Path) -> Result<NpyArray> {
         .try_fold(1usize, |a, &d| a.checked_mul(d))
         .ok_or_else(|| bad("shape overflows"))?;
     let body = &bytes[start + header_len..];
-    if body.len() != count * width {
+    let need = count
+        .checked_mul(width)
+        .ok_or_else(|| bad(&format!("shape {shape:?} overflows")))?;
+    if body.len() != need {
         return Err(DataError::malformed(
             path,
             format!(
-                "shape {shape:?} needs {} bytes of data, the file has {}",
-                count * width,
+                "shape {shape:?} needs {need} bytes of data, the file has {}",
                 body.len()
             ),
         ));
@@ -178,6 +180,10 @@ mod tests {
             (npy("<f8", "(3,)", &[0; 16]), "needs 24 bytes"),
             (npy("<f8", "(a,)", &[]), "bad shape"),
             (b"\x93NUMPY\x01\x00\xff\x00{".to_vec(), "past the end"),
+            // The element count fits a usize but its bytes do not (once a multiplication that
+            // overflowed, a panic in debug builds and a wrong size check in release).
+            (npy("<f8", "(4611686018427387904,)", &[]), "overflows"),
+            (npy("<f8", "(4294967296, 4294967296)", &[]), "overflows"),
         ];
         for (bytes, want) in cases {
             let e = parse_npy(&bytes, p).unwrap_err().to_string();

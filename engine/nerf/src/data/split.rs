@@ -28,12 +28,12 @@ pub enum Split {
 #[serde(rename_all = "lowercase")]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum SplitKind {
-    /// [`Split::Extrapolation`].
+    /// ExtraNeRF's: the 6 views nearest the rig's centre train, the 8 farthest are held out.
     Extrapolation,
-    /// [`Split::FewShot`].
+    /// RegNeRF's: every 8th view held out, the few-shot count spread over the rest.
     #[cfg_attr(feature = "clap", value(name = "fewshot"))]
     FewShot,
-    /// [`Split::All`].
+    /// Every view trains, none is held out.
     All,
 }
 

@@ -112,6 +112,14 @@ pub(crate) fn copy_mlp_block<'a>(
 }
 
 impl Marcher {
+    /// Whether the fused march can render `field`: MLP widths in multiples of 4 that fit the
+    /// uniform weight block, and a sampling range it takes (0 < near < far in world space).
+    pub fn supports(field: &Field) -> Result<()> {
+        color_base(field)?;
+        let cfg = field.config();
+        check_sampling_range(cfg.space == crate::model::Space::Ndc, cfg.near, cfg.far)
+    }
+
     /// Builds the kernels.
     pub fn new(ctx: &Context) -> Result<Marcher> {
         Ok(Marcher {
