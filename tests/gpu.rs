@@ -67,6 +67,7 @@ fn unknown_device_is_a_clear_error() {
         validation: Validation::Off,
         device: Some("no-such-gpu-xyz".into()),
         max_binding_bytes: None,
+        max_memory_bytes: None,
         share_with_wgpu: false,
     })
     .unwrap_err();
@@ -84,6 +85,7 @@ fn unknown_device_is_a_clear_error() {
         validation: Validation::Off,
         device: Some("99".into()),
         max_binding_bytes: None,
+        max_memory_bytes: None,
         share_with_wgpu: false,
     })
     .unwrap_err();
@@ -99,6 +101,7 @@ fn device_chosen_by_index_and_name() {
         validation: Validation::Off,
         device: Some("0".into()),
         max_binding_bytes: None,
+        max_memory_bytes: None,
         share_with_wgpu: false,
     })
     .unwrap();
@@ -108,6 +111,7 @@ fn device_chosen_by_index_and_name() {
         validation: Validation::Off,
         device: Some(part),
         max_binding_bytes: None,
+        max_memory_bytes: None,
         share_with_wgpu: false,
     })
     .unwrap();
@@ -137,6 +141,7 @@ fn buffer_limits_and_ranges_are_errors_not_panics() {
     // name, on a context that limits bindings to 4 KiB.
     let small = Context::new(&ContextDesc {
         max_binding_bytes: Some(4096),
+        max_memory_bytes: None,
         ..desc()
     })
     .unwrap();
@@ -393,6 +398,7 @@ fn resources_of_another_context_are_refused() {
         validation: Validation::Off,
         device: None,
         max_binding_bytes: None,
+        max_memory_bytes: None,
         share_with_wgpu: false,
     })
     .unwrap();
@@ -471,4 +477,30 @@ fn slices_bind_a_range_of_one_buffer() {
     let mut rec = ctx.recorder("slice overrun").unwrap();
     assert!(rec.fill_words(buf.slice(0, 5).unwrap(), 9, 0).is_err());
     assert_no_validation_messages(ctx);
+}
+
+/// A memory limit makes allocations past it fail as a full device does: a clear error naming
+/// the buffer, nothing leaked, and room again once buffers are dropped.
+#[test]
+fn memory_limit_gives_out_of_memory_errors() {
+    let ctx = Context::new(&ContextDesc {
+        max_memory_bytes: Some(1 << 20),
+        ..desc()
+    })
+    .unwrap();
+    let a = Buffer::<f32>::new(&ctx, "first half", 1 << 17).unwrap();
+    let e = Buffer::<f32>::new(&ctx, "one too many", 1 << 18).unwrap_err();
+    match &e {
+        GpuError::OutOfDeviceMemory { name, bytes } => {
+            assert_eq!((name.as_str(), *bytes), ("one too many", 1 << 20));
+        }
+        other => panic!("expected out of memory, got {other:?}"),
+    }
+    assert!(e.to_string().contains("one too many"), "{e}");
+    drop(a);
+    ctx.wait_idle().unwrap();
+    let b = Buffer::<f32>::new(&ctx, "after the drop", 1 << 18).unwrap();
+    assert_eq!(b.len(), 1 << 18);
+    drop(b);
+    assert_no_validation_messages(&ctx);
 }

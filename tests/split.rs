@@ -75,6 +75,7 @@ fn split_tables_train_and_render_like_whole_ones() {
     let whole = Context::new(&desc()).unwrap();
     let small = Context::new(&ContextDesc {
         max_binding_bytes: Some(LIMIT),
+        max_memory_bytes: None,
         ..desc()
     })
     .unwrap();

@@ -26,6 +26,7 @@ pub fn desc() -> ContextDesc {
         validation: Validation::from_env(Validation::Required),
         device: None,
         max_binding_bytes: None,
+        max_memory_bytes: None,
         share_with_wgpu: false,
     }
 }

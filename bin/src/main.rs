@@ -32,6 +32,10 @@ struct Cli {
     /// Load the Khronos validation layer (slow; for debugging). Also EXTRANERF_VALIDATION=1.
     #[arg(long, global = true)]
     validation: bool,
+    /// Treat the device as having only this many MiB for the engine's buffers: allocations past
+    /// it fail as out-of-memory does on a smaller device (default: the device's own memory).
+    #[arg(long, global = true, value_name = "MIB")]
+    max_memory: Option<u64>,
     #[command(subcommand)]
     command: Command,
 }
@@ -136,6 +140,7 @@ fn context_with(cli: &Cli, share_with_wgpu: bool) -> anyhow::Result<Context> {
         validation,
         device: cli.device.clone(),
         max_binding_bytes: None,
+        max_memory_bytes: cli.max_memory.map(|m| m.saturating_mul(1 << 20)),
         share_with_wgpu,
     })
     .context("creating the Vulkan device")

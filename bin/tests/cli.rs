@@ -1188,3 +1188,74 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     assert_eq!(j["rows"].as_array().unwrap().len(), 3);
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// Resource faults: no Vulkan driver, a driver whose library is missing, and device memory
+/// exhausted (forced with --max-memory) are clear errors with a non-zero exit status, and leave
+/// no run folder behind.
+#[test]
+fn resource_faults_are_clear_errors() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-faults-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let bogus = dir.join("bogus_icd.json");
+    std::fs::write(
+        &bogus,
+        r#"{"file_format_version": "1.0.0", "ICD": {"library_path": "/nonexistent/libvulkan_bogus.so", "api_version": "1.3.0"}}"#,
+    )
+    .unwrap();
+    for icd in [dir.join("no_such_icd.json"), bogus] {
+        let out = Command::new(env!("CARGO_BIN_EXE_extranerf"))
+            .arg("info")
+            .env("VK_DRIVER_FILES", &icd)
+            .env("VK_ICD_FILENAMES", &icd)
+            .env("EXTRANERF_VALIDATION", "off")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.code() == Some(1)
+                && err.contains("Vulkan driver")
+                && !err.contains("panicked"),
+            "{}: {err}",
+            icd.display()
+        );
+    }
+    let scene = dir.join("scene");
+    extranerf_nerf::demo::write_demo_scene(&scene, 48, 36).unwrap();
+    let run = dir.join("run");
+    let (ok, _, err) = extranerf(&[
+        "--max-memory",
+        "4",
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--factor",
+        "1",
+        "--steps",
+        "2",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("out of device memory while allocating") && !err.contains("panicked"),
+        "{err}"
+    );
+    assert!(!run.exists(), "a run folder was left behind");
+    // With enough memory the same run trains.
+    let (ok, _, err) = extranerf(&[
+        "--max-memory",
+        "512",
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--factor",
+        "1",
+        "--steps",
+        "2",
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(run.join("checkpoint.safetensors").is_file());
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -35,12 +35,13 @@ pub mod weights;
 #[derive(Debug, thiserror::Error)]
 pub enum DiffusionError {
     /// A file could not be read or written.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not a separate source, so a chain does not print it
+        /// twice).
+        error: std::io::Error,
     },
     /// A configuration file is malformed or asks for something not modelled.
     #[error("{}: {problem}", path.display())]
@@ -76,7 +77,7 @@ impl DiffusionError {
     pub(crate) fn io(path: &Path, source: std::io::Error) -> DiffusionError {
         DiffusionError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         }
     }
 }

@@ -74,13 +74,22 @@ impl RawBuffer {
             let alloc = guard
                 .as_mut()
                 .ok_or_else(|| GpuError::Usage("allocator already shut down".into()))?;
-            alloc.allocate(&AllocationCreateDesc {
-                name,
-                requirements,
-                location,
-                linear: true,
-                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-            })
+            let used = ctx
+                .inner
+                .max_memory
+                .map(|_| alloc.generate_report().total_allocated_bytes);
+            match (ctx.inner.max_memory, used) {
+                (Some(limit), Some(used)) if used.saturating_add(requirements.size) > limit => {
+                    Err(gpu_allocator::AllocationError::OutOfMemory)
+                }
+                _ => alloc.allocate(&AllocationCreateDesc {
+                    name,
+                    requirements,
+                    location,
+                    linear: true,
+                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+                }),
+            }
         };
         let allocation = match allocation {
             Ok(a) => a,

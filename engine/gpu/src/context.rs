@@ -53,6 +53,10 @@ pub struct ContextDesc {
     /// Treat storage bindings as limited to this many bytes when the device allows more
     /// (`maxStorageBufferRange`), so large tables are split as on a smaller device.
     pub max_binding_bytes: Option<u64>,
+    /// Refuse buffer allocations once the engine's live allocations would exceed this many
+    /// bytes (as if the device had no more memory): reproduces a smaller device's
+    /// out-of-memory error anywhere (tests, `--max-memory`).
+    pub max_memory_bytes: Option<u64>,
     /// Create the device so that wgpu adopts it ([`Context::wgpu`]; needs the `wgpu` feature).
     /// It enables what wgpu-hal asks for, robust buffer access included, and is never
     /// destroyed before the process exits, since wgpu users such as burn keep it in global
@@ -186,6 +190,8 @@ pub(crate) struct Inner {
     allocator: Mutex<Option<Allocator>>,
     garbage: Mutex<Vec<(u64, Garbage)>>,
     pub(crate) info: DeviceInfo,
+    /// [`ContextDesc::max_memory_bytes`].
+    pub(crate) max_memory: Option<u64>,
     /// Created for wgpu to adopt: the device and instance outlive the context.
     shared: bool,
     #[cfg(feature = "wgpu")]
@@ -615,6 +621,7 @@ impl Context {
             allocator: Mutex::new(Some(allocator)),
             garbage: Mutex::new(Vec::new()),
             info,
+            max_memory: desc.max_memory_bytes,
             shared,
             #[cfg(feature = "wgpu")]
             wgpu,

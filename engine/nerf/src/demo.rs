@@ -246,7 +246,7 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
     let img_dir = dir.join("images");
     std::fs::create_dir_all(&img_dir).map_err(|e| DataError::Io {
         path: img_dir.clone(),
-        source: e,
+        error: e,
     })?;
     let focal = 0.9 * width as f64;
     let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);

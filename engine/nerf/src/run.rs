@@ -227,7 +227,7 @@ pub struct Checkpoint {
 pub fn save_checkpoint(dir: &Path, ck: &Checkpoint) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| DataError::Io {
         path: dir.to_path_buf(),
-        source: e,
+        error: e,
     })?;
     let json = serde_json::to_string_pretty(&ck.config)
         .map_err(|e| RunError::Config(format!("cannot serialise the configuration: {e}")))?;

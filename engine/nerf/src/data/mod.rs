@@ -20,12 +20,13 @@ use glam::{DMat4, DVec3};
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
     /// The file or folder is missing or unreadable.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The path.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not a separate source, so a chain does not print it
+        /// twice).
+        error: std::io::Error,
     },
     /// The file exists but its content is wrong.
     #[error("{path}: {problem}")]
@@ -56,7 +57,7 @@ impl DataError {
     pub(crate) fn io(path: &Path, source: std::io::Error) -> DataError {
         DataError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         }
     }
 }

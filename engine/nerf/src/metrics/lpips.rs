@@ -288,7 +288,7 @@ const SCALE: [f32; 3] = [0.458, 0.448, 0.450];
 
 fn weights_error(e: DataError) -> MetricsError {
     match e {
-        DataError::Io { path, source } => MetricsError::Io { path, source },
+        DataError::Io { path, error } => MetricsError::Io { path, error },
         DataError::Malformed { path, problem } | DataError::Image { path, problem } => {
             MetricsError::Weights { path, problem }
         }

@@ -48,12 +48,13 @@ pub enum MetricsError {
         metric: &'static str,
     },
     /// A weights file is missing or unreadable.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not a separate source, so a chain does not print it
+        /// twice).
+        error: std::io::Error,
     },
     /// A weights file is malformed or lacks what the network needs.
     #[error("{path}: {problem}")]
