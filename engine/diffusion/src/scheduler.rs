@@ -25,6 +25,9 @@ pub enum BetaSchedule {
     SquaredCosCapV2,
 }
 
+/// The largest `num_train_timesteps` a schedule takes.
+pub const MAX_TRAIN_TIMESTEPS: usize = 1 << 20;
+
 /// What the network predicts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -132,8 +135,12 @@ impl Schedule {
     /// The schedule of a config, or what is wrong with it.
     pub fn new(c: &SchedulerConfig) -> Result<Schedule, String> {
         let n = c.num_train_timesteps;
-        if n < 2 {
-            return Err(format!("num_train_timesteps = {n} must be at least 2"));
+        // Diffusers trains with 1000; a table of more than a million steps is a corrupt file
+        // (it would also be allocated here whole).
+        if !(2..=MAX_TRAIN_TIMESTEPS).contains(&n) {
+            return Err(format!(
+                "num_train_timesteps = {n} must be 2 to {MAX_TRAIN_TIMESTEPS}"
+            ));
         }
         let betas: Vec<f64> = match c.beta_schedule {
             BetaSchedule::Linear => (0..n)

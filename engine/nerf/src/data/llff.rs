@@ -119,6 +119,14 @@ pub fn load_llff(dir: &Path, opts: &LlffOptions) -> Result<Scene> {
     let row = |i: usize| &arr.data[i * 17..i * 17 + 17];
     let min_near = (0..n).map(|i| row(i)[15]).fold(f64::INFINITY, f64::min);
     let scale = opts.bd_factor.map_or(1.0, |b| 1.0 / (min_near * b));
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(DataError::malformed(
+            &npy_path,
+            format!(
+                "the nearest depth bound {min_near:e} cannot normalise the scene (scale {scale:e}); the bounds must be ordinary positive depths"
+            ),
+        ));
+    }
     let mut c2ws = Vec::with_capacity(n);
     for i in 0..n {
         let r = row(i);
@@ -146,6 +154,14 @@ pub fn load_llff(dir: &Path, opts: &LlffOptions) -> Result<Scene> {
     let mut cameras = Vec::with_capacity(n);
     for (i, (c2w, path)) in c2ws.into_iter().zip(images).enumerate() {
         let r = row(i);
+        if !(c2w.is_finite() && (r[15] * scale).is_finite() && (r[16] * scale).is_finite()) {
+            return Err(DataError::malformed(
+                &npy_path,
+                format!(
+                    "row {i} (image {i}): the pose or its bounds overflow once the scene is normalised (scale {scale:e}); the values are out of any real capture's range"
+                ),
+            ));
+        }
         let (h_full, w_full, focal) = (r[4], r[9], r[14]);
         let (w, h) = image::image_dimensions(&path).map_err(|e| match e {
             image::ImageError::IoError(io) => DataError::io(&path, io),

@@ -225,6 +225,21 @@ pub(crate) fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
+/// Fault injection for the crash tests: with `EXTRANERF_CRASH_TEST_PAUSE=NAME:MS` in the
+/// environment, an atomic write of a file named NAME waits MS milliseconds between its synced
+/// temporary file and the rename, so a test can kill the process there. Unset, it does nothing.
+pub fn crash_test_pause(name: &str) {
+    if let Ok(v) = std::env::var("EXTRANERF_CRASH_TEST_PAUSE") {
+        if let Some((file, ms)) = v.rsplit_once(':') {
+            if file == name {
+                if let Ok(ms) = ms.parse::<u64>() {
+                    std::thread::sleep(std::time::Duration::from_millis(ms));
+                }
+            }
+        }
+    }
+}
+
 /// Writes `bytes` to `path` through a synced temporary file in the same folder and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::result::Result<(), DataError> {
     use std::io::Write;
@@ -238,6 +253,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::result::Result<(), DataEr
         let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;
         f.sync_all()?;
+        crash_test_pause(&name);
         std::fs::rename(&tmp, path)
     })();
     res.map_err(|e| {
