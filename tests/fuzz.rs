@@ -313,10 +313,10 @@ fn npy_files() {
     });
 }
 
-#[test]
-fn llff_poses_bounds() {
-    // A two-view LLFF folder: fern's first two poses and two small images.
-    let dir = scratch_dir("fuzz-llff");
+/// A two-view LLFF folder `name` (two small images) and its poses: fern's first two, sized
+/// for 16x12 images.
+fn llff_folder(name: &str) -> (PathBuf, Vec<f64>) {
+    let dir = scratch_dir(name);
     let images = dir.join("images");
     std::fs::create_dir_all(&images).unwrap();
     for i in 0..2 {
@@ -327,11 +327,17 @@ fn llff_poses_bounds() {
     let raw = extranerf_nerf::data::npy::read_npy(&fern().join("poses_bounds.npy")).unwrap();
     let mut rows = raw.data[..34].to_vec();
     for r in 0..2 {
-        // 16x12 at full size: height, width, focal.
+        // Height, width and focal of the full-size capture.
         rows[r * 17 + 4] = 12.0;
         rows[r * 17 + 9] = 16.0;
         rows[r * 17 + 14] = 14.0;
     }
+    (dir, rows)
+}
+
+#[test]
+fn llff_poses_bounds() {
+    let (dir, rows) = llff_folder("fuzz-llff");
     let seed = dir.join("seed.npy");
     extranerf_nerf::data::npy::write_npy_f64(&seed, &[2, 17], &rows).unwrap();
     let corpus = vec![std::fs::read(&seed).unwrap()];
@@ -681,21 +687,7 @@ fn diffusers_folders() {
 fn regressions_found_by_fuzzing() {
     // poses_bounds.npy whose nearest bound is a denormal: the scene's normalisation scale was
     // infinite and every pose NaN, accepted silently.
-    let dir = scratch_dir("fuzz-regress-llff");
-    let images = dir.join("images");
-    std::fs::create_dir_all(&images).unwrap();
-    for i in 0..2 {
-        image::RgbImage::from_pixel(16, 12, image::Rgb([40, 90, 200]))
-            .save(images.join(format!("im{i}.png")))
-            .unwrap();
-    }
-    let raw = extranerf_nerf::data::npy::read_npy(&fern().join("poses_bounds.npy")).unwrap();
-    let mut rows = raw.data[..34].to_vec();
-    for r in 0..2 {
-        rows[r * 17 + 4] = 12.0;
-        rows[r * 17 + 9] = 16.0;
-        rows[r * 17 + 14] = 14.0;
-    }
+    let (dir, mut rows) = llff_folder("fuzz-regress-llff");
     rows[15] = 5e-324;
     extranerf_nerf::data::npy::write_npy_f64(&dir.join("poses_bounds.npy"), &[2, 17], &rows)
         .unwrap();

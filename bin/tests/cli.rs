@@ -1223,38 +1223,29 @@ fn resource_faults_are_clear_errors() {
     let scene = dir.join("scene");
     extranerf_nerf::demo::write_demo_scene(&scene, 48, 36).unwrap();
     let run = dir.join("run");
-    let (ok, _, err) = extranerf(&[
-        "--max-memory",
-        "4",
-        "train",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--factor",
-        "1",
-        "--steps",
-        "2",
-        "--out",
-        run.to_str().unwrap(),
-    ]);
+    let train = |mib: &str| {
+        extranerf(&[
+            "--max-memory",
+            mib,
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--factor",
+            "1",
+            "--steps",
+            "2",
+            "--out",
+            run.to_str().unwrap(),
+        ])
+    };
+    let (ok, _, err) = train("4");
     assert!(
         !ok && err.contains("out of device memory while allocating") && !err.contains("panicked"),
         "{err}"
     );
     assert!(!run.exists(), "a run folder was left behind");
     // With enough memory the same run trains.
-    let (ok, _, err) = extranerf(&[
-        "--max-memory",
-        "512",
-        "train",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--factor",
-        "1",
-        "--steps",
-        "2",
-        "--out",
-        run.to_str().unwrap(),
-    ]);
+    let (ok, _, err) = train("512");
     assert!(ok, "{err}");
     assert!(run.join("checkpoint.safetensors").is_file());
     let _ = std::fs::remove_dir_all(dir);
