@@ -5,7 +5,8 @@
 //! feeds the result to the loader a user's file reaches. Each input must give a value or an
 //! error that names the file: never a panic. The run is bounded by the number of inputs per
 //! target, `EXTRANERF_FUZZ_CASES` (default 256; CI runs the default), and each target prints
-//! how many inputs it ran, how many the loader accepted and how many it refused.
+//! how many inputs it ran, how many the loader accepted and how many it refused. The inputs are
+//! the same on every run unless `EXTRANERF_FUZZ_RANDOM` is set (`tools/fuzz.sh` sets it).
 //!
 //! Not fuzzed here: COLMAP `images.bin` (nothing in the engine reads it) and `prior_holes.json`
 //! (read only by the command line; its regions are checked against the views in
@@ -248,11 +249,23 @@ fn fuzz(
         assert_eq!(check(c), Ok(true), "{target}: seed {i} does not load");
     }
     let (accepted, refused) = (AtomicUsize::new(0), AtomicUsize::new(0));
-    let mut runner = TestRunner::new(Config {
+    let config = Config {
         cases,
         failure_persistence: None,
         ..Config::default()
-    });
+    };
+    // The suite's inputs are the same on every run, so its outcome is reproducible;
+    // EXTRANERF_FUZZ_RANDOM=1 (tools/fuzz.sh) draws fresh ones.
+    let mut runner = if std::env::var_os("EXTRANERF_FUZZ_RANDOM").is_some() {
+        TestRunner::new(config)
+    } else {
+        TestRunner::new_with_rng(
+            config,
+            proptest::test_runner::TestRng::deterministic_rng(
+                proptest::test_runner::RngAlgorithm::ChaCha,
+            ),
+        )
+    };
     let result = runner.run(&input(corpus.len(), json), |inp| {
         let bytes = realise(&corpus, &inp);
         match check(&bytes) {
