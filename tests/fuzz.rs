@@ -301,6 +301,22 @@ fn named<T, E: std::fmt::Display>(r: Result<T, E>, name: &str) -> Result<bool, S
     }
 }
 
+/// [`fuzz`] for a loader that reads a file: each input is written to `path`, `load` runs, and an
+/// error must name the file.
+fn fuzz_file<T, E: std::fmt::Display>(
+    target: &str,
+    path: &Path,
+    corpus: Vec<Vec<u8>>,
+    json: bool,
+    load: impl Fn(&Path) -> Result<T, E>,
+) {
+    let name = path.file_name().unwrap().to_string_lossy().into_owned();
+    fuzz(target, corpus, json, cases(), |b| {
+        write(path, b);
+        named(load(path), &name)
+    });
+}
+
 fn fern() -> PathBuf {
     shared_data().join("llff/fern")
 }
@@ -418,18 +434,12 @@ fn colmap_binaries() {
     let dir = scratch_dir("fuzz-colmap");
     let sparse = fern().join("sparse/0");
     let cams = dir.join("cameras.bin");
-    fuzz(
+    fuzz_file(
         "cameras.bin",
+        &cams,
         vec![std::fs::read(sparse.join("cameras.bin")).unwrap()],
         false,
-        cases(),
-        |b| {
-            write(&cams, b);
-            named(
-                extranerf_nerf::data::colmap::read_cameras_bin(&cams),
-                "cameras.bin",
-            )
-        },
+        extranerf_nerf::data::colmap::read_cameras_bin,
     );
     // fern's points3D.bin is large; its first 40 points make the seed.
     let all =
@@ -444,13 +454,13 @@ fn colmap_binaries() {
     let mut seed = (40u64.min(all.len() as u64)).to_le_bytes().to_vec();
     seed.extend_from_slice(&full[8..at]);
     let pts = dir.join("points3D.bin");
-    fuzz("points3D.bin", vec![seed], false, cases(), |b| {
-        write(&pts, b);
-        named(
-            extranerf_nerf::data::colmap::read_points3d_bin(&pts),
-            "points3D.bin",
-        )
-    });
+    fuzz_file(
+        "points3D.bin",
+        &pts,
+        vec![seed],
+        false,
+        extranerf_nerf::data::colmap::read_points3d_bin,
+    );
 }
 
 #[test]
@@ -469,11 +479,13 @@ fn images() {
         )
         .unwrap();
     for (name, seed) in [("image.png", png), ("image.jpg", jpg)] {
-        let path = dir.join(name);
-        fuzz(name, vec![seed], false, cases(), |b| {
-            write(&path, b);
-            named(extranerf_nerf::data::load_image(&path), name)
-        });
+        fuzz_file(
+            name,
+            &dir.join(name),
+            vec![seed],
+            false,
+            extranerf_nerf::data::load_image,
+        );
     }
 }
 
@@ -497,33 +509,19 @@ fn depth_maps() {
     let seed_npy = dir.join("seed.npy");
     let d64: Vec<f64> = depth.iter().map(|&v| v as f64).collect();
     extranerf_nerf::data::npy::write_npy_f64(&seed_npy, &[6, 8], &d64).unwrap();
-    let exr = dir.join("depth.exr");
-    fuzz(
+    fuzz_file(
         "depth .exr",
+        &dir.join("depth.exr"),
         vec![std::fs::read(&seed_exr).unwrap()],
         false,
-        cases(),
-        |b| {
-            write(&exr, b);
-            named(
-                extranerf_nerf::data::depth::read_depth_exr(&exr, &cam),
-                "depth.exr",
-            )
-        },
+        |p| extranerf_nerf::data::depth::read_depth_exr(p, &cam),
     );
-    let npy = dir.join("depth.npy");
-    fuzz(
+    fuzz_file(
         "depth .npy",
+        &dir.join("depth.npy"),
         vec![std::fs::read(&seed_npy).unwrap()],
         false,
-        cases(),
-        |b| {
-            write(&npy, b);
-            named(
-                extranerf_nerf::data::depth::read_depth_npy(&npy, &cam),
-                "depth.npy",
-            )
-        },
+        |p| extranerf_nerf::data::depth::read_depth_npy(p, &cam),
     );
 }
 
@@ -570,15 +568,12 @@ fn checkpoints_and_run_configs() {
     .unwrap();
     let file = dir.join("checkpoint.safetensors");
     let seed = std::fs::read(&file).unwrap();
-    fuzz(
+    fuzz_file(
         "checkpoint.safetensors",
+        &file,
         vec![seed.clone()],
         false,
-        cases(),
-        |b| {
-            write(&file, b);
-            named(load_checkpoint(&dir), "checkpoint.safetensors")
-        },
+        |_| load_checkpoint(&dir),
     );
     // The config inside the metadata, edited as JSON.
     let st = SafeTensors::parse(&seed, &file).unwrap();
@@ -636,23 +631,26 @@ fn diffusers_folders() {
     let p = dir.join("config.json");
     UNetConfig::tiny_inpainting().save(&p).unwrap();
     let unet = std::fs::read(&p).unwrap();
-    fuzz("unet/config.json", vec![unet], true, cases(), |b| {
-        write(&p, b);
-        named(UNetConfig::from_file(&p), "config.json")
-    });
+    fuzz_file(
+        "unet/config.json",
+        &p,
+        vec![unet],
+        true,
+        UNetConfig::from_file,
+    );
     VaeConfig::tiny().save(&p).unwrap();
     let vae = std::fs::read(&p).unwrap();
-    fuzz("vae/config.json", vec![vae], true, cases(), |b| {
-        write(&p, b);
-        named(VaeConfig::from_file(&p), "config.json")
-    });
+    fuzz_file("vae/config.json", &p, vec![vae], true, VaeConfig::from_file);
     let s = dir.join("scheduler_config.json");
     SchedulerConfig::default().save(&s).unwrap();
     let sched = std::fs::read(&s).unwrap();
-    fuzz("scheduler_config.json", vec![sched], true, cases(), |b| {
-        write(&s, b);
-        named(SchedulerConfig::from_file(&s), "scheduler_config.json")
-    });
+    fuzz_file(
+        "scheduler_config.json",
+        &s,
+        vec![sched],
+        true,
+        SchedulerConfig::from_file,
+    );
     let a = dir.join("adapter_config.json");
     let lora = serde_json::to_vec(&LoraConfig {
         r: 4,
@@ -661,10 +659,13 @@ fn diffusers_folders() {
         peft_type: "LORA".into(),
     })
     .unwrap();
-    fuzz("adapter_config.json", vec![lora], true, cases(), |b| {
-        write(&a, b);
-        named(LoraConfig::from_file(&a), "adapter_config.json")
-    });
+    fuzz_file(
+        "adapter_config.json",
+        &a,
+        vec![lora],
+        true,
+        LoraConfig::from_file,
+    );
     // Whole-model loads cost more: a tenth of the inputs.
     let model = dir.join("model");
     let dev = burn::tensor::Device::flex();

@@ -859,31 +859,35 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     let (ok, _, err) = extranerf(&argv);
     assert!(!ok && err.contains("already holds a prior"), "{err}");
     // Scoring the saved prior again without training gives the same figures.
+    // Scores the prior `model` into `out` without training.
+    let score = |model: &std::path::Path, out: &std::path::Path| {
+        extranerf(&[
+            "diffusion",
+            "prior",
+            "--scene",
+            &s(&scene),
+            "--out",
+            &s(out),
+            "--model",
+            &s(model),
+            "--holes",
+            "1",
+            "--hole-size",
+            "8",
+            "--eval-steps",
+            "2",
+            "--lpips",
+            &s(&lpips),
+            "--factor",
+            "1",
+            "--downscale",
+            "1",
+            "--diffusion-backend",
+            "cpu",
+        ])
+    };
     let again = dir.join("again");
-    let (ok, _, err) = extranerf(&[
-        "diffusion",
-        "prior",
-        "--scene",
-        &s(&scene),
-        "--out",
-        &s(&again),
-        "--model",
-        &s(&prior.join("model")),
-        "--holes",
-        "1",
-        "--hole-size",
-        "8",
-        "--eval-steps",
-        "2",
-        "--lpips",
-        &s(&lpips),
-        "--factor",
-        "1",
-        "--downscale",
-        "1",
-        "--diffusion-backend",
-        "cpu",
-    ]);
+    let (ok, _, err) = score(&prior.join("model"), &again);
     assert!(ok, "{err}");
     let r2: serde_json::Value =
         serde_json::from_slice(&std::fs::read(again.join("prior_eval.json")).unwrap()).unwrap();
@@ -899,28 +903,7 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
         let mut h = holes.clone();
         h[0][field] = value.into();
         std::fs::write(&holes_path, serde_json::to_vec(&h).unwrap()).unwrap();
-        let (ok, _, err) = extranerf(&[
-            "diffusion",
-            "prior",
-            "--scene",
-            &s(&scene),
-            "--out",
-            &s(&dir.join("foreign-eval")),
-            "--model",
-            &s(&foreign),
-            "--holes",
-            "1",
-            "--hole-size",
-            "8",
-            "--lpips",
-            &s(&lpips),
-            "--factor",
-            "1",
-            "--downscale",
-            "1",
-            "--diffusion-backend",
-            "cpu",
-        ]);
+        let (ok, _, err) = score(&foreign, &dir.join("foreign-eval"));
         assert!(
             !ok && err.contains("prior_holes.json")
                 && err.contains(want)

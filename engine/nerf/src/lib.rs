@@ -7,6 +7,17 @@
 //! [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM, LPIPS; [`reference`](mod@reference): plain-Rust f64 definitions the kernels are tested against.
 #![forbid(unsafe_code)]
 
+/// `Display` as the enum's `name()`, the name its configs and reports use.
+macro_rules! display_by_name {
+    ($($t:ty),* $(,)?) => {
+        $(impl std::fmt::Display for $t {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(self.name())
+            }
+        })*
+    };
+}
+
 pub mod autoconfig;
 pub mod cameras;
 pub mod data;
@@ -24,3 +35,11 @@ pub mod run;
 pub mod safetensors;
 pub mod trainer;
 pub mod views;
+
+display_by_name!(
+    model::Space,
+    model::Precision,
+    field::encodings::Contraction,
+    data::split::SplitKind,
+    trainer::RgbLossKind,
+);

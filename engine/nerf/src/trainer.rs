@@ -114,12 +114,6 @@ impl RgbLossKind {
     }
 }
 
-impl std::fmt::Display for RgbLossKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
 fn default_fused_step() -> bool {
     true
 }

@@ -57,12 +57,6 @@ impl SplitKind {
     }
 }
 
-impl std::fmt::Display for SplitKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
 /// Number of training views of the extrapolation protocol.
 pub const EXTRAPOLATION_TRAIN: usize = 6;
 /// Number of test views of the extrapolation protocol.

@@ -29,12 +29,6 @@ impl Contraction {
     }
 }
 
-impl std::fmt::Display for Contraction {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
 /// Where the scene is: world points are mapped as `(x - center) / radius` before contraction.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SceneBox {
