@@ -829,6 +829,7 @@ fn lora_trains_only_the_adapters_and_round_trips() {
         &aug,
         &settings,
         &dev,
+        None,
         &mut |_| {},
     )
     .unwrap();
@@ -894,6 +895,7 @@ fn a_tiny_model_overfits_one_image() {
         &aug,
         &settings,
         &dev,
+        None,
         &mut |_| reports += 1,
     )
     .unwrap();
@@ -1234,4 +1236,267 @@ fn unknown_pixels_never_reach_the_model_or_the_loss() {
     let mz =
         values(codec.mask(Tensor::<1>::from_floats(m.as_slice(), &cpu()).reshape([1, 1, 8, 8])));
     assert_eq!(mz, vec![1.0, 0.0, 0.0, 0.0]);
+}
+
+/// Training killed after a checkpoint and resumed ends where an uninterrupted run ends: same
+/// loss curve and same model, for a model trained whole (the scene prior) and for LoRA
+/// adapters on a frozen base (fine-tuning, whose state holds only the adapters and tokens).
+#[test]
+fn training_resumes_where_it_stopped() {
+    use extranerf_diffusion::train_state::{self, Checkpointing};
+    let images = vec![TrainImage::new(16, 16, stripes(16, 16))];
+    let aug = Augment {
+        crop: 8,
+        ..Augment::default()
+    };
+    let s = schedule(BetaSchedule::ScaledLinear, Prediction::V);
+    let settings = |steps| TrainSettings {
+        steps,
+        batch: 2,
+        lr: 3e-3,
+        token_lr: 1e-3,
+        warmup: 4,
+        log_every: 3,
+        seed: 4,
+        ..TrainSettings::default()
+    };
+    let base_dir = scratch_dir("resume-base");
+    let base_dev = cpu().autodiff();
+    base_dev.seed(1);
+    weights::save_unet(&base_dir, &tiny_pixel_config(), &tiny_pixel_unet(&base_dev)).unwrap();
+    // A fresh model as the command builds it: whole or with fresh adapters.
+    let build = |lora_rank: Option<usize>, dev: &Device| {
+        let (_, unet) = weights::load_unet(&base_dir, dev).unwrap();
+        let unet = match lora_rank {
+            Some(r) => lora::apply(unet, &LoraConfig::attention(r, 2.0), dev).unwrap(),
+            None => unet,
+        };
+        Trainable {
+            unet,
+            tokens: LearnedTokens::new(2, 8, dev),
+        }
+    };
+    let x = seeded_noise([1, 7, 8, 8], 5, &cpu());
+    let ctx: Tensor<3> = seeded_noise([1, 2, 8, 1], 6, &cpu()).reshape([1, 2, 8]);
+    let output = |m: Trainable| {
+        let m = m.valid();
+        values(m.unet.forward(x.clone(), &[300.0], &ctx))
+    };
+    for lora_rank in [None, Some(2)] {
+        let dev = cpu().autodiff();
+        let run = |model, steps, ck: Option<&Checkpointing>| {
+            train::train(
+                model,
+                &Codec::Pixels(PixelCodec),
+                &s,
+                &images,
+                &aug,
+                &settings(steps),
+                &dev,
+                ck,
+                &mut |_| {},
+            )
+        };
+        // One starting model for both runs (the device's generator is shared with tests
+        // running alongside, so two builds need not agree); the resume starts from another.
+        let init = build(lora_rank, &dev);
+        let (straight, curve) = run(init.clone(), 10, None).unwrap();
+        let want = output(straight);
+        let dir = scratch_dir(&format!("resume-{lora_rank:?}"));
+        let ck = Checkpointing {
+            dir: dir.clone(),
+            every: 4,
+            resume: false,
+            identity: serde_json::json!({"rank": lora_rank}),
+        };
+        // Stopped after step 6 (saves at 4 and 6), then resumed to 10 from a fresh model.
+        run(init, 6, Some(&ck)).unwrap();
+        let st = train_state::peek(&dir).unwrap().unwrap();
+        assert_eq!(st.step, 6);
+        let files: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".bpk"))
+            .collect();
+        assert_eq!(files.len(), 3, "only the last step's files stay: {files:?}");
+        // A second fresh start on the same folder is refused: it holds someone's work.
+        let err = run(build(lora_rank, &dev), 10, Some(&ck))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            err.contains("holds an unfinished training (step 6)"),
+            "{err}"
+        );
+        let resume = Checkpointing {
+            resume: true,
+            ..ck.clone()
+        };
+        let (resumed, resumed_curve) = run(build(lora_rank, &dev), 10, Some(&resume)).unwrap();
+        assert_eq!(resumed_curve, curve, "{lora_rank:?}: loss curves differ");
+        let got = output(resumed);
+        let err = rel_err(&got, &want);
+        eprintln!("{lora_rank:?}: resumed vs uninterrupted output, relative error {err:e}");
+        assert!(err < 1e-6, "{lora_rank:?}: relative error {err}");
+        assert_eq!(train_state::peek(&dir).unwrap().unwrap().step, 10);
+        // Other settings, another identity or other images are refused by name.
+        let mut other = settings(12);
+        other.lr = 1e-2;
+        let err = train::train(
+            build(lora_rank, &dev),
+            &Codec::Pixels(PixelCodec),
+            &s,
+            &images,
+            &aug,
+            &other,
+            &dev,
+            Some(&resume),
+            &mut |_| {},
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(err.contains("lr: 0.003 when saved, 0.01 now"), "{err}");
+        let moved = Checkpointing {
+            identity: serde_json::json!({"rank": 9}),
+            ..resume.clone()
+        };
+        let err = run(build(lora_rank, &dev), 12, Some(&moved))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("rank:") && err.contains("9 now"), "{err}");
+        let flipped = vec![TrainImage::new(
+            16,
+            16,
+            stripes(16, 16).into_iter().rev().collect(),
+        )];
+        let err = train::train(
+            build(lora_rank, &dev),
+            &Codec::Pixels(PixelCodec),
+            &s,
+            &flipped,
+            &aug,
+            &settings(12),
+            &dev,
+            Some(&resume),
+            &mut |_| {},
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(err.contains("training images: hash"), "{err}");
+        // Fewer steps than saved: refused, not silently returned.
+        let err = run(build(lora_rank, &dev), 8, Some(&resume))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("past the 8 steps"), "{err}");
+    }
+}
+
+/// A damaged training state is a clear error naming the file, never a panic or a silent
+/// fresh start.
+#[test]
+fn damaged_training_states_are_refused() {
+    use extranerf_diffusion::train_state::{self, Checkpointing, STATE_FILE};
+    let dev = cpu().autodiff();
+    dev.seed(2);
+    let images = vec![TrainImage::new(16, 16, stripes(16, 16))];
+    let aug = Augment {
+        crop: 8,
+        ..Augment::default()
+    };
+    let s = schedule(BetaSchedule::ScaledLinear, Prediction::V);
+    let settings = TrainSettings {
+        steps: 2,
+        batch: 1,
+        log_every: 1,
+        ..TrainSettings::default()
+    };
+    let dir = scratch_dir("resume-damaged");
+    let ck = Checkpointing {
+        dir: dir.clone(),
+        every: 1,
+        resume: true,
+        identity: serde_json::Value::Null,
+    };
+    let model = || Trainable {
+        unet: tiny_pixel_unet(&dev),
+        tokens: LearnedTokens::new(2, 8, &dev),
+    };
+    let run = |m| {
+        train::train(
+            m,
+            &Codec::Pixels(PixelCodec),
+            &s,
+            &images,
+            &aug,
+            &settings,
+            &dev,
+            Some(&ck),
+            &mut |_| {},
+        )
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default()
+    };
+    let err = run(model());
+    assert!(err.contains("no training state to resume"), "{err}");
+    let fresh = Checkpointing {
+        resume: false,
+        ..ck.clone()
+    };
+    train::train(
+        model(),
+        &Codec::Pixels(PixelCodec),
+        &s,
+        &images,
+        &aug,
+        &settings,
+        &dev,
+        Some(&fresh),
+        &mut |_| {},
+    )
+    .unwrap();
+    let st = train_state::peek(&dir).unwrap().unwrap();
+    let state = dir.join(STATE_FILE);
+    let good = std::fs::read(&state).unwrap();
+    // Truncated state.json.
+    std::fs::write(&state, &good[..good.len() / 2]).unwrap();
+    let err = run(model());
+    assert!(err.contains("state.json: not a training state"), "{err}");
+    // A state naming a file outside its folder.
+    let text = String::from_utf8(good.clone())
+        .unwrap()
+        .replace(&st.model, "../../etc/passwd.bpk");
+    std::fs::write(&state, text).unwrap();
+    let err = run(model());
+    assert!(err.contains("names an odd file"), "{err}");
+    std::fs::write(&state, &good).unwrap();
+    // Truncated weights and optimiser files.
+    for name in [&st.model, &st.adamw_unet] {
+        let p = dir.join(name);
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() / 3]).unwrap();
+        let err = run(model());
+        assert!(err.contains(name.as_str()), "{name}: {err}");
+        std::fs::write(&p, &bytes).unwrap();
+    }
+    // Weights of another architecture.
+    let wide = Trainable {
+        unet: UNet2DConditionModel::new(
+            &UNetConfig {
+                block_out_channels: vec![16, 24],
+                ..tiny_pixel_config()
+            },
+            &dev,
+        )
+        .unwrap(),
+        tokens: LearnedTokens::new(2, 8, &dev),
+    };
+    let err = run(wide);
+    assert!(err.contains(&st.model), "{err}");
+    // Intact again: it resumes (nothing left to train).
+    assert_eq!(run(model()), "");
 }

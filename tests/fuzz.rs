@@ -696,6 +696,93 @@ fn diffusers_folders() {
     );
 }
 
+/// The resumable training state of `diffusion prior` and `diffusion finetune`: `state.json`,
+/// and the burnpack parameter and optimiser files, read through a resume (a tenth of the
+/// inputs: each builds a model).
+#[test]
+fn diffusion_training_state() {
+    use extranerf_diffusion::config::UNetConfig;
+    use extranerf_diffusion::inpaint::{Codec, PixelCodec};
+    use extranerf_diffusion::scheduler::{Schedule, SchedulerConfig};
+    use extranerf_diffusion::text::LearnedTokens;
+    use extranerf_diffusion::train::{self, Augment, TrainImage, TrainSettings, Trainable};
+    use extranerf_diffusion::train_state::{self, Checkpointing, STATE_FILE};
+    use extranerf_diffusion::unet::UNet2DConditionModel;
+    let dir = scratch_dir("fuzz-train-state");
+    let dev = burn::tensor::Device::flex().autodiff();
+    let cfg = UNetConfig {
+        in_channels: 7,
+        out_channels: 3,
+        block_out_channels: vec![16, 32],
+        norm_num_groups: 4,
+        cross_attention_dim: 8,
+        ..UNetConfig::tiny_inpainting()
+    };
+    let schedule = Schedule::new(&SchedulerConfig::default()).unwrap();
+    let images = vec![TrainImage::new(8, 8, vec![0.5; 3 * 64])];
+    let aug = Augment {
+        crop: 8,
+        ..Augment::default()
+    };
+    let settings = TrainSettings {
+        steps: 1,
+        batch: 1,
+        log_every: 1,
+        ..TrainSettings::default()
+    };
+    let run = |resume: bool| {
+        let model = Trainable {
+            unet: UNet2DConditionModel::new(&cfg, &dev).unwrap(),
+            tokens: LearnedTokens::new(2, 8, &dev),
+        };
+        let ck = Checkpointing {
+            dir: dir.clone(),
+            every: 1,
+            resume,
+            identity: Value::Null,
+        };
+        train::train(
+            model,
+            &Codec::Pixels(PixelCodec),
+            &schedule,
+            &images,
+            &aug,
+            &settings,
+            &dev,
+            Some(&ck),
+            &mut |_| {},
+        )
+        .map(|_| ())
+    };
+    run(false).unwrap();
+    let state = dir.join(STATE_FILE);
+    let saved = train_state::peek(&dir).unwrap().unwrap();
+    fuzz_file(
+        "train_state/state.json",
+        &state,
+        vec![std::fs::read(&state).unwrap()],
+        true,
+        |p| train_state::peek(p.parent().unwrap()),
+    );
+    let text = serde_json::to_vec_pretty(&saved).unwrap();
+    write(&state, &text);
+    for file in [&saved.model, &saved.adamw_unet] {
+        let p = dir.join(file);
+        let good = std::fs::read(&p).unwrap();
+        fuzz(
+            &format!("train_state/{file}"),
+            vec![good.clone()],
+            false,
+            (cases() / 10).max(8),
+            |b| {
+                write(&p, b);
+                named(run(true), file)
+            },
+        );
+        write(&p, &good);
+    }
+}
+
 /// Inputs the fuzzer found that once broke a loader, kept as fixed regressions.
 #[test]
 fn regressions_found_by_fuzzing() {

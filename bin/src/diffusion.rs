@@ -19,6 +19,7 @@ use extranerf_diffusion::pipeline::Pipeline;
 use extranerf_diffusion::scheduler::{BetaSchedule, Prediction, SchedulerConfig};
 use extranerf_diffusion::text::LearnedTokens;
 use extranerf_diffusion::train::{self, Augment, Progress, TrainImage, TrainSettings, Trainable};
+use extranerf_diffusion::train_state::{self, Checkpointing};
 use extranerf_diffusion::unet::UNet2DConditionModel;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::load_image;
@@ -126,9 +127,11 @@ pub struct PriorArgs {
     /// Seed (holes, crops, noise).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub state: StateArgs,
     /// Score an existing prior (a `model/` folder this command wrote, with its
     /// prior_holes.json) instead of training one.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub model: Option<PathBuf>,
     /// Folder with lpips_alex_v0.1.safetensors (default: $EXTRANERF_MODELS/lpips, else
     /// ../shared/models/lpips).
@@ -236,8 +239,60 @@ pub struct FinetuneArgs {
     #[arg(long, default_value = "a photo of sks scene")]
     pub prompt: String,
     #[command(flatten)]
+    pub state: StateArgs,
+    #[command(flatten)]
     pub backend: BackendArgs,
 }
+
+/// Progress, checkpoints and resuming of `diffusion prior` and `diffusion finetune`.
+#[derive(Args, Debug, Clone)]
+pub struct StateArgs {
+    /// Steps between loss reports.
+    #[arg(long, default_value_t = 25)]
+    pub log_every: usize,
+    /// Steps between saves of the training state in OUT/train_state/ (parameters, AdamW
+    /// moments, random state, loss curve; the last step always saves).
+    #[arg(long, default_value_t = 100)]
+    pub checkpoint_every: usize,
+    /// Continue the training in --out from OUT/train_state/ after a crash or kill, with the
+    /// same arguments (--steps may be raised to train further). On the CPU backend the result
+    /// is bit for bit the one an uninterrupted run gives.
+    #[arg(long)]
+    pub resume: bool,
+}
+
+impl StateArgs {
+    /// The checkpointing of a training whose outputs go to `out`; `identity` lists what a
+    /// resume must share besides the training settings and images.
+    fn checkpointing(
+        &self,
+        out: &Path,
+        identity: serde_json::Value,
+    ) -> anyhow::Result<Checkpointing> {
+        if self.checkpoint_every == 0 || self.log_every == 0 {
+            bail!("--checkpoint-every and --log-every must be at least 1");
+        }
+        let ck = Checkpointing {
+            dir: out.join(TRAIN_STATE_DIR),
+            every: self.checkpoint_every,
+            resume: self.resume,
+            identity,
+        };
+        if self.resume {
+            match train_state::peek(&ck.dir)? {
+                Some(st) => eprintln!("resuming {} at step {}", out.display(), st.step),
+                None => bail!(
+                    "{}: no training state to resume (--resume continues a killed `diffusion prior` or `diffusion finetune` in the same --out)",
+                    ck.dir.display()
+                ),
+            }
+        }
+        Ok(ck)
+    }
+}
+
+/// Folder of the resumable training state inside --out.
+pub const TRAIN_STATE_DIR: &str = "train_state";
 
 /// `extranerf diffusion init`.
 #[derive(Args, Debug)]
@@ -637,7 +692,7 @@ fn refuse_to_replace(marker: &Path, out: &Path, what: &str) -> anyhow::Result<()
 /// `extranerf diffusion prior`.
 fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    if a.model.is_none() {
+    if a.model.is_none() && !a.state.resume {
         refuse_to_replace(
             &a.out.join("model").join("model_index.json"),
             &a.out,
@@ -756,8 +811,16 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                 lr: a.lr,
                 token_lr: a.lr,
                 seed: a.seed,
+                log_every: a.state.log_every,
                 ..TrainSettings::default()
             };
+            let ck = a.state.checkpointing(
+                &a.out,
+                serde_json::json!({
+                    "channels": a.channels,
+                    "prediction": a.prediction,
+                }),
+            )?;
             let schedule = pipe.model.schedule.clone();
             let t_train = Instant::now();
             let (model, curve) = train::train(
@@ -771,6 +834,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                 },
                 &settings,
                 &ad,
+                Some(&ck),
                 &mut progress_printer("prior"),
             )?;
             let train_s = t_train.elapsed().as_secs_f64();
@@ -1089,7 +1153,19 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
 
 /// `extranerf diffusion finetune`.
 fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
-    refuse_to_replace(&a.out.join(lora::LORA_CONFIG), &a.out, "LoRA adapters")?;
+    if !a.state.resume {
+        refuse_to_replace(&a.out.join(lora::LORA_CONFIG), &a.out, "LoRA adapters")?;
+    }
+    let ck = a.state.checkpointing(
+        &a.out,
+        serde_json::json!({
+            "model": std::fs::canonicalize(&a.model).unwrap_or_else(|_| a.model.clone()),
+            "rank": a.rank,
+            "alpha": a.alpha,
+            "convs": a.convs,
+            "prompt": a.prompt,
+        }),
+    )?;
     let (_, dev) = a.backend.device(ctx)?;
     let ad = dev.clone().autodiff();
     ad.seed(a.seed);
@@ -1205,9 +1281,11 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
             lr: a.lr,
             token_lr: a.token_lr,
             seed: a.seed,
+            log_every: a.state.log_every,
             ..TrainSettings::default()
         },
         &ad,
+        Some(&ck),
         &mut progress_printer("finetune"),
     )?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
@@ -1418,6 +1496,7 @@ pub fn bench(ctx: &Context, a: &BenchDiffusionArgs) -> anyhow::Result<()> {
                     &aug,
                     &settings,
                     &ad,
+                    None,
                     &mut |_| {},
                 )?;
                 model = Some(m);

@@ -1245,6 +1245,40 @@ fn last_logged_step(run: &std::path::Path) -> u32 {
         .unwrap_or(0) as u32
 }
 
+/// Runs the program with `args` (stderr to `log` when given), with
+/// `EXTRANERF_CRASH_TEST_PAUSE=pause` when given, and kills it with SIGKILL once `ready()`
+/// holds; fails if it ends first.
+fn spawn_and_kill(
+    args: &[String],
+    pause: Option<&str>,
+    log: Option<&std::path::Path>,
+    ready: &dyn Fn() -> bool,
+) {
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_extranerf"));
+    cmd.args(args).stdout(Stdio::null());
+    match log {
+        Some(l) => cmd.stderr(std::fs::File::create(l).unwrap()),
+        None => cmd.stderr(Stdio::null()),
+    };
+    if let Some(p) = pause {
+        cmd.env("EXTRANERF_CRASH_TEST_PAUSE", p);
+    }
+    let mut child = cmd.spawn().unwrap();
+    let t = Instant::now();
+    while !ready() {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before it could be killed"
+        );
+        assert!(t.elapsed() < Duration::from_secs(300), "timed out");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+}
+
 /// Crash safety of `train`: a run killed with SIGKILL during training, and one killed while it
 /// writes a checkpoint (between the synced temporary file and the rename, held open there by
 /// the EXTRANERF_CRASH_TEST_PAUSE hook), resume with --resume from their last checkpoint,
@@ -1253,8 +1287,6 @@ fn last_logged_step(run: &std::path::Path) -> u32 {
 /// for bit).
 #[test]
 fn train_survives_sigkill_and_resumes() {
-    use std::process::Stdio;
-    use std::time::{Duration, Instant};
     let dir = std::env::temp_dir().join(format!("extranerf-cli-kill-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let scene = dir.join("scene");
@@ -1298,25 +1330,7 @@ fn train_survives_sigkill_and_resumes() {
     };
     // Kills the run in `out` once `ready` says so; returns the last step it logged.
     let kill_when = |out: &std::path::Path, pause: Option<&str>, ready: &dyn Fn() -> bool| {
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_extranerf"));
-        cmd.args(args(out))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null());
-        if let Some(p) = pause {
-            cmd.env("EXTRANERF_CRASH_TEST_PAUSE", p);
-        }
-        let mut child = cmd.spawn().unwrap();
-        let t = Instant::now();
-        while !ready() {
-            assert!(
-                child.try_wait().unwrap().is_none(),
-                "the run ended before it could be killed"
-            );
-            assert!(t.elapsed() < Duration::from_secs(300), "timed out");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        child.kill().unwrap(); // SIGKILL
-        child.wait().unwrap();
+        spawn_and_kill(&args(out), pause, None, ready);
         last_logged_step(out)
     };
     let resume = |out: &std::path::Path, killed_at: u32| {
@@ -1398,5 +1412,213 @@ fn train_survives_sigkill_and_resumes() {
         assert!((psnr - psnr0).abs() < 0.2, "{psnr} vs {psnr0}");
         assert!(r < 0.04, "parameters differ by {:.2}%", 100.0 * r);
     }
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Crash safety of `diffusion prior` and `diffusion finetune`: runs killed with SIGKILL during
+/// training, and (prior) while the training state is written (between the synced temporary
+/// file and the rename), resume with --resume from their last saved step, losing at most one
+/// --checkpoint-every interval, and end bit for bit where uninterrupted runs end (the same
+/// loss curve and weights: the CPU backend's training is deterministic).
+#[test]
+fn diffusion_training_survives_sigkill_and_resumes() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-dkill-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene = dir.join("scene");
+    extranerf_nerf::demo::write_demo_scene(&scene, 64, 48).unwrap();
+    let lpips = extranerf_tests::shared_data().join("../models/lpips");
+    let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+    let (steps, every) = (60u64, 20u64);
+    let common = [
+        "--scene".to_string(),
+        s(&scene),
+        "--steps".into(),
+        steps.to_string(),
+        "--checkpoint-every".into(),
+        every.to_string(),
+        "--log-every".into(),
+        "1".into(),
+        "--batch".into(),
+        "2".into(),
+        "--crop".into(),
+        "32".into(),
+        "--factor".into(),
+        "1".into(),
+        "--downscale".into(),
+        "1".into(),
+        "--diffusion-backend".into(),
+        "cpu".into(),
+        "--seed".into(),
+        "3".into(),
+    ];
+    let prior_args = |out: &std::path::Path| -> Vec<String> {
+        let mut a: Vec<String> = [
+            "diffusion",
+            "prior",
+            "--out",
+            &s(out),
+            "--channels",
+            "16,32",
+            "--holes",
+            "1",
+            "--hole-size",
+            "8",
+            "--eval-steps",
+            "2",
+            "--refine-steps",
+            "2",
+            "--lpips",
+            &s(&lpips),
+        ]
+        .iter()
+        .map(|v| v.to_string())
+        .collect();
+        a.extend(common.iter().cloned());
+        a
+    };
+    let base = dir.join("straight-prior").join("model");
+    let finetune_args = |out: &std::path::Path| -> Vec<String> {
+        let mut a: Vec<String> = [
+            "diffusion",
+            "finetune",
+            "--model",
+            &s(&base),
+            "--out",
+            &s(out),
+            "--rank",
+            "2",
+        ]
+        .iter()
+        .map(|v| v.to_string())
+        .collect();
+        a.extend(common.iter().cloned());
+        a
+    };
+    let run = |a: &[String]| {
+        let argv: Vec<&str> = a.iter().map(String::as_str).collect();
+        let (ok, _, err) = extranerf(&argv);
+        assert!(ok, "{err}");
+        err
+    };
+    // The last step a log reports, and the step the saved state holds.
+    let logged = |log: &std::path::Path| -> u64 {
+        std::fs::read_to_string(log)
+            .unwrap_or_default()
+            .lines()
+            .filter_map(|l| {
+                let rest = l.split(" step ").nth(1)?;
+                rest.trim_start().split('/').next()?.parse::<u64>().ok()
+            })
+            .max()
+            .unwrap_or(0)
+    };
+    let saved = |out: &std::path::Path| -> Option<u64> {
+        let text = std::fs::read_to_string(out.join("train_state").join("state.json")).ok()?;
+        serde_json::from_str::<serde_json::Value>(&text).ok()?["step"].as_u64()
+    };
+    let writing = |out: &std::path::Path| {
+        std::fs::read_dir(out.join("train_state"))
+            .map(|r| {
+                r.filter_map(Result::ok).any(|e| {
+                    e.file_name()
+                        .to_string_lossy()
+                        .starts_with(".state.json.tmp")
+                })
+            })
+            .unwrap_or(false)
+    };
+    // Resumes `out` (killed at step `killed_at`) with the same arguments and --resume.
+    let resume = |args: &[String], out: &std::path::Path, killed_at: u64| {
+        let at = saved(out).expect("no saved state");
+        assert!(
+            at + every >= killed_at && at < killed_at,
+            "killed at step {killed_at}, the state holds step {at}"
+        );
+        let mut a = args.to_vec();
+        a.push("--resume".into());
+        let err = run(&a);
+        assert!(
+            err.contains(&format!("resuming {} at step {at}", out.display())),
+            "{err}"
+        );
+        // Nothing of the killed write is left behind.
+        assert!(!writing(out));
+    };
+    // The same file content; for safetensors the same tensors (the header's metadata order
+    // varies).
+    let same = |a: &std::path::Path, b: &std::path::Path, file: &str| {
+        let equal = if file.ends_with(".safetensors") {
+            let read = |p: std::path::PathBuf| {
+                extranerf_nerf::safetensors::SafeTensors::read(&p)
+                    .unwrap()
+                    .tensors
+                    .into_iter()
+                    .map(|(k, t)| (k, t.shape, t.data))
+                    .collect::<Vec<_>>()
+            };
+            read(a.join(file)) == read(b.join(file))
+        } else {
+            std::fs::read(a.join(file)).unwrap() == std::fs::read(b.join(file)).unwrap()
+        };
+        assert!(
+            equal,
+            "{file} of {} differs from the uninterrupted run's",
+            b.display()
+        );
+    };
+
+    let straight = dir.join("straight-prior");
+    run(&prior_args(&straight));
+    // Killed during training, a little past the second save.
+    let killed = dir.join("killed-prior");
+    let log = dir.join("killed-prior.log");
+    spawn_and_kill(&prior_args(&killed), None, Some(&log), &|| {
+        saved(&killed) == Some(2 * every) && logged(&log) >= 2 * every + 3
+    });
+    resume(&prior_args(&killed), &killed, logged(&log));
+    // Killed while the third save writes state.json: the second stays in force.
+    let mid = dir.join("mid-write-prior");
+    let log = dir.join("mid-write-prior.log");
+    spawn_and_kill(
+        &prior_args(&mid),
+        Some("state.json:2000"),
+        Some(&log),
+        &|| saved(&mid) == Some(2 * every) && writing(&mid) && logged(&log) >= 3 * every,
+    );
+    assert_eq!(logged(&log), 3 * every);
+    assert_eq!(saved(&mid), Some(2 * every));
+    resume(&prior_args(&mid), &mid, 3 * every);
+    for d in [&killed, &mid] {
+        same(&straight, d, "loss.csv");
+        same(
+            &straight,
+            d,
+            "model/unet/diffusion_pytorch_model.safetensors",
+        );
+        same(&straight, d, "model/prior_holes.json");
+    }
+    // A finished run is not replaced without --resume, and --resume past its steps is refused.
+    let argv = prior_args(&straight);
+    let (ok, _, err) = extranerf(&argv.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!ok && err.contains("already holds a prior"), "{err}");
+
+    // LoRA fine-tuning of that prior, killed during training.
+    let tuned = dir.join("straight-lora");
+    run(&finetune_args(&tuned));
+    let killed = dir.join("killed-lora");
+    let log = dir.join("killed-lora.log");
+    spawn_and_kill(&finetune_args(&killed), None, Some(&log), &|| {
+        saved(&killed) == Some(every) && logged(&log) >= every + 3
+    });
+    resume(&finetune_args(&killed), &killed, logged(&log));
+    same(&tuned, &killed, "loss.csv");
+    same(&tuned, &killed, "pytorch_lora_weights.safetensors");
+    // Another rank is another training: refused, naming it.
+    let mut other = finetune_args(&killed);
+    let at = other.iter().position(|a| a == "--rank").unwrap();
+    other[at + 1] = "3".into();
+    other.push("--resume".into());
+    let (ok, _, err) = extranerf(&other.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!ok && err.contains("rank: 2 when saved, 3 now"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }

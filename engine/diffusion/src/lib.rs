@@ -27,6 +27,7 @@ pub mod pipeline;
 pub mod scheduler;
 pub mod text;
 pub mod train;
+pub mod train_state;
 pub mod unet;
 pub mod vae;
 pub mod weights;
@@ -85,23 +86,8 @@ impl DiffusionError {
 /// Result alias of the crate.
 pub type Result<T, E = DiffusionError> = std::result::Result<T, E>;
 
-/// Writes a file so that a crash leaves either the old or the new content: a temporary file in
-/// the same folder, synced, then renamed over the target.
+/// Writes a file so that a crash leaves either the old or the new content
+/// ([`extranerf_gpu::files::write_atomic`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    use std::io::Write;
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
-    if let Some(d) = dir {
-        std::fs::create_dir_all(d).map_err(|e| DiffusionError::io(d, e))?;
-    }
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".{name}.tmp{}", std::process::id()));
-    let mut f = std::fs::File::create(&tmp).map_err(|e| DiffusionError::io(&tmp, e))?;
-    f.write_all(bytes)
-        .map_err(|e| DiffusionError::io(&tmp, e))?;
-    f.sync_all().map_err(|e| DiffusionError::io(&tmp, e))?;
-    drop(f);
-    std::fs::rename(&tmp, path).map_err(|e| DiffusionError::io(path, e))
+    extranerf_gpu::files::write_atomic(path, bytes).map_err(|e| DiffusionError::io(path, e))
 }

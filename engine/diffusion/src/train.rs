@@ -11,10 +11,12 @@
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor};
+use serde::{Deserialize, Serialize};
 
 use crate::inpaint::{seeded_noise, unet_input, Codec, SplitMix};
 use crate::scheduler::Schedule;
 use crate::text::LearnedTokens;
+use crate::train_state::{self, Checkpointing, Snapshot};
 use crate::unet::UNet2DConditionModel;
 use crate::{DiffusionError, Result};
 
@@ -71,7 +73,8 @@ impl TrainImage {
 }
 
 /// Augmentation and masking of the training batches.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Augment {
     /// Crop side in pixels (a multiple of the model's size multiple).
     pub crop: usize,
@@ -99,7 +102,8 @@ impl Default for Augment {
 }
 
 /// What to train and how fast.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct TrainSettings {
     /// Optimiser steps.
     pub steps: usize,
@@ -359,16 +363,20 @@ pub fn batch_loss(
 }
 
 /// Trains `model` (parameters on an autodiff device; frozen ones get no update) and returns it
-/// with the loss curve (step, mean loss per report). `on_progress` sees every report.
+/// with the loss curve (step, mean loss per report). `on_progress` sees every report. With
+/// `checkpoint`, the state is saved at its interval and at the last step, and a resume
+/// continues from it (see [`crate::train_state`]): the result is the one an uninterrupted run
+/// gives.
 #[allow(clippy::too_many_arguments)] // each is a distinct input of the loop
 pub fn train(
-    mut model: Trainable,
+    model: Trainable,
     codec: &Codec,
     schedule: &Schedule,
     images: &[TrainImage],
     aug: &Augment,
     s: &TrainSettings,
     device: &Device,
+    checkpoint: Option<&Checkpointing>,
     on_progress: &mut dyn FnMut(&Progress),
 ) -> Result<(Trainable, Vec<(usize, f64)>)> {
     if !device.is_autodiff() {
@@ -411,14 +419,52 @@ pub fn train(
         };
         c.init()
     };
+    if let Some(ck) = checkpoint {
+        if ck.every == 0 {
+            return Err(DiffusionError::Input(
+                "the checkpoint interval must be at least one step".into(),
+            ));
+        }
+    }
+    let hash = train_state::images_hash(images);
+    let mut model = model;
     let mut opt_unet: ModuleOptimizer = adam();
     let mut opt_tokens: ModuleOptimizer = adam();
     let mut rng = SplitMix(s.seed);
-    let start = std::time::Instant::now();
     let mut curve = Vec::new();
     let mut pending: Option<Tensor<1>> = None;
     let mut since = 0usize;
-    for step in 1..=s.steps {
+    let mut first = 1;
+    let mut earlier = 0.0;
+    match checkpoint {
+        Some(ck) if ck.resume => {
+            let r = train_state::load(ck, model, opt_unet, opt_tokens, s, aug, &hash)?;
+            model = r.model;
+            opt_unet = r.opt_unet;
+            opt_tokens = r.opt_tokens;
+            rng = SplitMix(r.state.rng);
+            curve = r.state.curve;
+            let (sum, n) = r.state.pending;
+            if n > 0 {
+                pending = Some(Tensor::<1>::from_floats([sum as f32], device));
+            }
+            since = n;
+            first = r.state.step + 1;
+            earlier = r.state.seconds;
+        }
+        Some(ck) => {
+            if let Some(st) = train_state::peek(&ck.dir)? {
+                return Err(DiffusionError::Input(format!(
+                    "{} holds an unfinished training (step {}); resume it or choose another folder",
+                    ck.dir.display(),
+                    st.step
+                )));
+            }
+        }
+        None => {}
+    }
+    let start = std::time::Instant::now();
+    for step in first..=s.steps {
         let batch = draw_batch(images, aug, s.batch, &mut rng)?;
         let loss = batch_loss(
             &model,
@@ -468,8 +514,38 @@ pub fn train(
                 step,
                 steps: s.steps,
                 loss: mean,
-                elapsed: start.elapsed().as_secs_f64(),
+                elapsed: earlier + start.elapsed().as_secs_f64(),
             });
+        }
+        if let Some(ck) = checkpoint {
+            if step % ck.every == 0 || step == s.steps {
+                // The unreported losses are read back (one wait for the device) so that a
+                // resumed run reports the same means.
+                let sum = match pending.take() {
+                    Some(p) => {
+                        let v = p.into_scalar::<f32>();
+                        pending = Some(Tensor::<1>::from_floats([v], device));
+                        f64::from(v)
+                    }
+                    None => 0.0,
+                };
+                train_state::save(
+                    ck,
+                    &Snapshot {
+                        step,
+                        rng: rng.0,
+                        curve: &curve,
+                        pending: (sum, since),
+                        seconds: earlier + start.elapsed().as_secs_f64(),
+                        settings: s,
+                        augment: aug,
+                        images: &hash,
+                    },
+                    &model,
+                    &opt_unet,
+                    &opt_tokens,
+                )?;
+            }
         }
     }
     Ok((model, curve))

@@ -16,6 +16,7 @@
 mod buffer;
 mod context;
 mod error;
+pub mod files;
 mod kernel;
 mod recorder;
 #[cfg(feature = "wgpu")]

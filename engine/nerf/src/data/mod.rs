@@ -225,39 +225,7 @@ pub(crate) fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
-/// Fault injection for the crash tests: with `EXTRANERF_CRASH_TEST_PAUSE=NAME:MS` in the
-/// environment, an atomic write of a file named NAME waits MS milliseconds between its synced
-/// temporary file and the rename, so a test can kill the process there. Unset, it does nothing.
-pub fn crash_test_pause(name: &str) {
-    if let Ok(v) = std::env::var("EXTRANERF_CRASH_TEST_PAUSE") {
-        if let Some((file, ms)) = v.rsplit_once(':') {
-            if file == name {
-                if let Ok(ms) = ms.parse::<u64>() {
-                    std::thread::sleep(std::time::Duration::from_millis(ms));
-                }
-            }
-        }
-    }
-}
-
-/// Writes `bytes` to `path` through a synced temporary file in the same folder and a rename.
+/// Writes `bytes` to `path` atomically ([`extranerf_gpu::files::write_atomic`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::result::Result<(), DataError> {
-    use std::io::Write;
-    let mut tmp: PathBuf = path.to_path_buf();
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_default();
-    tmp.set_file_name(format!(".{name}.tmp{}", std::process::id()));
-    let res = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        crash_test_pause(&name);
-        std::fs::rename(&tmp, path)
-    })();
-    res.map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        DataError::io(path, e)
-    })
+    extranerf_gpu::files::write_atomic(path, bytes).map_err(|e| DataError::io(path, e))
 }
