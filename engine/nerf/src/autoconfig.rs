@@ -35,14 +35,74 @@ pub fn occupancy_cascades(model: &ModelConfig) -> u32 {
     (ratio.log2().ceil() as u32 + 1).clamp(1, 8)
 }
 
+/// How [`rig_centre`] found the centre of a rig.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CentreFrom {
+    /// The point nearest to every camera's optical axis (least squares), as Instant-NGP and
+    /// nerfstudio centre 360-degree captures; `rms` is its root-mean-square distance to the
+    /// axes.
+    OpticalAxes {
+        /// RMS distance from the point to the axes (scene units).
+        rms: f64,
+    },
+    /// The mean of the camera centres: the axes do not meet in front of the cameras (nearly
+    /// parallel, or looking outwards).
+    CameraMean,
+}
+
+/// The centre of a rig: the point nearest to all optical axes when they converge in front of
+/// the cameras (an object captured from around it), else the mean camera centre.
+pub fn rig_centre(cameras: &[Camera]) -> (DVec3, CentreFrom) {
+    let n = cameras.len().max(1) as f64;
+    let mean = cameras.iter().map(Camera::centre).sum::<DVec3>() / n;
+    // Sum over the axes (o, d) of (I - d d^T), and of (I - d d^T) o: the normal equations of
+    // the squared distances from a point to the lines.
+    let axes: Vec<(DVec3, DVec3)> = cameras
+        .iter()
+        .map(|c| (c.centre(), c.ray(c.cx, c.cy).1.normalize()))
+        .filter(|(o, d)| o.is_finite() && d.is_finite())
+        .collect();
+    if axes.len() < 2 {
+        return (mean, CentreFrom::CameraMean);
+    }
+    let mut a = glam::DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    for (o, d) in &axes {
+        let p = glam::DMat3::IDENTITY - glam::DMat3::from_cols(*d * d.x, *d * d.y, *d * d.z);
+        a += p;
+        b += p * *o;
+    }
+    // Near-parallel axes leave A nearly singular (one eigenvalue about 0): no meeting point.
+    let scale = a.col(0).x + a.col(1).y + a.col(2).z;
+    if a.determinant() <= 1e-6 * (scale / 3.0).powi(3) {
+        return (mean, CentreFrom::CameraMean);
+    }
+    let p = a.inverse() * b;
+    // It must lie in front of the cameras (an outward-looking rig's axes meet behind them).
+    let in_front = axes.iter().filter(|(o, d)| (p - *o).dot(*d) > 0.0).count();
+    if !p.is_finite() || 2 * in_front <= axes.len() {
+        return (mean, CentreFrom::CameraMean);
+    }
+    let rms = (axes
+        .iter()
+        .map(|(o, d)| {
+            let v = p - *o;
+            (v - *d * v.dot(*d)).length_squared()
+        })
+        .sum::<f64>()
+        / axes.len() as f64)
+        .sqrt();
+    (p, CentreFrom::OpticalAxes { rms })
+}
+
 /// The model configuration a scene needs: NDC for forward-facing captures; otherwise world
-/// space with the L2 contraction around the cameras, sampled between the cameras' bounds.
+/// space with the L2 contraction around the rig's centre ([`rig_centre`]) with the farthest
+/// camera on the inner ball's surface, sampled between the cameras' bounds.
 pub fn model_for_scene(scene: &Scene) -> ModelConfig {
     if scene.forward_facing {
         return ModelConfig::default();
     }
-    let n = scene.cameras.len().max(1) as f64;
-    let centre = scene.cameras.iter().map(Camera::centre).sum::<DVec3>() / n;
+    let (centre, _) = rig_centre(&scene.cameras);
     let radius = scene
         .cameras
         .iter()
@@ -102,8 +162,17 @@ pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
         reasons.push("occupancy: 1 cascade (NDC is bounded)".into());
         (res, 1)
     } else {
+        let how = match rig_centre(&scene.cameras).1 {
+            CentreFrom::OpticalAxes { rms } => {
+                format!("the point nearest the optical axes, {rms:.3} from them (rms)")
+            }
+            CentreFrom::CameraMean => {
+                "the mean camera centre: the optical axes do not meet in front of the cameras"
+                    .into()
+            }
+        };
         reasons.push(format!(
-            "space: world with the L2 contraction around the cameras (centre {:?}, radius {:.3}): not forward-facing",
+            "space: world with the L2 contraction around the cameras (centre {:?}: {how}; radius {:.3}): not forward-facing",
             model.center, model.radius
         ));
         let centre = DVec3::from(model.center.map(f64::from));
@@ -203,6 +272,101 @@ mod tests {
         assert_eq!(b.model.max_res, 2048);
         assert!(b.model.levels > a.model.levels);
         assert_eq!(b.model.log2_table, 19);
+    }
+
+    /// A camera at `eye` looking at `target` (OpenGL convention: it looks down -z).
+    fn looking_at(eye: DVec3, target: DVec3) -> Camera {
+        let mut c = cam(0.0, 400, 350.0);
+        let z = (eye - target).normalize();
+        let up = if z.cross(DVec3::Y).length() < 1e-6 {
+            DVec3::X
+        } else {
+            DVec3::Y
+        };
+        let x = up.cross(z).normalize();
+        c.c2w = DMat4::from_cols(
+            x.extend(0.0),
+            z.cross(x).extend(0.0),
+            z.extend(0.0),
+            eye.extend(1.0),
+        );
+        c
+    }
+
+    /// Cameras on the upper hemisphere of radius 4 around `target` (a NeRF-synthetic rig),
+    /// each aimed at a point `jitter` from the target in a fixed pseudo-random direction (so
+    /// its axis passes within `jitter` of the target).
+    fn hemisphere(target: DVec3, n: usize, jitter: f64) -> Vec<Camera> {
+        (0..n)
+            .map(|i| {
+                let az = i as f64 * 2.399_963; // golden angle
+                let el = 0.15 + 1.2 * (i as f64 + 0.5) / n as f64;
+                let eye =
+                    target + 4.0 * DVec3::new(el.cos() * az.cos(), el.sin(), el.cos() * az.sin());
+                let off = DVec3::new(
+                    (i as f64 * 1.7).sin(),
+                    (i as f64 * 2.3).cos(),
+                    (i as f64 * 0.9).sin(),
+                )
+                .normalize();
+                looking_at(eye, target + jitter * off)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_360_rig_is_centred_where_its_optical_axes_meet() {
+        let target = DVec3::new(1.0, -2.0, 0.5);
+        // Exact axes: the target itself.
+        let cams = hemisphere(target, 24, 0.0);
+        let (c, how) = rig_centre(&cams);
+        assert!(c.distance(target) < 1e-9, "{c} vs {target}");
+        assert!(matches!(how, CentreFrom::OpticalAxes { rms } if rms < 1e-9));
+        // The old centre, the mean of the camera centres, sits well above the object.
+        let mean = cams.iter().map(Camera::centre).sum::<DVec3>() / cams.len() as f64;
+        assert!(mean.distance(target) > 1.5, "{mean}");
+        // Every axis within 0.05 of the target: the centre found is too.
+        let (c, how) = rig_centre(&hemisphere(target, 24, 0.05));
+        assert!(c.distance(target) < 0.05, "{c} vs {target}");
+        assert!(matches!(how, CentreFrom::OpticalAxes { rms } if rms > 0.0 && rms < 0.05));
+        // The model's inner ball is centred there and holds every camera.
+        let scene = Scene {
+            source: "x".into(),
+            cameras: cams,
+            world_from_source: DMat4::IDENTITY,
+            forward_facing: false,
+        };
+        let m = model_for_scene(&scene);
+        assert!(DVec3::from(m.center.map(f64::from)).distance(target) < 1e-5);
+        assert!((m.radius - 4.0).abs() < 1e-4, "{}", m.radius);
+        let a = auto_model(&scene, &[0, 1, 2]);
+        assert!(
+            a.reasons[0].contains("nearest the optical axes"),
+            "{}",
+            a.reasons[0]
+        );
+    }
+
+    #[test]
+    fn rigs_whose_axes_do_not_meet_are_centred_at_the_mean_camera() {
+        // All looking the same way (parallel axes).
+        let parallel: Vec<Camera> = (0..6).map(|i| cam(i as f64 * 0.3, 400, 350.0)).collect();
+        let (c, how) = rig_centre(&parallel);
+        assert_eq!(how, CentreFrom::CameraMean);
+        assert!(c.distance(DVec3::new(0.75, 0.0, 0.0)) < 1e-12);
+        // Looking outwards from a ring (a panorama): the axes meet behind the cameras.
+        let outward: Vec<Camera> = (0..8)
+            .map(|i| {
+                let a = i as f64 * std::f64::consts::TAU / 8.0;
+                let eye = DVec3::new(a.cos(), 0.3, a.sin());
+                looking_at(eye, eye * 2.0)
+            })
+            .collect();
+        let (c, how) = rig_centre(&outward);
+        assert_eq!(how, CentreFrom::CameraMean);
+        assert!(c.distance(DVec3::new(0.0, 0.3, 0.0)) < 1e-12);
+        // One camera: its centre.
+        assert_eq!(rig_centre(&parallel[..1]).1, CentreFrom::CameraMean);
     }
 
     #[test]
