@@ -27,6 +27,7 @@ use extranerf_diffusion::weights;
 use extranerf_nerf::safetensors::SafeTensors;
 use extranerf_tests::{
     burn_values, diffusers_fixtures, diffusers_golden, golden_tensor, max_rel_err, scratch_dir,
+    tiny_pixel_unet_config,
 };
 
 fn fixtures() -> PathBuf {
@@ -653,19 +654,8 @@ fn schedules_and_ddim_match_references() {
     assert!(s.noise_level(0) < 0.03 && s.noise_level(999) > 0.99);
 }
 
-fn tiny_pixel_config() -> UNetConfig {
-    UNetConfig {
-        in_channels: 7,
-        out_channels: 3,
-        block_out_channels: vec![16, 32],
-        norm_num_groups: 4,
-        cross_attention_dim: 8,
-        ..UNetConfig::tiny_inpainting()
-    }
-}
-
 fn tiny_pixel_unet(dev: &Device) -> UNet2DConditionModel {
-    UNet2DConditionModel::new(&tiny_pixel_config(), dev).unwrap()
+    UNet2DConditionModel::new(&tiny_pixel_unet_config(), dev).unwrap()
 }
 
 fn pixel_model(dev: &Device) -> InpaintModel {
@@ -778,7 +768,7 @@ fn lora_trains_only_the_adapters_and_round_trips() {
     let ctx: Tensor<3> = seeded_noise([1, 2, 8, 1], 6, &dev).reshape([1, 2, 8]);
     let before = values(base.forward(x.clone(), &[500.0], &ctx));
     let dir = scratch_dir("lora");
-    weights::save_unet(&dir.join("unet"), &tiny_pixel_config(), &base).unwrap();
+    weights::save_unet(&dir.join("unet"), &tiny_pixel_unet_config(), &base).unwrap();
     let unet = lora::apply(base, &cfg, &dev).unwrap();
     let (lora_params, base_params) = lora::params_by_kind(&unet);
     assert!(!lora_params.is_empty() && !base_params.is_empty());
@@ -1263,7 +1253,12 @@ fn training_resumes_where_it_stopped() {
     let base_dir = scratch_dir("resume-base");
     let base_dev = cpu().autodiff();
     base_dev.seed(1);
-    weights::save_unet(&base_dir, &tiny_pixel_config(), &tiny_pixel_unet(&base_dev)).unwrap();
+    weights::save_unet(
+        &base_dir,
+        &tiny_pixel_unet_config(),
+        &tiny_pixel_unet(&base_dev),
+    )
+    .unwrap();
     // A fresh model as the command builds it: whole or with fresh adapters.
     let build = |lora_rank: Option<usize>, dev: &Device| {
         let (_, unet) = weights::load_unet(&base_dir, dev).unwrap();
@@ -1284,18 +1279,22 @@ fn training_resumes_where_it_stopped() {
     };
     for lora_rank in [None, Some(2)] {
         let dev = cpu().autodiff();
+        let train_on =
+            |model, set: &TrainSettings, imgs: &[TrainImage], ck: Option<&Checkpointing>| {
+                train::train(
+                    model,
+                    &Codec::Pixels(PixelCodec),
+                    &s,
+                    imgs,
+                    &aug,
+                    set,
+                    &dev,
+                    ck,
+                    &mut |_| {},
+                )
+            };
         let run = |model, steps, ck: Option<&Checkpointing>| {
-            train::train(
-                model,
-                &Codec::Pixels(PixelCodec),
-                &s,
-                &images,
-                &aug,
-                &settings(steps),
-                &dev,
-                ck,
-                &mut |_| {},
-            )
+            train_on(model, &settings(steps), &images, ck)
         };
         // One starting model for both runs (the device's generator is shared with tests
         // running alongside, so two builds need not agree); the resume starts from another.
@@ -1342,20 +1341,10 @@ fn training_resumes_where_it_stopped() {
         // Other settings, another identity or other images are refused by name.
         let mut other = settings(12);
         other.lr = 1e-2;
-        let err = train::train(
-            build(lora_rank, &dev),
-            &Codec::Pixels(PixelCodec),
-            &s,
-            &images,
-            &aug,
-            &other,
-            &dev,
-            Some(&resume),
-            &mut |_| {},
-        )
-        .err()
-        .unwrap()
-        .to_string();
+        let err = train_on(build(lora_rank, &dev), &other, &images, Some(&resume))
+            .err()
+            .unwrap()
+            .to_string();
         assert!(err.contains("lr: 0.003 when saved, 0.01 now"), "{err}");
         let moved = Checkpointing {
             identity: serde_json::json!({"rank": 9}),
@@ -1371,16 +1360,11 @@ fn training_resumes_where_it_stopped() {
             16,
             stripes(16, 16).into_iter().rev().collect(),
         )];
-        let err = train::train(
+        let err = train_on(
             build(lora_rank, &dev),
-            &Codec::Pixels(PixelCodec),
-            &s,
-            &flipped,
-            &aug,
             &settings(12),
-            &dev,
+            &flipped,
             Some(&resume),
-            &mut |_| {},
         )
         .err()
         .unwrap()
@@ -1488,7 +1472,7 @@ fn damaged_training_states_are_refused() {
         unet: UNet2DConditionModel::new(
             &UNetConfig {
                 block_out_channels: vec![16, 24],
-                ..tiny_pixel_config()
+                ..tiny_pixel_unet_config()
             },
             &dev,
         )

@@ -701,7 +701,6 @@ fn diffusers_folders() {
 /// inputs: each builds a model).
 #[test]
 fn diffusion_training_state() {
-    use extranerf_diffusion::config::UNetConfig;
     use extranerf_diffusion::inpaint::{Codec, PixelCodec};
     use extranerf_diffusion::scheduler::{Schedule, SchedulerConfig};
     use extranerf_diffusion::text::LearnedTokens;
@@ -710,14 +709,7 @@ fn diffusion_training_state() {
     use extranerf_diffusion::unet::UNet2DConditionModel;
     let dir = scratch_dir("fuzz-train-state");
     let dev = burn::tensor::Device::flex().autodiff();
-    let cfg = UNetConfig {
-        in_channels: 7,
-        out_channels: 3,
-        block_out_channels: vec![16, 32],
-        norm_num_groups: 4,
-        cross_attention_dim: 8,
-        ..UNetConfig::tiny_inpainting()
-    };
+    let cfg = extranerf_tests::tiny_pixel_unet_config();
     let schedule = Schedule::new(&SchedulerConfig::default()).unwrap();
     let images = vec![TrainImage::new(8, 8, vec![0.5; 3 * 64])];
     let aug = Augment {

@@ -170,6 +170,19 @@ pub fn burn_values<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
         .unwrap_or_else(|e| panic!("reading a tensor: {e:?}"))
 }
 
+/// The smallest pixel-space inpainting U-Net the diffusion tests train: levels 16/32, a
+/// cross-attention width of 8 (two learned tokens of 8).
+pub fn tiny_pixel_unet_config() -> extranerf_diffusion::config::UNetConfig {
+    extranerf_diffusion::config::UNetConfig {
+        in_channels: 7,
+        out_channels: 3,
+        block_out_channels: vec![16, 32],
+        norm_num_groups: 4,
+        cross_attention_dim: 8,
+        ..extranerf_diffusion::config::UNetConfig::tiny_inpainting()
+    }
+}
+
 /// Largest |a - b| relative to the largest |b|.
 pub fn max_rel_err(a: &[f32], b: &[f32]) -> f64 {
     assert_eq!(a.len(), b.len(), "lengths differ");
