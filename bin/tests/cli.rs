@@ -1245,6 +1245,18 @@ fn last_logged_step(run: &std::path::Path) -> u32 {
         .unwrap_or(0) as u32
 }
 
+/// Whether `dir` holds the temporary file of an atomic write of `name` (one in progress, or
+/// left by a killed process).
+fn writing_file(dir: &std::path::Path, name: &str) -> bool {
+    let prefix = format!(".{name}.tmp");
+    std::fs::read_dir(dir)
+        .map(|r| {
+            r.filter_map(Result::ok)
+                .any(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+        })
+        .unwrap_or(false)
+}
+
 /// Runs the program with `args` (stderr to `log` when given), with
 /// `EXTRANERF_CRASH_TEST_PAUSE=pause` when given, and kills it with SIGKILL once `ready()`
 /// holds; fails if it ends first.
@@ -1362,17 +1374,7 @@ fn train_survives_sigkill_and_resumes() {
     resume(&killed, at);
     // Killed while writing the third checkpoint: the second stays intact.
     let mid = dir.join("mid-write");
-    let tmp = |d: &std::path::Path| {
-        std::fs::read_dir(d)
-            .map(|r| {
-                r.filter_map(Result::ok).any(|e| {
-                    e.file_name()
-                        .to_string_lossy()
-                        .starts_with(".checkpoint.safetensors.tmp")
-                })
-            })
-            .unwrap_or(false)
-    };
+    let tmp = |d: &std::path::Path| writing_file(d, "checkpoint.safetensors");
     let at = kill_when(&mid, Some("checkpoint.safetensors:2000"), &|| {
         last_logged_step(&mid) >= 3 * every && tmp(&mid)
     });
@@ -1516,17 +1518,7 @@ fn diffusion_training_survives_sigkill_and_resumes() {
         let text = std::fs::read_to_string(out.join("train_state").join("state.json")).ok()?;
         serde_json::from_str::<serde_json::Value>(&text).ok()?["step"].as_u64()
     };
-    let writing = |out: &std::path::Path| {
-        std::fs::read_dir(out.join("train_state"))
-            .map(|r| {
-                r.filter_map(Result::ok).any(|e| {
-                    e.file_name()
-                        .to_string_lossy()
-                        .starts_with(".state.json.tmp")
-                })
-            })
-            .unwrap_or(false)
-    };
+    let writing = |out: &std::path::Path| writing_file(&out.join("train_state"), "state.json");
     // Resumes `out` (killed at step `killed_at`) with the same arguments and --resume.
     let resume = |args: &[String], out: &std::path::Path, killed_at: u64| {
         let at = saved(out).expect("no saved state");

@@ -369,7 +369,7 @@ pub fn batch_loss(
 /// gives.
 #[allow(clippy::too_many_arguments)] // each is a distinct input of the loop
 pub fn train(
-    model: Trainable,
+    mut model: Trainable,
     codec: &Codec,
     schedule: &Schedule,
     images: &[TrainImage],
@@ -427,7 +427,6 @@ pub fn train(
         }
     }
     let hash = train_state::images_hash(images);
-    let mut model = model;
     let mut opt_unet: ModuleOptimizer = adam();
     let mut opt_tokens: ModuleOptimizer = adam();
     let mut rng = SplitMix(s.seed);
