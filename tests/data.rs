@@ -581,3 +581,146 @@ fn virtual_cameras_extend_the_rig_and_round_trip() {
     assert!(err(virtual_cameras(&nobounds, Trajectory::Spiral, 4, 1.0)).contains("bounds"));
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// The generated turntable scene in NeRF-synthetic's layout: the given split (train file's
+/// views train, test file's are held out, and it is the default split of such a folder), the
+/// intrinsics from `camera_angle_x`, RGBA images whose composite over any background is the
+/// exact ray-traced view over it (within 8-bit rounding), and the rig centred on the object.
+#[test]
+fn nerf_synthetic_layout_loads_with_its_split_alpha_and_centre() {
+    use extranerf_nerf::autoconfig::{model_for_scene, rig_centre, CentreFrom};
+    use extranerf_nerf::data::load_image_over;
+    use extranerf_nerf::data::split::SplitKind;
+    use extranerf_nerf::demo::{
+        turntable_view, write_turntable_scene, TURNTABLE_ANGLE_X, TURNTABLE_CENTRE,
+    };
+    use extranerf_nerf::run::SceneSpec;
+    let dir = scratch_dir("turntable-layout");
+    write_turntable_scene(&dir, 40, 30, 9, 4).unwrap();
+    assert_eq!(SplitKind::default_for(&dir), SplitKind::Given);
+    assert_eq!(SplitKind::default_for(&fern()), SplitKind::Extrapolation);
+    let spec = |split| SceneSpec {
+        dir: dir.clone(),
+        split,
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: true,
+        depth_dir: None,
+    };
+    let loaded = spec(SplitKind::Given).load().unwrap();
+    assert_eq!(loaded.scene.cameras.len(), 13);
+    assert_eq!(loaded.split.train, (0..9).collect::<Vec<_>>());
+    assert_eq!(loaded.split.test, (9..13).collect::<Vec<_>>());
+    assert!(!loaded.scene.forward_facing);
+    let c = &loaded.scene.cameras[9];
+    assert!(c.image.ends_with("test/r_0.png"), "{}", c.image.display());
+    assert_eq!((c.width, c.height), (40, 30));
+    assert!((c.fx - 20.0 / (0.5 * TURNTABLE_ANGLE_X).tan()).abs() < 1e-9);
+    // Other splits apply to all 13 cameras.
+    assert_eq!(spec(SplitKind::All).load().unwrap().split.train.len(), 13);
+    // The images: alpha kept, the composite over white and over a colour the exact view.
+    assert!(load_image(&fern().join("images_8/image000.png"))
+        .unwrap()
+        .alpha
+        .is_none());
+    let img = load_image(&c.image).unwrap();
+    let alpha = img.alpha.as_ref().expect("alpha kept");
+    assert!(alpha.contains(&0.0) && alpha.contains(&1.0));
+    let (rgb, a) = turntable_view(&c.c2w, 40, 30);
+    for bg in [[1.0f32; 3], [0.1, 0.6, 0.3]] {
+        let over = load_image_over(&c.image, bg).unwrap();
+        assert!(over.alpha.is_none());
+        let worst = (0..40 * 30 * 3)
+            .map(|k| {
+                let want = rgb[k] * a[k / 3] + bg[k % 3] * (1.0 - a[k / 3]);
+                (over.rgb[k] - want).abs()
+            })
+            .fold(0f32, f32::max);
+        // Colour and alpha are each rounded to 1/255.
+        assert!(worst <= 1.0 / 255.0 + 1e-6, "over {bg:?}: off by {worst}");
+    }
+    // Every camera looks at the object's centre: the rig is centred there.
+    let (centre, how) = rig_centre(&loaded.scene.cameras);
+    assert!(matches!(how, CentreFrom::OpticalAxes { .. }), "{how:?}");
+    assert!(centre.distance(TURNTABLE_CENTRE) < 1e-9, "centre {centre}");
+    let m = model_for_scene(&loaded.scene);
+    let mc = DVec3::new(m.center[0] as f64, m.center[1] as f64, m.center[2] as f64);
+    assert!(mc.distance(TURNTABLE_CENTRE) < 1e-6, "model centre {mc}");
+    // An object on a transparent background: samples only around it (the object lies within
+    // 1.1 of the centre, the cameras 3.5 from it).
+    assert!(loaded.scene.bounded_object);
+    assert!(
+        m.near < 2.4 && m.near > 0.5 && m.far > 4.6 && m.far < 8.0,
+        "near {} far {}",
+        m.near,
+        m.far
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Split files that are missing or mixed up give clear errors naming the file: no test file
+/// for `--split given`, a split asked of a scene that has no split files, an image whose size
+/// is not its frame's `w` x `h`, a frame without `file_path`, an image that is not there.
+#[test]
+fn bad_split_files_give_errors_naming_the_file() {
+    use extranerf_nerf::data::split::SplitKind;
+    use extranerf_nerf::demo::write_turntable_scene;
+    use extranerf_nerf::run::SceneSpec;
+    let dir = scratch_dir("turntable-bad");
+    write_turntable_scene(&dir, 16, 12, 3, 2).unwrap();
+    let spec = |dir: &Path, split| SceneSpec {
+        dir: dir.to_path_buf(),
+        split,
+        fewshot_views: 3,
+        // The LLFF case reads images_8; the turntable scene has no factor.
+        factor: 8,
+        sparse_depth: false,
+        depth_dir: None,
+    };
+    let load = |dir: &Path, split| spec(dir, split).load().map(|_| ()).unwrap_err().to_string();
+    let test_file = dir.join("transforms_test.json");
+    let original = std::fs::read_to_string(&test_file).unwrap();
+    std::fs::remove_file(&test_file).unwrap();
+    let e = load(&dir, SplitKind::Given);
+    assert!(
+        e.contains("transforms_test.json") && e.contains("no such file"),
+        "{e}"
+    );
+    // Without it the other splits still load the training file.
+    assert_eq!(
+        spec(&dir, SplitKind::All).load().unwrap().split.train.len(),
+        3
+    );
+    // A frame saying 32x24 for a 16x12 image.
+    let mut json: serde_json::Value = serde_json::from_str(&original).unwrap();
+    json["frames"][1]["w"] = 32.into();
+    json["frames"][1]["h"] = 24.into();
+    std::fs::write(&test_file, json.to_string()).unwrap();
+    let e = load(&dir, SplitKind::Given);
+    assert!(
+        e.contains("transforms_test.json") && e.contains("frame 1") && e.contains("16x12"),
+        "{e}"
+    );
+    // No file_path.
+    let mut json: serde_json::Value = serde_json::from_str(&original).unwrap();
+    json["frames"][0]
+        .as_object_mut()
+        .unwrap()
+        .remove("file_path");
+    std::fs::write(&test_file, json.to_string()).unwrap();
+    let e = load(&dir, SplitKind::Given);
+    assert!(
+        e.contains("transforms_test.json") && e.contains("frame 0") && e.contains("file_path"),
+        "{e}"
+    );
+    // An image that is not there.
+    let mut json: serde_json::Value = serde_json::from_str(&original).unwrap();
+    json["frames"][1]["file_path"] = "./test/missing".into();
+    std::fs::write(&test_file, json.to_string()).unwrap();
+    let e = load(&dir, SplitKind::Given);
+    assert!(e.contains("missing.png"), "{e}");
+    // --split given on an LLFF scene.
+    let e = load(&fern(), SplitKind::Given);
+    assert!(e.contains("fern") && e.contains("split files"), "{e}");
+    let _ = std::fs::remove_dir_all(dir);
+}

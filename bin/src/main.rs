@@ -64,6 +64,10 @@ enum Command {
     /// forward-facing 6-camera rig, ground truth for 8 views outside it), trained, rendered and
     /// scored in about half a minute on two CPU cores with lavapipe.
     Demo(nerf::DemoArgs),
+    /// Write the generated 360-degree scene: an object on a turntable rig, ray traced exactly
+    /// into RGBA images with a transparent background, in NeRF-synthetic's layout
+    /// (transforms_train.json, transforms_test.json), for tests and benchmarks at any size.
+    Turntable(nerf::TurntableArgs),
     /// Virtual cameras beyond the input rig (outward translation, a widened spiral, or rotation
     /// past the captured yaw), written as transforms.json for rendering and visibility.
     Cameras(nerf::CamerasArgs),
@@ -181,6 +185,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Extrapolate(a) => extrapolate::extrapolate(&context_with(cli, a.needs_wgpu())?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),
+        Command::Turntable(a) => nerf::turntable(a),
         Command::Visibility(a) => visibility::visibility(&context(cli)?, a),
         Command::Mvs(a) => mvs::mvs(&context(cli)?, a),
         Command::Diffusion { what } => diffusion::run(&context_with(cli, true)?, what),

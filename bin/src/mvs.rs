@@ -248,7 +248,7 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
     }
     let mut doc = serde_json::json!({
         "scene": a.scene.scene,
-        "split": a.scene.views.split,
+        "split": a.scene.views.kind(&a.scene.scene),
         "factor": a.scene.views.factor,
         "downscale": a.downscale,
         "width": cams[0].width,

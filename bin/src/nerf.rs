@@ -134,8 +134,9 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 500)]
     checkpoint_every: u32,
     /// What lies behind each training ray: black, white, or random (a random colour per ray
-    /// and step, so no ray fits a pixel by staying transparent; renders then use black)
-    /// [default: random].
+    /// and step, so no ray fits a pixel by staying transparent; renders then use black, or
+    /// white when the images have alpha). Images with alpha are composited over the same
+    /// colour [default: random].
     #[arg(long, value_enum)]
     background: Option<BackgroundArg>,
     /// Learning rate of the first step (Adam, every parameter group) [default: 1e-2].
@@ -261,9 +262,10 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
                 a.out.display()
             );
         }
+        let dir = a.scene.clone().unwrap_or_default();
         let scene = SceneSpec {
-            dir: a.scene.clone().unwrap_or_default(),
-            split: a.views.split,
+            split: a.views.kind(&dir),
+            dir,
             fewshot_views: a.views.fewshot_views,
             factor: a.views.factor,
             sparse_depth: true,
@@ -299,9 +301,32 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         apply(&mut train.lr_start, a.lr_start);
         apply(&mut train.lr_end, a.lr_end);
         match a.background {
-            None => {}
-            Some(BackgroundArg::Black) => train.background = [0.0; 3],
-            Some(BackgroundArg::White) => train.background = [1.0; 3],
+            None => {
+                // RGBA captures (NeRF-synthetic) are scored over white, as published tables
+                // are: renders use white, training keeps random backgrounds.
+                if let Some(&first) = loaded.split.train.first() {
+                    let cam = &loaded.scene.cameras[first];
+                    if extranerf_nerf::data::load_image(&cam.image)?
+                        .alpha
+                        .is_some()
+                    {
+                        train.background = [1.0; 3];
+                        eprintln!(
+                            "background: {} has alpha; training composites it over random \
+                             colours, renders and evaluation over white (--background to choose)",
+                            cam.image.display()
+                        );
+                    }
+                }
+            }
+            Some(BackgroundArg::Black) => {
+                train.background = [0.0; 3];
+                train.random_background = false;
+            }
+            Some(BackgroundArg::White) => {
+                train.background = [1.0; 3];
+                train.random_background = false;
+            }
             Some(BackgroundArg::Random) => {
                 train.background = [0.0; 3];
                 train.random_background = true;
@@ -554,7 +579,7 @@ fn render_views(
         let t = Instant::now();
         let (rgb, depth, _) = nerf.render_with(ctx, cam, chunk, samples, how)?;
         let seconds = t.elapsed().as_secs_f64();
-        let truth = extranerf_nerf::data::load_image(&cam.image)?;
+        let truth = extranerf_nerf::data::load_image_over(&cam.image, cfg.train.background)?;
         eprintln!(
             "rendered {role} view {i} ({}x{}, {} march) in {seconds:.2} s",
             cam.width,
@@ -645,7 +670,9 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
     if a.save_images {
         std::fs::create_dir_all(&img_dir)?;
     }
-    render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {
+    let mut sizes = std::collections::BTreeSet::new();
+    let cfg = render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {
+        sizes.insert(format!("{}x{}", r.width, r.height));
         let p = psnr(&r.rgb, &r.truth)?;
         let mut m = serde_json::json!({
             "view": r.index,
@@ -671,6 +698,8 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         per_view.push(m);
         Ok(())
     })?;
+    // Published tables say at which resolution and over which background they score.
+    let resolution = sizes.into_iter().collect::<Vec<_>>().join(", ");
     let mean = |role: &str, key: &str| -> Option<f64> {
         let v: Vec<f64> = per_view
             .iter()
@@ -691,6 +720,9 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         "seconds": t0.elapsed().as_secs_f64(),
         "render": a.march.json(),
         "device": ctx.info().name,
+        "split": cfg.scene.split,
+        "resolution": resolution,
+        "background": cfg.train.background,
     });
     let out = a.out.clone().unwrap_or_else(|| a.run.join("metrics.json"));
     extranerf_nerf::safetensors::write_atomic(
@@ -698,12 +730,14 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         serde_json::to_string_pretty(&summary)?.as_bytes(),
     )?;
     println!(
-        "test: PSNR {:.2} SSIM {:.4} LPIPS(alex) {:.4} LPIPS(vgg) {:.4}; train PSNR {:.2}; wrote {}",
+        "test: PSNR {:.2} SSIM {:.4} LPIPS(alex) {:.4} LPIPS(vgg) {:.4}; train PSNR {:.2}; {} split, {resolution}, background {:?}; wrote {}",
         summary["test"]["psnr"].as_f64().unwrap_or(f64::NAN),
         summary["test"]["ssim"].as_f64().unwrap_or(f64::NAN),
         summary["test"]["lpips_alex"].as_f64().unwrap_or(f64::NAN),
         summary["test"]["lpips_vgg"].as_f64().unwrap_or(f64::NAN),
         summary["train"]["psnr"].as_f64().unwrap_or(f64::NAN),
+        cfg.scene.split,
+        cfg.train.background,
         out.display()
     );
     Ok(())
@@ -919,6 +953,45 @@ pub struct DemoArgs {
     /// Image width of the generated views (height is 3/4 of it).
     #[arg(long, default_value_t = 96)]
     width: u32,
+}
+
+/// Arguments of `extranerf turntable`.
+#[derive(clap::Args, Debug)]
+pub struct TurntableArgs {
+    /// Output folder (must be new or empty).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Image width and height (NeRF-synthetic's are 800).
+    #[arg(long, default_value_t = 100)]
+    size: u32,
+    /// Training views (transforms_train.json).
+    #[arg(long, default_value_t = 100)]
+    train: usize,
+    /// Held-out views (transforms_test.json).
+    #[arg(long, default_value_t = 20)]
+    test: usize,
+}
+
+/// `extranerf turntable`: writes the generated 360-degree scene.
+pub fn turntable(a: &TurntableArgs) -> anyhow::Result<()> {
+    if a.out.exists() && std::fs::read_dir(&a.out)?.next().is_some() {
+        bail!(
+            "{} exists and is not empty; pass another --out",
+            a.out.display()
+        );
+    }
+    let t = Instant::now();
+    eprintln!(
+        "turntable: ray tracing {} + {} views at {}x{} into {}",
+        a.train,
+        a.test,
+        a.size,
+        a.size,
+        a.out.display()
+    );
+    extranerf_nerf::demo::write_turntable_scene(&a.out, a.size, a.size, a.train, a.test)?;
+    eprintln!("done in {:.1} s", t.elapsed().as_secs_f64());
+    Ok(())
 }
 
 /// `extranerf demo`: generate the procedural scene, train on its 6-camera rig, render the 8
@@ -1155,9 +1228,11 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
 pub struct SplitArgs {
     /// How the scene's views divide into training and held-out views: extrapolation (6
     /// central views train; the 8 farthest are held out), fewshot (RegNeRF: every 8th held out,
-    /// --fewshot-views spread over the rest) or all (every view trains).
-    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
-    pub split: SplitKind,
+    /// --fewshot-views spread over the rest), all (every view trains) or given (the data set's
+    /// split files: NeRF-synthetic's transforms_train.json trains, transforms_test.json is held
+    /// out) [default: given when the scene has transforms_train.json, else extrapolation].
+    #[arg(long, value_enum)]
+    pub split: Option<SplitKind>,
     /// Training views of the few-shot split.
     #[arg(long, default_value_t = 3)]
     pub fewshot_views: usize,
@@ -1167,12 +1242,18 @@ pub struct SplitArgs {
 }
 
 impl SplitArgs {
+    /// The split for the scene in `dir`: the one given, else its default
+    /// ([`SplitKind::default_for`]).
+    pub fn kind(&self, dir: &Path) -> SplitKind {
+        self.split.unwrap_or_else(|| SplitKind::default_for(dir))
+    }
+
     /// The scene spec of `dir` with these views (depth supervision from the COLMAP sparse
     /// points when `sparse_depth`).
     pub fn spec(&self, dir: PathBuf, sparse_depth: bool) -> SceneSpec {
         SceneSpec {
+            split: self.kind(&dir),
             dir,
-            split: self.split,
             fewshot_views: self.fewshot_views,
             factor: self.factor,
             sparse_depth,
@@ -1236,7 +1317,7 @@ pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
         a.trajectory,
         a.range,
         rig.len(),
-        a.scene.views.split,
+        spec.split,
         a.out.display()
     );
     Ok(())

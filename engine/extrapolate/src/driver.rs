@@ -79,6 +79,31 @@ pub fn fresh_trainer(
     Ok((Trainer::new(ctx, nerf, cfg.train.clone(), 0, None)?, data))
 }
 
+/// What the training views and the whole run hold on the device, for the start of training.
+pub fn memory_note(ctx: &Context, data: &TrainData) -> anyhow::Result<String> {
+    let mib = |b: u64| b as f64 / (1u64 << 20) as f64;
+    let (live, held) = ctx.allocated_bytes()?;
+    let local: u64 = ctx
+        .info()
+        .heaps
+        .iter()
+        .filter(|h| h.device_local)
+        .map(|h| h.size)
+        .sum();
+    Ok(format!(
+        "device memory: {} training pixels of {} views, {:.1} MiB in {} binding(s) of at most \
+         {:.0} MiB; {:.1} MiB allocated in all ({:.1} MiB held) of {:.0} MiB device-local",
+        data.pixels(),
+        data.views(),
+        mib(data.device_bytes()),
+        data.bindings(),
+        mib(ctx.info().max_storage_buffer_range),
+        mib(live),
+        mib(held),
+        mib(local)
+    ))
+}
+
 /// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed.
 pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig) -> anyhow::Result<f64> {
     let loaded = cfg.scene.load()?;
@@ -224,6 +249,7 @@ pub fn train_loop(
     let prims = Prims::new(ctx)?;
     let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
     let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), start, moments)?;
+    rep.note(&memory_note(ctx, &data)?);
     rep.note(&format!(
         "model: hash grid {}x{}x2^{} (N {}..{}, {}), MLPs {:?} and {:?}, {} parameters; {} rays x {} samples per step",
         cfg.model.levels,
@@ -280,7 +306,14 @@ pub fn train_loop(
         Ok(())
     };
     let mut curve = if a.eval_every > 0 {
-        Some(HeldOut::new(&loaded, &a.eval_views, &a.out, start, rep)?)
+        Some(HeldOut::new(
+            &loaded,
+            &a.eval_views,
+            &a.out,
+            start,
+            cfg.train.background,
+            rep,
+        )?)
     } else {
         None
     };
@@ -457,13 +490,15 @@ impl std::fmt::Debug for HeldOut {
 }
 
 impl HeldOut {
-    /// The views `which` of `loaded`, with LPIPS when its weights are found, appending to
-    /// `out/curve.jsonl` (replaced when `start` is 0).
+    /// The views `which` of `loaded` (ground truth composited over the renders' `background`),
+    /// with LPIPS when its weights are found, appending to `out/curve.jsonl` (replaced when
+    /// `start` is 0).
     pub fn new(
         loaded: &LoadedScene,
         which: &ViewSet,
         out: &Path,
         start: u32,
+        background: [f32; 3],
         rep: &mut dyn Reporter,
     ) -> anyhow::Result<HeldOut> {
         let indices = which.indices(&loaded.split, loaded.scene.cameras.len(), "--eval-views")?;
@@ -473,7 +508,7 @@ impl HeldOut {
         let mut views = Vec::new();
         for i in indices {
             let cam = loaded.scene.cameras[i].clone();
-            let truth = extranerf_nerf::data::load_image(&cam.image)?;
+            let truth = extranerf_nerf::data::load_image_over(&cam.image, background)?;
             views.push((i, cam, truth.rgb));
         }
         let lpips = match lpips_alex(None) {

@@ -872,11 +872,7 @@ impl Stage for InpaintStage {
                 };
                 views.push(View {
                     camera: cam.clone(),
-                    image: Image {
-                        width: cam.width,
-                        height: cam.height,
-                        rgb: fill.rgb.clone(),
-                    },
+                    image: Image::opaque(cam.width, cam.height, fill.rgb.clone()),
                     depth: Some(
                         fill.depth
                             .iter()
@@ -1084,33 +1080,36 @@ impl Stage for FlythroughStage {
     }
 }
 
-/// `img` resized to `w x h` by area averaging (box filter over the covered source pixels).
+/// `img` resized to `w x h` by area averaging (box filter over the covered source pixels), its
+/// alpha too when it has one.
 pub fn downscale_image(img: &Image, w: u32, h: u32) -> Image {
     let (sw, sh) = (img.width as usize, img.height as usize);
-    let (w, h) = (w as usize, h as usize);
-    let mut rgb = vec![0f32; w * h * 3];
-    for y in 0..h {
-        let (y0, y1) = (y * sh / h, ((y + 1) * sh / h).max(y * sh / h + 1));
-        for x in 0..w {
-            let (x0, x1) = (x * sw / w, ((x + 1) * sw / w).max(x * sw / w + 1));
-            let mut acc = [0f32; 3];
-            for yy in y0..y1.min(sh) {
-                for xx in x0..x1.min(sw) {
-                    for c in 0..3 {
-                        acc[c] += img.rgb[3 * (yy * sw + xx) + c];
+    let box_filter = |src: &[f32], ch: usize| {
+        let (w, h) = (w as usize, h as usize);
+        let mut out = vec![0f32; w * h * ch];
+        for y in 0..h {
+            let (y0, y1) = (y * sh / h, ((y + 1) * sh / h).max(y * sh / h + 1));
+            for x in 0..w {
+                let (x0, x1) = (x * sw / w, ((x + 1) * sw / w).max(x * sw / w + 1));
+                let n = ((y1.min(sh) - y0) * (x1.min(sw) - x0)).max(1) as f32;
+                for c in 0..ch {
+                    let mut acc = 0f32;
+                    for yy in y0..y1.min(sh) {
+                        for xx in x0..x1.min(sw) {
+                            acc += src[ch * (yy * sw + xx) + c];
+                        }
                     }
+                    out[ch * (y * w + x) + c] = acc / n;
                 }
             }
-            let n = ((y1.min(sh) - y0) * (x1.min(sw) - x0)).max(1) as f32;
-            for c in 0..3 {
-                rgb[3 * (y * w + x) + c] = acc[c] / n;
-            }
         }
-    }
+        out
+    };
     Image {
-        width: w as u32,
-        height: h as u32,
-        rgb,
+        width: w,
+        height: h,
+        rgb: box_filter(&img.rgb, 3),
+        alpha: img.alpha.as_ref().map(|a| box_filter(a, 1)),
     }
 }
 

@@ -121,6 +121,8 @@ pub fn model_for_scene(scene: &Scene) -> ModelConfig {
         .fold(0.0f64, f64::max);
     let (near, far) = if near.is_finite() && far > near {
         (near, far)
+    } else if scene.bounded_object {
+        object_bounds(scene, centre)
     } else {
         (0.05 * radius, 100.0 * radius)
     };
@@ -133,6 +135,23 @@ pub fn model_for_scene(scene: &Scene) -> ModelConfig {
         contraction: Contraction::L2,
         ..ModelConfig::default()
     }
+}
+
+/// Near and far bounds for an object on a transparent background: the sphere around `centre`
+/// that the farthest camera's view frames (its distance times the tangent of its widest
+/// half-angle, the image diagonal), seen from the nearest and the farthest camera; nothing
+/// beyond it needs samples.
+fn object_bounds(scene: &Scene, centre: DVec3) -> (f64, f64) {
+    let (mut d_min, mut d_max, mut r) = (f64::INFINITY, 0.0f64, 0.0f64);
+    for c in &scene.cameras {
+        let d = c.centre().distance(centre);
+        let half_w = (c.cx.max(c.width as f64 - c.cx)) / c.fx;
+        let half_h = (c.cy.max(c.height as f64 - c.cy)) / c.fy;
+        d_min = d_min.min(d);
+        d_max = d_max.max(d);
+        r = r.max(d * half_w.hypot(half_h));
+    }
+    ((d_min - r).max(0.05 * d_min), d_max + r)
 }
 
 /// Chooses the model for `scene` trained on the cameras `train` (indices).
@@ -206,11 +225,25 @@ pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
     model.max_res = max_res.max(MIN_RES * 2);
     model.min_res = MIN_RES;
     let span = (model.max_res as f64 / MIN_RES as f64).ln();
-    let levels = ((1.0 + span / GROWTH.ln()).ceil() as u32).clamp(4, 16);
+    let aimed = ((1.0 + span / GROWTH.ln()).ceil() as u32).clamp(4, 16);
+    // The fused training step, march and visibility read the encoding in vec4 rows: levels x
+    // features must be a multiple of 4 (13 levels of 2 features fell back to the slower
+    // standalone step, and `eval` and `visibility` refused the model).
+    let mut levels = aimed;
+    while !(levels * model.features).is_multiple_of(4) && levels < 16 {
+        levels += 1;
+    }
     model.levels = levels;
     let b = (span / (levels - 1) as f64).exp();
+    let rounded = if levels != aimed {
+        format!(
+            " (rounded up from {aimed} so that the encoding fills the fused kernels' vec4 rows)"
+        )
+    } else {
+        String::new()
+    };
     reasons.push(format!(
-        "levels {levels}: N {MIN_RES}..{} with growth {b:.2} per level (aim {GROWTH})",
+        "levels {levels}: N {MIN_RES}..{} with growth {b:.2} per level (aim {GROWTH}){rounded}",
         model.max_res
     ));
     // Surfaces are 2-D: about N^2 / 2 occupied cells at the finest level.
@@ -253,6 +286,8 @@ mod tests {
             cameras: (0..4).map(|i| cam(i as f64 * 0.1, 504, 400.0)).collect(),
             world_from_source: DMat4::IDENTITY,
             forward_facing: true,
+            given: None,
+            bounded_object: false,
         };
         let a = auto_model(&scene, &[0, 1, 2]);
         assert_eq!(a.model.space, Space::Ndc);
@@ -272,6 +307,30 @@ mod tests {
         assert_eq!(b.model.max_res, 2048);
         assert!(b.model.levels > a.model.levels);
         assert_eq!(b.model.log2_table, 19);
+        // 2048 aims at 13 levels; rounded up to 14 so that the fused kernels take the model.
+        assert_eq!(b.model.levels, 14);
+        assert!(b.reasons.iter().any(|r| r.contains("rounded up from 13")));
+        for w in [64, 200, 504, 1000, 2016, 4000, 8000] {
+            let m = auto_model(
+                &Scene {
+                    cameras: (0..4)
+                        .map(|i| cam(i as f64 * 0.1, w, w as f64 * 0.8))
+                        .collect(),
+                    ..big.clone()
+                },
+                &[0, 1, 2],
+            )
+            .model;
+            assert!(
+                (m.levels * m.features).is_multiple_of(4),
+                "{w} px: {} levels",
+                m.levels
+            );
+            assert!(
+                m.density_mlp().vec4_rows() && m.color_mlp().vec4_rows(),
+                "{w} px"
+            );
+        }
     }
 
     /// A camera at `eye` looking at `target` (OpenGL convention: it looks down -z).
@@ -335,6 +394,8 @@ mod tests {
             cameras: cams,
             world_from_source: DMat4::IDENTITY,
             forward_facing: false,
+            given: None,
+            bounded_object: false,
         };
         let m = model_for_scene(&scene);
         assert!(DVec3::from(m.center.map(f64::from)).distance(target) < 1e-5);
@@ -394,6 +455,8 @@ mod tests {
             cameras,
             world_from_source: DMat4::IDENTITY,
             forward_facing: false,
+            given: None,
+            bounded_object: false,
         };
         let a = auto_model(&scene, &[0, 1, 2, 3, 4, 5, 6, 7]);
         assert_eq!(a.model.space, Space::World);

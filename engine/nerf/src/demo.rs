@@ -134,6 +134,40 @@ pub fn demo_seen(view: usize, width: u32, height: u32, rank: usize) -> Vec<bool>
     seen
 }
 
+/// The albedo of sphere texture `kind` at unit normal `n`.
+fn sphere_colour(kind: u32, n: DVec3) -> DVec3 {
+    let (u, v) = (n.z.atan2(n.x), n.y.asin());
+    match kind {
+        0 => {
+            if (u * 4.0).sin() > 0.0 {
+                DVec3::new(0.9, 0.2, 0.15)
+            } else {
+                DVec3::new(0.95, 0.8, 0.2)
+            }
+        }
+        1 => {
+            if checker(
+                u * 6.0 / std::f64::consts::PI,
+                v * 6.0 / std::f64::consts::PI,
+            ) {
+                DVec3::new(0.15, 0.3, 0.85)
+            } else {
+                DVec3::new(0.92, 0.92, 0.95)
+            }
+        }
+        _ => {
+            let w = ((u * 5.0).sin() * (v * 8.0).sin()).abs();
+            DVec3::new(0.1, 0.45 + 0.4 * w, 0.2)
+        }
+    }
+}
+
+/// Lambertian shading with the demo's light.
+fn lit(albedo: DVec3, n: DVec3) -> DVec3 {
+    let light = DVec3::new(0.4, 0.8, 0.5).normalize();
+    albedo * (0.35 + 0.65 * n.dot(light).max(0.0))
+}
+
 /// Colour of the ray `o + t d` (`d` unit length).
 fn shade(o: DVec3, d: DVec3) -> DVec3 {
     let mut best = (f64::INFINITY, DVec3::ZERO, DVec3::ZERO);
@@ -142,30 +176,7 @@ fn shade(o: DVec3, d: DVec3) -> DVec3 {
             if t < best.0 {
                 let p = o + t * d;
                 let n = (p - s.c) / s.r;
-                let (u, v) = (n.z.atan2(n.x), n.y.asin());
-                let col = match s.kind {
-                    0 => {
-                        if (u * 4.0).sin() > 0.0 {
-                            DVec3::new(0.9, 0.2, 0.15)
-                        } else {
-                            DVec3::new(0.95, 0.8, 0.2)
-                        }
-                    }
-                    1 => {
-                        if checker(
-                            u * 6.0 / std::f64::consts::PI,
-                            v * 6.0 / std::f64::consts::PI,
-                        ) {
-                            DVec3::new(0.15, 0.3, 0.85)
-                        } else {
-                            DVec3::new(0.92, 0.92, 0.95)
-                        }
-                    }
-                    _ => {
-                        let w = ((u * 5.0).sin() * (v * 8.0).sin()).abs();
-                        DVec3::new(0.1, 0.45 + 0.4 * w, 0.2)
-                    }
-                };
+                let col = sphere_colour(s.kind, n);
                 best = (t, col, n);
             }
         }
@@ -198,8 +209,7 @@ fn shade(o: DVec3, d: DVec3) -> DVec3 {
     if !best.0.is_finite() {
         return DVec3::splat(0.7);
     }
-    let light = DVec3::new(0.4, 0.8, 0.5).normalize();
-    best.1 * (0.35 + 0.65 * best.2.dot(light).max(0.0))
+    lit(best.1, best.2)
 }
 
 /// Camera-to-world (OpenGL: x right, y up, looking along -z) at `eye` looking at `target`.
@@ -300,6 +310,173 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
     Ok(())
 }
 
+/// The turntable scene's object centre (off the origin, so that centring is tested).
+pub const TURNTABLE_CENTRE: DVec3 = DVec3::new(0.4, -0.3, 0.25);
+/// Distance of the turntable cameras from [`TURNTABLE_CENTRE`].
+pub const TURNTABLE_RADIUS: f64 = 3.5;
+/// Horizontal field of view of the turntable cameras (NeRF-synthetic's `camera_angle_x`).
+pub const TURNTABLE_ANGLE_X: f64 = 0.6911;
+
+/// The turntable object: three textured spheres around [`TURNTABLE_CENTRE`], within 1.1 of it.
+fn turntable_spheres() -> [Sphere; 3] {
+    let c = TURNTABLE_CENTRE;
+    [
+        Sphere { c, r: 0.6, kind: 1 },
+        Sphere {
+            c: c + DVec3::new(0.7, 0.2, 0.1),
+            r: 0.35,
+            kind: 0,
+        },
+        Sphere {
+            c: c + DVec3::new(-0.45, 0.35, 0.45),
+            r: 0.3,
+            kind: 2,
+        },
+    ]
+}
+
+/// Colour of the turntable ray `o + t d` (`d` unit length), or `None` when it misses.
+fn turntable_shade(spheres: &[Sphere], o: DVec3, d: DVec3) -> Option<DVec3> {
+    let mut best: Option<(f64, &Sphere)> = None;
+    for s in spheres {
+        if let Some(t) = hit_sphere(o, d, s) {
+            if best.is_none_or(|(b, _)| t < b) {
+                best = Some((t, s));
+            }
+        }
+    }
+    best.map(|(t, s)| {
+        let n = (o + t * d - s.c) / s.r;
+        lit(sphere_colour(s.kind, n), n)
+    })
+}
+
+/// Turntable camera `k` of `n`: on a sphere of [`TURNTABLE_RADIUS`] around the object, at
+/// elevations from 10 to 70 degrees over a golden-angle spiral (train and test rigs use
+/// different phases), looking at [`TURNTABLE_CENTRE`].
+pub fn turntable_camera(k: usize, n: usize, phase: f64) -> DMat4 {
+    let f = (k as f64 + 0.5) / n.max(1) as f64;
+    let elevation = (10.0 + 60.0 * f).to_radians();
+    let azimuth = k as f64 * 2.399_963_229_728_653 + phase;
+    let dir = DVec3::new(
+        elevation.cos() * azimuth.cos(),
+        elevation.sin(),
+        elevation.cos() * azimuth.sin(),
+    );
+    look_at(TURNTABLE_CENTRE + TURNTABLE_RADIUS * dir, TURNTABLE_CENTRE)
+}
+
+/// The exact turntable view from `c2w` at `width x height` (2x2 supersampled): straight
+/// colour (the mean of the samples that hit, 0 where none did) and alpha (the fraction that
+/// hit). Composited over a background b, a pixel is (hits + b * misses) / 4.
+pub fn turntable_view(c2w: &DMat4, width: u32, height: u32) -> (Vec<f32>, Vec<f32>) {
+    let spheres = turntable_spheres();
+    let focal = 0.5 * width as f64 / (0.5 * TURNTABLE_ANGLE_X).tan();
+    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+    let mut rgb = vec![0f32; (width * height * 3) as usize];
+    let mut alpha = vec![0f32; (width * height) as usize];
+    for y in 0..height {
+        for x in 0..width {
+            let (mut acc, mut hits) = (DVec3::ZERO, 0u32);
+            for s in 0..4 {
+                let px = x as f64 + 0.25 + 0.5 * (s % 2) as f64;
+                let py = y as f64 + 0.25 + 0.5 * (s / 2) as f64;
+                let dc = DVec3::new((px - cx) / focal, -(py - cy) / focal, -1.0);
+                let d = c2w.transform_vector3(dc).normalize();
+                if let Some(c) = turntable_shade(&spheres, c2w.w_axis.truncate(), d) {
+                    acc += c;
+                    hits += 1;
+                }
+            }
+            let k = (y * width + x) as usize;
+            if hits > 0 {
+                for ch in 0..3 {
+                    rgb[k * 3 + ch] = (acc[ch] / hits as f64) as f32;
+                }
+            }
+            alpha[k] = hits as f32 / 4.0;
+        }
+    }
+    (rgb, alpha)
+}
+
+/// Writes the turntable scene into `dir` in NeRF-synthetic's layout: `transforms_train.json`
+/// and `transforms_test.json` (`camera_angle_x`, frames with `file_path` without extension and
+/// `transform_matrix`) and RGBA PNGs `train/r_K.png`, `test/r_K.png` with a transparent
+/// background, `train` views and `test` views at `width x height`. Views are ray traced on all
+/// cores.
+pub fn write_turntable_scene(
+    dir: &Path,
+    width: u32,
+    height: u32,
+    train: usize,
+    test: usize,
+) -> Result<()> {
+    if width < 8 || height < 8 || train == 0 || test == 0 {
+        return Err(RunError::Config(format!(
+            "turntable scene of {train} + {test} views at {width}x{height}: use at least one \
+             view of each and 8x8 pixels"
+        )));
+    }
+    for (split, n, phase) in [("train", train, 0.0), ("test", test, 1.1)] {
+        let img_dir = dir.join(split);
+        std::fs::create_dir_all(&img_dir).map_err(|e| DataError::Io {
+            path: img_dir.clone(),
+            error: e,
+        })?;
+        let cams: Vec<DMat4> = (0..n).map(|k| turntable_camera(k, n, phase)).collect();
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let threads = std::thread::available_parallelism().map_or(1, |t| t.get());
+        std::thread::scope(|scope| -> Result<()> {
+            let workers: Vec<_> = (0..threads)
+                .map(|_| {
+                    scope.spawn(|| -> Result<()> {
+                        loop {
+                            let k = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            if k >= n {
+                                return Ok(());
+                            }
+                            let (rgb, alpha) = turntable_view(&cams[k], width, height);
+                            crate::run::write_png_rgba(
+                                &img_dir.join(format!("r_{k}.png")),
+                                width,
+                                height,
+                                &rgb,
+                                &alpha,
+                            )?;
+                        }
+                    })
+                })
+                .collect();
+            for w in workers {
+                w.join()
+                    .map_err(|_| RunError::Config("a ray-tracing thread panicked".into()))??;
+            }
+            Ok(())
+        })?;
+        let frames: Vec<serde_json::Value> = cams
+            .iter()
+            .enumerate()
+            .map(|(k, c2w)| {
+                let rows: Vec<Vec<f64>> = (0..4).map(|r| c2w.row(r).to_array().to_vec()).collect();
+                serde_json::json!({
+                    "file_path": format!("./{split}/r_{k}"),
+                    "rotation": 0.0,
+                    "transform_matrix": rows,
+                })
+            })
+            .collect();
+        let json = serde_json::json!({"camera_angle_x": TURNTABLE_ANGLE_X, "frames": frames});
+        crate::safetensors::write_atomic(
+            &dir.join(format!("transforms_{split}.json")),
+            serde_json::to_string_pretty(&json)
+                .map_err(|e| RunError::Config(format!("cannot serialise the cameras: {e}")))?
+                .as_bytes(),
+        )?;
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -348,8 +525,31 @@ mod tests {
     }
 
     #[test]
+    fn turntable_views_hit_the_object_and_leave_the_rest_transparent() {
+        let c2w = turntable_camera(3, 10, 0.0);
+        let eye = c2w.w_axis.truncate();
+        assert!((eye.distance(TURNTABLE_CENTRE) - TURNTABLE_RADIUS).abs() < 1e-12);
+        assert!(eye.y > TURNTABLE_CENTRE.y, "upper hemisphere");
+        let (w, h) = (40, 30);
+        let (rgb, alpha) = turntable_view(&c2w, w, h);
+        // The centre pixel looks at the central sphere: opaque, lit, textured colour.
+        let k = ((h / 2) * w + w / 2) as usize;
+        assert_eq!(alpha[k], 1.0);
+        assert!(rgb[k * 3..k * 3 + 3].iter().all(|&c| c > 0.0 && c <= 1.0));
+        // The corners miss: transparent, colour 0.
+        assert_eq!(alpha[0], 0.0);
+        assert_eq!(&rgb[..3], &[0.0; 3]);
+        // Partly covered edge pixels exist (anti-aliasing) and alpha takes quarter steps.
+        assert!(alpha.iter().any(|&a| a > 0.0 && a < 1.0));
+        assert!(alpha
+            .iter()
+            .all(|&a| [0.0, 0.25, 0.5, 0.75, 1.0].contains(&a)));
+    }
+
+    #[test]
     fn cameras_are_proper_rotations() {
-        for c in demo_cameras() {
+        let turntable = (0..7).map(|k| turntable_camera(k, 7, 0.3));
+        for c in demo_cameras().into_iter().chain(turntable) {
             let m = glam::DMat3::from_mat4(c);
             assert!((m.determinant() - 1.0).abs() < 1e-9);
             assert!(

@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use crate::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
 use crate::data::llff::{load_llff, LlffOptions};
 use crate::data::split::{Split, SplitIndices, SplitKind};
-use crate::data::transforms::load_transforms;
+use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms};
 use crate::data::{colmap, load_image, Camera, DataError, Scene};
 use crate::model::{ModelConfig, ParamLayout};
 use crate::safetensors::{write_atomic, SafeTensors, Tensor};
@@ -95,16 +95,18 @@ impl SceneSpec {
             load_transforms(&self.dir)?
         } else if self.dir.join("transforms.json").exists() {
             load_transforms(&self.dir.join("transforms.json"))?
-        } else if self.dir.join("transforms_train.json").exists() {
-            load_transforms(&self.dir.join("transforms_train.json"))?
+        } else if has_split_files(&self.dir) {
+            load_split_transforms(&self.dir)?
         } else {
             return Err(DataError::Malformed {
                 path: self.dir.clone(),
-                problem: "not a scene: expected poses_bounds.npy (LLFF) or transforms.json".into(),
+                problem: "not a scene: expected poses_bounds.npy (LLFF), transforms.json or \
+                          transforms_train.json (NeRF-synthetic)"
+                    .into(),
             }
             .into());
         };
-        let split = self.split().apply(&scene.cameras)?;
+        let split = self.split().apply_to(&scene)?;
         Ok(LoadedScene { scene, split })
     }
 }
@@ -327,16 +329,55 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()
             rgb.len()
         )));
     }
-    let bytes: Vec<u8> = rgb
-        .iter()
-        .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
-        .collect();
+    let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
+    write_png_bytes(path, width, height, &bytes, image::ExtendedColorType::Rgb8)
+}
+
+/// A value in [0, 1] (clamped) as 8 bits, rounded.
+fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// Encodes 8-bit pixels as PNG and writes them atomically.
+fn write_png_bytes(
+    path: &Path,
+    width: u32,
+    height: u32,
+    bytes: &[u8],
+    colour: image::ExtendedColorType,
+) -> Result<()> {
     let mut png = Vec::new();
     image::codecs::png::PngEncoder::new(&mut png)
-        .write_image(&bytes, width, height, image::ExtendedColorType::Rgb8)
+        .write_image(bytes, width, height, colour)
         .map_err(|e| RunError::Config(format!("{}: cannot encode PNG: {e}", path.display())))?;
     write_atomic(path, &png)?;
     Ok(())
+}
+
+/// Writes a straight-alpha RGBA image (colour and alpha clamped to [0, 1]) as an 8-bit PNG,
+/// atomically.
+pub fn write_png_rgba(
+    path: &Path,
+    width: u32,
+    height: u32,
+    rgb: &[f32],
+    alpha: &[f32],
+) -> Result<()> {
+    let px = width as usize * height as usize;
+    if rgb.len() != px * 3 || alpha.len() != px {
+        return Err(RunError::Config(format!(
+            "{}: {} colour and {} alpha values for a {width}x{height} RGBA image",
+            path.display(),
+            rgb.len(),
+            alpha.len()
+        )));
+    }
+    let bytes: Vec<u8> = rgb
+        .chunks_exact(3)
+        .zip(alpha)
+        .flat_map(|(c, &a)| [to_u8(c[0]), to_u8(c[1]), to_u8(c[2]), to_u8(a)])
+        .collect();
+    write_png_bytes(path, width, height, &bytes, image::ExtendedColorType::Rgba8)
 }
 
 /// Writes a view-depth map in the capture's units (what `train --depth-dir` reads) as a
@@ -485,7 +526,14 @@ mod tests {
         assert_eq!(spec.split(), Split::Extrapolation);
         spec.split = SplitKind::All;
         assert_eq!(spec.split(), Split::All);
-        for k in [SplitKind::Extrapolation, SplitKind::FewShot, SplitKind::All] {
+        spec.split = SplitKind::Given;
+        assert_eq!(spec.split(), Split::Given);
+        for k in [
+            SplitKind::Extrapolation,
+            SplitKind::FewShot,
+            SplitKind::All,
+            SplitKind::Given,
+        ] {
             assert_eq!(serde_json::to_value(k).unwrap(), k.name());
         }
     }

@@ -470,17 +470,26 @@ impl Trainer {
         step: u32,
     ) -> Result<u32> {
         let ws = &self.ws;
-        let seed = (self.cfg.seed as u32) ^ step.wrapping_mul(0x9e37_79b9);
+        let seed = self.step_seed(step);
+        // Targets are composited over the background the step adds to the same rays.
+        let (bg, random_bg, _) = self.background(seed).parts();
         let p = kb::Params {
             n_rays: ws.rays,
             n_images: data.n_images,
             seed,
-            _pad: 0,
+            random_bg,
+            background: [bg[0], bg[1], bg[2], 0.0],
         };
         let b = kb::sample_batch::Bindings {
-            image_info: data.info.binding(),
-            image_rgb: data.rgb.binding(),
-            image_depth: data.depth.binding(),
+            places: data.places.binding(),
+            store0: data.store_binding(0),
+            store1: data.store_binding(1),
+            store2: data.store_binding(2),
+            store3: data.store_binding(3),
+            store4: data.store_binding(4),
+            store5: data.store_binding(5),
+            store6: data.store_binding(6),
+            store7: data.store_binding(7),
             pixels: ws.pixels.binding(),
             target_rgb: ws.target_rgb.binding(),
             target_depth: ws.target_depth.binding(),
@@ -488,6 +497,16 @@ impl Trainer {
         };
         rec.dispatch(&self.batch, b.into_array(), &p, ws.rays as u64)?;
         Ok(seed)
+    }
+
+    /// The seed of step `step`: its batch, strata jitter and random backgrounds.
+    pub fn step_seed(&self, step: u32) -> u32 {
+        (self.cfg.seed as u32) ^ step.wrapping_mul(0x9e37_79b9)
+    }
+
+    /// The background behind the rays of step `step` (1-based).
+    pub fn step_background(&self, step: u32) -> Background {
+        self.background(self.step_seed(step))
     }
 
     /// The batch that step `step` (1-based) draws from `data`: per ray the view's index and
@@ -500,6 +519,7 @@ impl Trainer {
         Ok(DrawnBatch {
             pixels: self.ws.pixels.read()?,
             targets: self.ws.target_rgb.read()?,
+            depths: self.ws.target_depth.read()?,
         })
     }
 

@@ -105,8 +105,11 @@ impl ViewSampling {
 pub struct DrawnBatch {
     /// Per ray: the view's index and the pixel's y * width + x.
     pub pixels: Vec<[u32; 2]>,
-    /// Per ray: the target colour and its signed colour weight ([`colour_weight`]).
+    /// Per ray: the target colour (composited over the ray's background where the image has
+    /// alpha) and its signed colour weight ([`colour_weight`]).
     pub targets: Vec<[f32; 4]>,
+    /// Per ray: the depth target and its confidence (0: none).
+    pub depths: Vec<[f32; 2]>,
 }
 
 /// Fixed-point bits of the batch kernel's cumulative image probabilities (render/batch.wgsl).
@@ -140,16 +143,53 @@ pub fn image_cdf(p: &[f64]) -> Result<Vec<u32>> {
     Ok(cdf)
 }
 
-/// The training views on the device: cameras, packed pixels (with their signed colour
-/// weights), depth targets and the images' sampling table.
+/// Bindings of the pixel store that the batch kernel takes (render/batch.wgsl).
+pub const STORE_BINDINGS: usize = 8;
+
+/// The depth block marker of a view without depth targets (render/batch.wgsl `NO_DEPTH`).
+const NO_DEPTH: u32 = u32::MAX;
+
+/// A view's colour and depth blocks in the pixel store (render/batch.wgsl `Place`): binding and
+/// first element of the colour block, of the depth block ([`NO_DEPTH`]: none), then width,
+/// height, the view's index and padding.
+type Place = [u32; 8];
+
+/// One pixel's colour word: rgb and alpha as rgba8 (WGSL's `pack4x8unorm`).
+pub fn pack_rgba8(rgb: &[f32], alpha: f32) -> u32 {
+    let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u32;
+    q(rgb[0]) | q(rgb[1]) << 8 | q(rgb[2]) << 16 | q(alpha) << 24
+}
+
+/// The training views on the device: cameras, the compact pixel store (rgba8 colour, signed
+/// f32 colour weight, and f32 depth targets for the views that have them), spread over as
+/// many bindings as the device's binding limit needs, and the images' sampling table.
 #[derive(Debug)]
 pub struct TrainData {
     pub(crate) cameras: Buffer<GpuCamera>,
-    pub(crate) info: Buffer<[u32; 4]>,
-    pub(crate) rgb: Buffer<[f32; 4]>,
-    pub(crate) depth: Buffer<[f32; 2]>,
+    pub(crate) places: Buffer<Place>,
+    pub(crate) store: Vec<Buffer<[u32; 2]>>,
     pub(crate) cdf: Buffer<u32>,
     pub(crate) n_images: u32,
+    pixels: u64,
+}
+
+/// Packs blocks of elements into bindings of at most `capacity` elements, first fit in order;
+/// returns per block its (binding, first element) and the bindings' lengths.
+fn pack_blocks(blocks: &[usize], capacity: usize) -> (Vec<(u32, u32)>, Vec<usize>) {
+    let mut used: Vec<usize> = Vec::new();
+    let mut at = Vec::with_capacity(blocks.len());
+    for &n in blocks {
+        let b = match used.iter().position(|&u| u + n <= capacity) {
+            Some(b) => b,
+            None => {
+                used.push(0);
+                used.len() - 1
+            }
+        };
+        at.push((b as u32, used[b] as u32));
+        used[b] += n;
+    }
+    (at, used)
 }
 
 impl TrainData {
@@ -164,13 +204,23 @@ impl TrainData {
         views: &[View],
         sampling: ViewSampling,
     ) -> Result<TrainData> {
+        TrainData::with_binding_limit(ctx, views, sampling, ctx.info().max_storage_buffer_range)
+    }
+
+    /// [`TrainData::with_sampling`] as if one binding held at most `limit` bytes (the tests
+    /// spread small scenes over several bindings with it).
+    pub fn with_binding_limit(
+        ctx: &Context,
+        views: &[View],
+        sampling: ViewSampling,
+        limit: u64,
+    ) -> Result<TrainData> {
         if views.is_empty() {
             return Err(GpuError::Usage("no training views".into()));
         }
         let probabilities = sampling.probabilities(views)?;
-        let mut info = Vec::new();
-        let mut rgb = Vec::new();
-        let mut depth = Vec::new();
+        // Colour blocks, then depth blocks, each whole in one binding.
+        let mut blocks = Vec::new();
         for (i, v) in views.iter().enumerate() {
             let (cam, img) = (&v.camera, &v.image);
             let px = v.pixels();
@@ -184,55 +234,176 @@ impl TrainData {
                     img.height
                 )));
             }
-            info.push([rgb.len() as u32, img.width, img.height, i as u32]);
-            match &v.weight {
-                None => {
-                    let w = colour_weight(v.kind, 1.0);
-                    rgb.extend(img.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2], w]));
+            let len_err = |what: &str, n: usize| {
+                GpuError::Usage(format!(
+                    "view {i} ({}): {n} {what} for {px} pixels",
+                    cam.image.display()
+                ))
+            };
+            if img.rgb.len() != px * 3 {
+                return Err(len_err("colour values (3 per pixel)", img.rgb.len()));
+            }
+            // Per-pixel values: the right count, each valid.
+            let check = |what: &str, values: Option<&Vec<f32>>, ok: fn(f32) -> bool, rule: &str| {
+                let Some(values) = values else {
+                    return Ok(());
+                };
+                if values.len() != px {
+                    return Err(len_err(&format!("{what}s"), values.len()));
                 }
-                Some(w) if w.len() == px => {
-                    if let Some(bad) = w.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
-                        return Err(GpuError::Usage(format!(
-                            "view {i} ({}): colour weight {} at pixel {bad}; weights must be finite and >= 0",
-                            cam.image.display(),
-                            w[bad]
-                        )));
-                    }
-                    rgb.extend(
-                        img.rgb
-                            .chunks_exact(3)
-                            .zip(w)
-                            .map(|(c, &w)| [c[0], c[1], c[2], colour_weight(v.kind, w)]),
-                    );
-                }
-                Some(w) => {
-                    return Err(GpuError::Usage(format!(
-                        "view {i} ({}): {} colour weights for {px} pixels",
+                match values.iter().position(|&x| !ok(x)) {
+                    Some(bad) => Err(GpuError::Usage(format!(
+                        "view {i} ({}): {what} {} at pixel {bad}; {rule}",
                         cam.image.display(),
-                        w.len()
-                    )))
+                        values[bad]
+                    ))),
+                    None => Ok(()),
                 }
-            }
+            };
+            check(
+                "alpha",
+                img.alpha.as_ref(),
+                |x| (0.0..=1.0).contains(&x),
+                "alpha must be in [0, 1]",
+            )?;
+            check(
+                "colour weight",
+                v.weight.as_ref(),
+                |x| x.is_finite() && x >= 0.0,
+                "weights must be finite and >= 0",
+            )?;
             match &v.depth {
-                Some(d) if d.len() == px => depth.extend_from_slice(d),
-                Some(d) => {
-                    return Err(GpuError::Usage(format!(
-                        "view {i}: {} depth targets for {px} pixels",
-                        d.len()
-                    )))
-                }
-                None => depth.extend(std::iter::repeat_n([0.0, 0.0], px)),
+                Some(d) if d.len() != px => return Err(len_err("depth targets", d.len())),
+                _ => {}
             }
+            blocks.push(px);
         }
-        count_u32(rgb.len() as u64, "training pixels")?;
+        let with_depth: Vec<usize> = (0..views.len())
+            .filter(|&i| views[i].depth.is_some())
+            .collect();
+        blocks.extend(with_depth.iter().map(|&i| views[i].pixels()));
+        let pixels: u64 = views.iter().map(|v| v.pixels() as u64).sum();
+        // Elements (8 bytes) per binding: the limit, and u32 indices.
+        let capacity = (limit / 8).min(u32::MAX as u64) as usize;
+        if let Some(b) = blocks.iter().position(|&n| n > capacity) {
+            let i = if b < views.len() {
+                b
+            } else {
+                with_depth[b - views.len()]
+            };
+            return Err(GpuError::Usage(format!(
+                "view {i} ({}): its {} train pixels need {} bytes, more than one storage \
+                 binding of this device holds ({limit} bytes); downscale it (--factor)",
+                views[i].camera.image.display(),
+                blocks[b],
+                blocks[b] as u64 * 8
+            )));
+        }
+        let (at, used) = pack_blocks(&blocks, capacity);
+        if used.len() > STORE_BINDINGS {
+            let bytes = blocks.iter().map(|&n| n as u64 * 8).sum::<u64>();
+            return Err(GpuError::Usage(format!(
+                "the training pixels need {bytes} bytes ({pixels} pixels, 8 bytes each, and 8 \
+                 more per pixel of views with depth targets) in {} bindings of at most {limit} \
+                 bytes, but the batch kernel takes {STORE_BINDINGS}; train on fewer or smaller \
+                 views (--factor)",
+                used.len()
+            )));
+        }
+        let mut store: Vec<Vec<[u32; 2]>> = used.iter().map(|&n| Vec::with_capacity(n)).collect();
+        let mut places: Vec<Place> = Vec::with_capacity(views.len());
+        for (i, v) in views.iter().enumerate() {
+            let (b, first) = at[i];
+            debug_assert_eq!(store[b as usize].len(), first as usize);
+            let img = &v.image;
+            let sign = colour_weight(v.kind, 1.0);
+            let chunk = &mut store[b as usize];
+            for (k, c) in img.rgb.chunks_exact(3).enumerate() {
+                let a = img.alpha.as_ref().map_or(1.0, |a| a[k]);
+                let w = v.weight.as_ref().map_or(1.0, |w| w[k]);
+                chunk.push([pack_rgba8(c, a), (sign * w).to_bits()]);
+            }
+            places.push([b, first, NO_DEPTH, 0, img.width, img.height, i as u32, 0]);
+        }
+        for (j, &i) in with_depth.iter().enumerate() {
+            let (b, first) = at[views.len() + j];
+            let d = views[i].depth.as_ref().expect("views with depth");
+            debug_assert_eq!(store[b as usize].len(), first as usize);
+            store[b as usize].extend(d.iter().map(|p| [p[0].to_bits(), p[1].to_bits()]));
+            places[i][2] = b;
+            places[i][3] = first;
+        }
+        count_u32(pixels, "training pixels")?;
         let cams: Vec<GpuCamera> = views.iter().map(|v| gpu_camera(&v.camera)).collect();
+        let store = store
+            .iter()
+            .enumerate()
+            .map(|(b, s)| Buffer::from_slice(ctx, &format!("train pixels {b}"), s))
+            .collect::<Result<Vec<_>>>()?;
         Ok(TrainData {
             cameras: Buffer::from_slice(ctx, "train cameras", &cams)?,
-            info: Buffer::from_slice(ctx, "train image info", &info)?,
-            rgb: Buffer::from_slice(ctx, "train pixels", &rgb)?,
-            depth: Buffer::from_slice(ctx, "train depth targets", &depth)?,
+            places: Buffer::from_slice(ctx, "train image places", &places)?,
+            store,
             cdf: Buffer::from_slice(ctx, "train image sampling", &image_cdf(&probabilities)?)?,
             n_images: views.len() as u32,
+            pixels,
         })
+    }
+
+    /// Training pixels stored.
+    pub fn pixels(&self) -> u64 {
+        self.pixels
+    }
+
+    /// Training views.
+    pub fn views(&self) -> usize {
+        self.n_images as usize
+    }
+
+    /// Bindings the pixel store is spread over.
+    pub fn bindings(&self) -> usize {
+        self.store.len()
+    }
+
+    /// Device bytes of the pixel store, cameras and sampling table.
+    pub fn device_bytes(&self) -> u64 {
+        self.store.iter().map(Buffer::size_bytes).sum::<u64>()
+            + self.cameras.size_bytes()
+            + self.places.size_bytes()
+            + self.cdf.size_bytes()
+    }
+
+    /// The store's binding `b`, or its first binding for the kernel's unused slots.
+    pub(crate) fn store_binding(&self, b: usize) -> extranerf_gpu::Binding<'_> {
+        self.store.get(b).unwrap_or(&self.store[0]).binding()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blocks_pack_first_fit_within_capacity() {
+        let (at, used) = pack_blocks(&[6, 6, 3, 4, 1], 10);
+        assert_eq!(at, vec![(0, 0), (1, 0), (0, 6), (1, 6), (0, 9)]);
+        assert_eq!(used, vec![10, 10]);
+        let (at, used) = pack_blocks(&[10, 10], 10);
+        assert_eq!(at, vec![(0, 0), (1, 0)]);
+        assert_eq!(used, vec![10, 10]);
+    }
+
+    #[test]
+    fn rgba8_packs_as_wgsl_pack4x8unorm() {
+        assert_eq!(pack_rgba8(&[0.0, 1.0, 0.5], 1.0), 0xff80ff00);
+        // Clamped; 1/255 steps round to nearest.
+        assert_eq!(
+            pack_rgba8(&[-1.0, 2.0, 3.0 / 255.0 + 0.001], 0.0),
+            0x0003ff00
+        );
+        for k in 0..=255u32 {
+            let v = k as f32 / 255.0;
+            assert_eq!(pack_rgba8(&[v, v, v], v), k | k << 8 | k << 16 | k << 24);
+        }
     }
 }

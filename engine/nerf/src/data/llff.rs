@@ -198,6 +198,8 @@ pub fn load_llff(dir: &Path, opts: &LlffOptions) -> Result<Scene> {
         cameras,
         world_from_source,
         forward_facing: true,
+        given: None,
+        bounded_object: false,
     })
 }
 

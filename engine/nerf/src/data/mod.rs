@@ -162,6 +162,11 @@ pub struct Scene {
     pub world_from_source: DMat4,
     /// Forward-facing capture (LLFF): NDC applies; otherwise a 360 or object capture.
     pub forward_facing: bool,
+    /// The split the data set gives (NeRF-synthetic's split files), for `--split given`.
+    pub given: Option<split::SplitIndices>,
+    /// An object on a transparent background (NeRF-synthetic): nothing lies beyond what the
+    /// views frame around the rig's centre, so rays need sampling only there.
+    pub bounded_object: bool,
 }
 
 impl Scene {
@@ -174,7 +179,8 @@ impl Scene {
     }
 }
 
-/// An RGB image as linear-in-file f32 values in [0, 1], row-major, 3 channels.
+/// An RGB image as linear-in-file f32 values in [0, 1], row-major, 3 channels, with its alpha
+/// when the file has one (straight, not premultiplied: NeRF-synthetic's RGBA PNGs).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
     /// Width.
@@ -183,9 +189,39 @@ pub struct Image {
     pub height: u32,
     /// `width * height * 3` values.
     pub rgb: Vec<f32>,
+    /// `width * height` coverage values in [0, 1]; `None`: opaque.
+    pub alpha: Option<Vec<f32>>,
 }
 
-/// Decodes an image file (PNG or JPEG; alpha dropped, 16-bit scaled) to RGB f32.
+impl Image {
+    /// An opaque image.
+    pub fn opaque(width: u32, height: u32, rgb: Vec<f32>) -> Image {
+        Image {
+            width,
+            height,
+            rgb,
+            alpha: None,
+        }
+    }
+
+    /// The image composited over a uniform `background` (rgb * alpha + background *
+    /// (1 - alpha)), opaque; an opaque image comes back unchanged.
+    pub fn over(self, background: [f32; 3]) -> Image {
+        let Some(alpha) = self.alpha else {
+            return self;
+        };
+        let rgb = self
+            .rgb
+            .chunks_exact(3)
+            .zip(&alpha)
+            .flat_map(|(c, &a)| (0..3).map(move |k| c[k] * a + background[k] * (1.0 - a)))
+            .collect();
+        Image::opaque(self.width, self.height, rgb)
+    }
+}
+
+/// Decodes an image file (PNG or JPEG; 16-bit scaled) to RGB f32, keeping an alpha channel
+/// when the file has one that is not everywhere 1.
 pub fn load_image(path: &Path) -> Result<Image> {
     let img = image::open(path).map_err(|e| match e {
         image::ImageError::IoError(io) => DataError::io(path, io),
@@ -194,12 +230,26 @@ pub fn load_image(path: &Path) -> Result<Image> {
             problem: e.to_string(),
         },
     })?;
+    let alpha = if img.color().has_alpha() {
+        let rgba = img.to_rgba32f();
+        let a: Vec<f32> = rgba.pixels().map(|p| p.0[3]).collect();
+        a.iter().any(|&v| v < 1.0).then_some(a)
+    } else {
+        None
+    };
     let rgb = img.to_rgb32f();
     Ok(Image {
         width: rgb.width(),
         height: rgb.height(),
         rgb: rgb.into_raw(),
+        alpha,
     })
+}
+
+/// [`load_image`] composited over `background` (what a render with that background is
+/// compared with).
+pub fn load_image_over(path: &Path, background: [f32; 3]) -> Result<Image> {
+    Ok(load_image(path)?.over(background))
 }
 
 /// Reads a whole file, naming it in the error.

@@ -1,6 +1,9 @@
-//! Evaluation splits on LLFF-style scenes.
+//! Evaluation splits: LLFF-style protocols computed from the cameras, and the split a data set
+//! gives (NeRF-synthetic's split files).
 
-use super::{Camera, DataError, Result};
+use std::path::Path;
+
+use super::{Camera, DataError, Result, Scene};
 
 /// Train and test views (indices into the scene's cameras, ascending).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -21,6 +24,9 @@ pub enum Split {
     FewShot(usize),
     /// Train on every view, test on none.
     All,
+    /// The data set's own split (NeRF-synthetic: train on `transforms_train.json`, test on
+    /// `transforms_test.json`).
+    Given,
 }
 
 /// The split's name, as configs and the command line give it (the few-shot count apart).
@@ -35,15 +41,29 @@ pub enum SplitKind {
     FewShot,
     /// Every view trains, none is held out.
     All,
+    /// The data set's own split files: NeRF-synthetic's transforms_train.json trains,
+    /// transforms_test.json is held out.
+    Given,
 }
 
 impl SplitKind {
+    /// The default split for a scene folder: `given` when it holds split files
+    /// (`transforms_train.json`), else `extrapolation`.
+    pub fn default_for(dir: &Path) -> SplitKind {
+        if super::transforms::has_split_files(dir) {
+            SplitKind::Given
+        } else {
+            SplitKind::Extrapolation
+        }
+    }
+
     /// The split, with `fewshot_views` training views for the few-shot one.
     pub fn split(self, fewshot_views: usize) -> Split {
         match self {
             SplitKind::Extrapolation => Split::Extrapolation,
             SplitKind::FewShot => Split::FewShot(fewshot_views),
             SplitKind::All => Split::All,
+            SplitKind::Given => Split::Given,
         }
     }
 
@@ -53,6 +73,7 @@ impl SplitKind {
             SplitKind::Extrapolation => "extrapolation",
             SplitKind::FewShot => "fewshot",
             SplitKind::All => "all",
+            SplitKind::Given => "given",
         }
     }
 }
@@ -63,7 +84,34 @@ pub const EXTRAPOLATION_TRAIN: usize = 6;
 pub const EXTRAPOLATION_TEST: usize = 8;
 
 impl Split {
-    /// Applies the split to `cameras`.
+    /// Applies the split to `scene`: the given split from its split files, the others from
+    /// its cameras.
+    pub fn apply_to(self, scene: &Scene) -> Result<SplitIndices> {
+        if self != Split::Given {
+            return self.apply(&scene.cameras);
+        }
+        let missing = |p: String| DataError::Malformed {
+            path: scene.source.clone(),
+            problem: p,
+        };
+        match &scene.given {
+            None => Err(missing(format!(
+                "--split given needs the data set's split files ({}, {}), which this scene \
+                 does not have; choose extrapolation, fewshot or all",
+                super::transforms::SPLIT_FILES[0],
+                super::transforms::SPLIT_FILES[2]
+            ))),
+            Some(g) if g.test.is_empty() => Err(DataError::Malformed {
+                path: scene.source.join(super::transforms::SPLIT_FILES[2]),
+                problem: "no such file: --split given tests on it (choose --split all to \
+                          train without held-out views)"
+                    .into(),
+            }),
+            Some(g) => Ok(g.clone()),
+        }
+    }
+
+    /// Applies a split computed from the cameras (not [`Split::Given`]) to `cameras`.
     pub fn apply(self, cameras: &[Camera]) -> Result<SplitIndices> {
         let n = cameras.len();
         let err = |p: String| DataError::Malformed {
@@ -71,6 +119,9 @@ impl Split {
             problem: p,
         };
         match self {
+            Split::Given => Err(err(
+                "the given split comes from the scene's split files: use apply_to".into(),
+            )),
             Split::All => Ok(SplitIndices {
                 train: (0..n).collect(),
                 test: vec![],

@@ -1,12 +1,62 @@
 //! instant-ngp / nerfstudio `transforms.json` scenes (OpenGL camera convention, as written by
-//! both tools). Lens distortion is refused rather than ignored: undistort the images first.
+//! both tools), and NeRF-synthetic's split files (`transforms_{train,val,test}.json`). Lens
+//! distortion is refused rather than ignored: undistort the images first.
 
 use std::path::{Path, PathBuf};
 
 use glam::DMat4;
 use serde_json::Value;
 
+use super::split::SplitIndices;
 use super::{read_file, Camera, DataError, Result, Scene};
+
+/// NeRF-synthetic's split files, in the order [`load_split_transforms`] joins their cameras.
+pub const SPLIT_FILES: [&str; 3] = [
+    "transforms_train.json",
+    "transforms_val.json",
+    "transforms_test.json",
+];
+
+/// Whether `dir` holds the given protocol's training split file (`transforms_train.json`).
+pub fn has_split_files(dir: &Path) -> bool {
+    dir.join(SPLIT_FILES[0]).is_file()
+}
+
+/// Loads a folder of NeRF-synthetic split files: the cameras of `transforms_train.json`, then
+/// of `transforms_val.json` and `transforms_test.json` when present, in that order; the scene's
+/// given split trains on the first file's views and tests on the last's (none without a test
+/// file). Each file may carry its own intrinsics.
+pub fn load_split_transforms(dir: &Path) -> Result<Scene> {
+    let train_path = dir.join(SPLIT_FILES[0]);
+    if !train_path.is_file() {
+        return Err(DataError::malformed(
+            dir,
+            format!("no {}: not a NeRF-synthetic scene folder", SPLIT_FILES[0]),
+        ));
+    }
+    let mut scene = load_transforms(&train_path)?;
+    let n_train = scene.cameras.len();
+    let mut test = Vec::new();
+    for (k, name) in SPLIT_FILES.iter().enumerate().skip(1) {
+        let path = dir.join(name);
+        if !path.exists() {
+            continue;
+        }
+        let part = load_transforms(&path)?;
+        let first = scene.cameras.len();
+        scene.cameras.extend(part.cameras);
+        if k == 2 {
+            test = (first..scene.cameras.len()).collect();
+        }
+    }
+    scene.source = dir.to_path_buf();
+    scene.given = Some(SplitIndices {
+        train: (0..n_train).collect(),
+        test,
+    });
+    scene.bounded_object = true;
+    Ok(scene)
+}
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 
@@ -91,16 +141,33 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
         if c2w.determinant().abs() < 1e-12 {
             return Err(bad("`transform_matrix` is singular".into()));
         }
-        let (width, height) = match (num("w")?, num("h")?) {
-            (Some(w), Some(h)) if w >= 1.0 && h >= 1.0 => (w as u32, h as u32),
-            (Some(_), Some(_)) => return Err(bad("`w` and `h` must be at least 1".into())),
-            _ => image::image_dimensions(&image).map_err(|e| match e {
+        let dims = || {
+            image::image_dimensions(&image).map_err(|e| match e {
                 image::ImageError::IoError(io) => DataError::io(&image, io),
                 e => DataError::Image {
                     path: image.clone(),
                     problem: e.to_string(),
                 },
-            })?,
+            })
+        };
+        let (width, height) = match (num("w")?, num("h")?) {
+            (Some(w), Some(h)) if (1.0..=65536.0).contains(&w) && (1.0..=65536.0).contains(&h) => {
+                let (w, h) = (w as u32, h as u32);
+                // Cameras without images (virtual views to render) keep their size; an image
+                // that exists must have it.
+                if image.exists() {
+                    let (iw, ih) = dims()?;
+                    if (iw, ih) != (w, h) {
+                        return Err(bad(format!(
+                            "`w` x `h` is {w}x{h} but {} is {iw}x{ih}",
+                            image.display()
+                        )));
+                    }
+                }
+                (w, h)
+            }
+            (Some(_), Some(_)) => return Err(bad("`w` and `h` must be 1 to 65536".into())),
+            _ => dims()?,
         };
         let fx = match (num("fl_x")?, num("camera_angle_x")?) {
             (Some(fx), _) => fx,
@@ -144,5 +211,7 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
         cameras,
         world_from_source: DMat4::IDENTITY,
         forward_facing: false,
+        given: None,
+        bounded_object: false,
     })
 }
