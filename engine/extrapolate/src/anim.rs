@@ -3,6 +3,7 @@
 use std::path::Path;
 
 use anyhow::{bail, Context as _};
+use extranerf_nerf::data::unorm8;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbaImage};
 
@@ -43,10 +44,7 @@ pub fn write_gif(
             }
             let px: Vec<u8> = f
                 .chunks_exact(3)
-                .flat_map(|c| {
-                    let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-                    [q(c[0]), q(c[1]), q(c[2]), 255]
-                })
+                .flat_map(|c| [unorm8(c[0]), unorm8(c[1]), unorm8(c[2]), 255])
                 .collect();
             let Some(img) = RgbaImage::from_raw(width, height, px) else {
                 bail!(

@@ -12,7 +12,7 @@ use crate::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
 use crate::data::llff::{load_llff, LlffOptions};
 use crate::data::split::{Split, SplitIndices, SplitKind};
 use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms};
-use crate::data::{colmap, load_image, Camera, DataError, Scene};
+use crate::data::{colmap, load_image, unorm8, Camera, DataError, Scene};
 use crate::model::{ModelConfig, ParamLayout};
 use crate::safetensors::{write_atomic, SafeTensors, Tensor};
 use crate::trainer::TrainConfig;
@@ -329,13 +329,8 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()
             rgb.len()
         )));
     }
-    let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
+    let bytes: Vec<u8> = rgb.iter().map(|&v| unorm8(v)).collect();
     write_png_bytes(path, width, height, &bytes, image::ExtendedColorType::Rgb8)
-}
-
-/// A value in [0, 1] (clamped) as 8 bits, rounded.
-fn to_u8(v: f32) -> u8 {
-    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
 /// Encodes 8-bit pixels as PNG and writes them atomically.
@@ -375,7 +370,7 @@ pub fn write_png_rgba(
     let bytes: Vec<u8> = rgb
         .chunks_exact(3)
         .zip(alpha)
-        .flat_map(|(c, &a)| [to_u8(c[0]), to_u8(c[1]), to_u8(c[2]), to_u8(a)])
+        .flat_map(|(c, &a)| [unorm8(c[0]), unorm8(c[1]), unorm8(c[2]), unorm8(a)])
         .collect();
     write_png_bytes(path, width, height, &bytes, image::ExtendedColorType::Rgba8)
 }

@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use extranerf_gpu::{count_u32, Buffer, Context, GpuError, Result};
 
-use crate::data::{Camera, Image};
+use crate::data::{unorm8, Camera, Image};
 use crate::render::rays::{gpu_camera, GpuCamera};
 
 /// Where a training view comes from, which decides its colour loss.
@@ -156,8 +156,12 @@ type Place = [u32; 8];
 
 /// One pixel's colour word: rgb and alpha as rgba8 (WGSL's `pack4x8unorm`).
 pub fn pack_rgba8(rgb: &[f32], alpha: f32) -> u32 {
-    let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u32;
-    q(rgb[0]) | q(rgb[1]) << 8 | q(rgb[2]) << 16 | q(alpha) << 24
+    u32::from_le_bytes([
+        unorm8(rgb[0]),
+        unorm8(rgb[1]),
+        unorm8(rgb[2]),
+        unorm8(alpha),
+    ])
 }
 
 /// The training views on the device: cameras, the compact pixel store (rgba8 colour, signed

@@ -230,20 +230,29 @@ pub fn load_image(path: &Path) -> Result<Image> {
             problem: e.to_string(),
         },
     })?;
-    let alpha = if img.color().has_alpha() {
-        let rgba = img.to_rgba32f();
-        let a: Vec<f32> = rgba.pixels().map(|p| p.0[3]).collect();
-        a.iter().any(|&v| v < 1.0).then_some(a)
-    } else {
-        None
-    };
-    let rgb = img.to_rgb32f();
+    let (width, height) = (img.width(), img.height());
+    if !img.color().has_alpha() {
+        return Ok(Image::opaque(width, height, img.into_rgb32f().into_raw()));
+    }
+    // One conversion, split into colour and alpha.
+    let rgba = img.into_rgba32f().into_raw();
+    let rgb = rgba
+        .chunks_exact(4)
+        .flat_map(|p| [p[0], p[1], p[2]])
+        .collect();
+    let alpha: Vec<f32> = rgba.chunks_exact(4).map(|p| p[3]).collect();
     Ok(Image {
-        width: rgb.width(),
-        height: rgb.height(),
-        rgb: rgb.into_raw(),
-        alpha,
+        width,
+        height,
+        rgb,
+        alpha: alpha.iter().any(|&v| v < 1.0).then_some(alpha),
     })
+}
+
+/// A value in [0, 1] (clamped) as 8 bits, rounded to nearest: what PNG writers and the
+/// training pixel store keep (WGSL's `pack4x8unorm` per channel).
+pub fn unorm8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
 /// [`load_image`] composited over `background` (what a render with that background is
