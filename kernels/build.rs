@@ -114,6 +114,35 @@ fn collect(dir: &Path, files: &mut Vec<PathBuf>) {
 }
 
 /// Resolves `//!include path` lines (relative to wgsl/), each file at most once.
+/// naga writes cooperative-matrix modules in the Vulkan memory model, where its storage-buffer
+/// atomics (device scope) need the VulkanMemoryModelDeviceScope capability, which naga 30 does
+/// not declare (spirv-val in the validation layer rejects the module). Declares it: one
+/// `OpCapability` right after the 5-word header, where capabilities come first.
+fn add_device_scope_capability(words: &mut Vec<u32>) {
+    const OP_CAPABILITY: u32 = 17;
+    const VULKAN_MEMORY_MODEL_DEVICE_SCOPE: u32 = 5346;
+    let has = |w: &[u32]| {
+        let mut i = 5;
+        while i < w.len() {
+            let (count, op) = ((w[i] >> 16) as usize, w[i] & 0xffff);
+            if op != OP_CAPABILITY || count == 0 {
+                return false;
+            }
+            if w.get(i + 1) == Some(&VULKAN_MEMORY_MODEL_DEVICE_SCOPE) {
+                return true;
+            }
+            i += count;
+        }
+        false
+    };
+    if !has(words) {
+        words.splice(
+            5..5,
+            [(2 << 16) | OP_CAPABILITY, VULKAN_MEMORY_MODEL_DEVICE_SCOPE],
+        );
+    }
+}
+
 fn preprocess(
     wgsl_dir: &Path,
     file: &Path,
@@ -157,7 +186,10 @@ fn compile_file(
         | Capabilities::SHADER_FLOAT32_ATOMIC
         | Capabilities::SHADER_FLOAT16
         // pack2x16float and friends: core SPIR-V (GLSL.std.450 PackHalf2x16), no device feature.
-        | Capabilities::SHADER_FLOAT16_IN_FLOAT32;
+        | Capabilities::SHADER_FLOAT16_IN_FLOAT32
+        // VK_KHR_cooperative_matrix: only files that `enable wgpu_cooperative_matrix;` use it,
+        // and their kernels are built only on devices that offer their tile shape.
+        | Capabilities::COOPERATIVE_MATRIX;
     let info = Validator::new(ValidationFlags::all(), caps)
         .validate(&module)
         .map_err(|e| {
@@ -229,6 +261,23 @@ fn compile_file(
     });
     let uses_subgroup = source.contains("subgroup");
     let uses_f16 = source.lines().any(|l| l.trim() == "enable f16;");
+    // The cooperative-matrix tile edge (f16 inputs, f32 accumulators), 0 when none is used.
+    let coop_tile = if source
+        .lines()
+        .any(|l| l.trim() == "enable wgpu_cooperative_matrix;")
+    {
+        match (source.contains("coop_mat8x8"), source.contains("coop_mat16x16")) {
+            (true, false) => 8,
+            (false, true) => 16,
+            _ => {
+                return Err(format!(
+                    "{rel}: a cooperative-matrix file uses exactly one tile shape (coop_mat8x8 or coop_mat16x16)"
+                ))
+            }
+        }
+    } else {
+        0
+    };
 
     let mut entries = Vec::new();
     for (index, ep) in module.entry_points.iter().enumerate() {
@@ -293,8 +342,11 @@ fn compile_file(
             shader_stage: naga::ShaderStage::Compute,
             entry_point: ep.name.clone(),
         };
-        let words = spv::write_vec(&module, &info, &options, Some(&pipeline))
+        let mut words = spv::write_vec(&module, &info, &options, Some(&pipeline))
             .map_err(|e| format!("{rel}: SPIR-V generation failed for {}: {e}", ep.name))?;
+        if coop_tile != 0 {
+            add_device_scope_capability(&mut words);
+        }
 
         let ep_mod = ep.name.clone();
         let _ = writeln!(code, "    /// Entry point `{}` of `wgsl/{rel}`.\n    pub mod {ep_mod} {{\n        pub use super::Params;", ep.name);
@@ -317,7 +369,7 @@ fn compile_file(
             let _ = writeln!(code, "            pub {name}: B,");
         }
         let _ = writeln!(code, "        }}\n        impl<B> Bindings<B> {{\n            /// The bindings in the order of [`DESC`]'s `bindings`.\n            pub fn into_array(self) -> [B; {}] {{\n                [{}]\n            }}\n        }}", bindings.len(), bindings.iter().map(|(_, n, _, _)| format!("self.{n}")).collect::<Vec<_>>().join(", "));
-        let _ = writeln!(code, "        /// Everything the engine needs to build this kernel.\n        pub const DESC: crate::KernelDesc = crate::KernelDesc {{\n            name: \"{mod_name}::{ep_mod}\",\n            entry: \"{}\",\n            spirv: SPIRV,\n            workgroup_size: WORKGROUP_SIZE,\n            params_size: {params_size},\n            bindings: &[{}],\n            needs_subgroups: {uses_subgroup},\n            needs_float32_atomic_add: {uses_f32_atomic},\n            needs_f16: {uses_f16},\n        }};\n    }}",
+        let _ = writeln!(code, "        /// Everything the engine needs to build this kernel.\n        pub const DESC: crate::KernelDesc = crate::KernelDesc {{\n            name: \"{mod_name}::{ep_mod}\",\n            entry: \"{}\",\n            spirv: SPIRV,\n            workgroup_size: WORKGROUP_SIZE,\n            params_size: {params_size},\n            bindings: &[{}],\n            needs_subgroups: {uses_subgroup},\n            needs_float32_atomic_add: {uses_f32_atomic},\n            needs_f16: {uses_f16},\n            coop_tile: {coop_tile},\n        }};\n    }}",
             ep.name,
             bindings.iter().map(|(b, n, ro, ub)| format!("crate::BindingDesc {{ binding: {b}, name: \"{n}\", read_only: {ro}, uniform_bytes: {ub} }}")).collect::<Vec<_>>().join(", "));
         entries.push(format!("{mod_name}::{ep_mod}"));

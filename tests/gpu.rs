@@ -69,6 +69,7 @@ fn unknown_device_is_a_clear_error() {
         max_binding_bytes: None,
         max_memory_bytes: None,
         share_with_wgpu: false,
+        no_coop_matrix: false,
     })
     .unwrap_err();
     match &err {
@@ -87,6 +88,7 @@ fn unknown_device_is_a_clear_error() {
         max_binding_bytes: None,
         max_memory_bytes: None,
         share_with_wgpu: false,
+        no_coop_matrix: false,
     })
     .unwrap_err();
     assert!(matches!(err, GpuError::DeviceNotFound { .. }), "{err}");
@@ -103,6 +105,7 @@ fn device_chosen_by_index_and_name() {
         max_binding_bytes: None,
         max_memory_bytes: None,
         share_with_wgpu: false,
+        no_coop_matrix: false,
     })
     .unwrap();
     assert_eq!(by_index.info().name, first.name);
@@ -113,6 +116,7 @@ fn device_chosen_by_index_and_name() {
         max_binding_bytes: None,
         max_memory_bytes: None,
         share_with_wgpu: false,
+        no_coop_matrix: false,
     })
     .unwrap();
     assert!(by_name
@@ -341,11 +345,28 @@ fn every_params_twin_matches_naga_layout() {
     }
 }
 
+/// Every kernel builds, except cooperative-matrix ones whose tile the device does not offer:
+/// those are refused as a missing feature.
 #[test]
 fn every_kernel_builds_on_the_device() {
     let e = engine();
+    let info = e.ctx.info();
     for kd in kernels::ALL {
-        Kernel::new(&e.ctx, kd).unwrap_or_else(|err| panic!("{}: {err}", kd.name));
+        let offered =
+            kd.coop_tile == 0 || info.coop_matrix.iter().any(|s| s.is_f16_f32(kd.coop_tile));
+        match Kernel::new(&e.ctx, kd) {
+            Ok(_) => assert!(
+                offered,
+                "{}: built without its cooperative-matrix tile",
+                kd.name
+            ),
+            Err(err) if !offered => assert!(
+                matches!(err, GpuError::MissingFeature { .. }),
+                "{}: {err}",
+                kd.name
+            ),
+            Err(err) => panic!("{}: {err}", kd.name),
+        }
     }
     assert_no_validation_messages(&e.ctx);
 }
@@ -400,6 +421,7 @@ fn resources_of_another_context_are_refused() {
         max_binding_bytes: None,
         max_memory_bytes: None,
         share_with_wgpu: false,
+        no_coop_matrix: false,
     })
     .unwrap();
     let foreign = Buffer::<u32>::new(&other, "foreign", 16).unwrap();

@@ -28,6 +28,7 @@ pub fn desc() -> ContextDesc {
         max_binding_bytes: None,
         max_memory_bytes: None,
         share_with_wgpu: false,
+        no_coop_matrix: false,
     }
 }
 
@@ -57,6 +58,29 @@ pub fn engine() -> &'static Engine {
             Prims::new(&ctx).unwrap_or_else(|e| panic!("cannot build the primitive kernels: {e}"));
         Engine { ctx, prims }
     })
+}
+
+/// The cooperative-matrix tile the device offers for the engine's kernels, or `None` after
+/// saying on stderr that the test skipped; with `EXTRANERF_REQUIRE_COOP` set (not empty or 0),
+/// as CI sets it on its modern lavapipe, a device without one fails the test instead.
+pub fn coop_tile_or_skip(ctx: &Context) -> Option<u32> {
+    let tile = ctx.info().coop_tile();
+    if tile.is_none() {
+        let required = std::env::var("EXTRANERF_REQUIRE_COOP")
+            .map(|v| !v.is_empty() && v != "0")
+            .unwrap_or(false);
+        assert!(
+            !required,
+            "EXTRANERF_REQUIRE_COOP is set but {} ({}) offers no 8x8x8 or 16x16x16 f16*f16+f32 cooperative-matrix tile (VK_KHR_cooperative_matrix; tools/lavapipe_coop.sh installs a lavapipe that does)",
+            ctx.info().name,
+            ctx.info().driver_info
+        );
+        eprintln!(
+            "SKIPPED: {} offers no usable cooperative matrix (set EXTRANERF_REQUIRE_COOP to fail instead)",
+            ctx.info().name
+        );
+    }
+    tile
 }
 
 /// Fails the test when the validation layer reported anything (warnings included). Without the

@@ -1018,3 +1018,83 @@ fn turntable_scene_trains_to_its_exact_views_over_white() {
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// 200 fused steps on the demo scene with the MLP weight gradient through cooperative matrices
+/// (f16 tiles, f32 accumulation) and through the scalar f32 kernel, from the same start: the
+/// window losses agree within the stated f16 tolerance and both fall. Skips (saying so) where
+/// the device offers no usable cooperative matrix, unless `EXTRANERF_REQUIRE_COOP` is set.
+#[test]
+fn coop_and_scalar_mlp_paths_train_alike() {
+    use extranerf_nerf::data::split::SplitKind;
+    use extranerf_nerf::field::mlp::{MlpMode, MlpPath};
+    use extranerf_nerf::renderer::Nerf;
+    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::trainer::{TrainConfig, Trainer};
+    use extranerf_nerf::views::TrainData;
+    let e = engine();
+    let ctx = &e.ctx;
+    let Some(tile) = extranerf_tests::coop_tile_or_skip(ctx) else {
+        return;
+    };
+    let dir = scratch_dir("coop-train");
+    extranerf_nerf::demo::write_demo_scene(&dir, 48, 36).unwrap();
+    let spec = SceneSpec {
+        dir: dir.clone(),
+        split: SplitKind::Extrapolation,
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: true,
+        depth_dir: None,
+    };
+    let loaded = spec.load().unwrap();
+    let model = ModelConfig {
+        levels: 8,
+        log2_table: 14,
+        max_res: 256,
+        ..extranerf_nerf::autoconfig::model_for_scene(&loaded.scene)
+    };
+    let views = training_views(&spec, &loaded, &model).unwrap();
+    let data = TrainData::new(ctx, &views).unwrap();
+    let windows = |mlp: MlpMode| {
+        let cfg = TrainConfig {
+            steps: 200,
+            decay_steps: 200,
+            rays: 256,
+            samples: 32,
+            seed: 5,
+            mlp,
+            ..TrainConfig::default()
+        };
+        let nerf = Nerf::new(ctx, model.clone(), &init_params(&model, 5), cfg.background).unwrap();
+        let mut t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
+        assert!(t.is_fused());
+        let path = t.mlp_path();
+        let losses: Vec<f64> = (0..8)
+            .map(|_| t.run_steps(ctx, &e.prims, &data, 25).unwrap().loss)
+            .collect();
+        (path, losses)
+    };
+    let (p_scalar, scalar) = windows(MlpMode::Scalar);
+    let (p_coop, coop) = windows(MlpMode::Coop);
+    assert_eq!(p_scalar, MlpPath::Scalar);
+    assert_eq!(p_coop, MlpPath::Coop { tile });
+    let rel: Vec<f64> = scalar
+        .iter()
+        .zip(&coop)
+        .map(|(s, c)| (c - s).abs() / s.abs().max(1e-12))
+        .collect();
+    eprintln!("window losses (25 steps each): scalar {scalar:.5?}, coop {coop:.5?}, relative difference {:?}", rel.iter().map(|r| format!("{r:.2e}")).collect::<Vec<_>>());
+    for (k, r) in rel.iter().enumerate() {
+        // The first window differs only by f16 rounding of the gradients; later ones also by
+        // the trajectories drifting apart (measured up to 0.76% on lavapipe). Stated tolerance:
+        // 2% of the window loss.
+        assert!(
+            *r < 0.02,
+            "window {k}: scalar {} vs coop {}",
+            scalar[k],
+            coop[k]
+        );
+    }
+    assert!(coop[7] < 0.7 * coop[0] && scalar[7] < 0.7 * scalar[0]);
+    assert_no_validation_messages(ctx);
+}

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context as _;
 use extranerf_gpu::{Buffer, Context, GpuTimer, Recorder};
 use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
-use extranerf_nerf::field::mlp::{Mlp, MlpConfig};
+use extranerf_nerf::field::mlp::{Mlp, MlpConfig, MlpPath};
 use extranerf_nerf::optim::{Adam, AdamConfig};
 use extranerf_prims::reference::Rng;
 use extranerf_prims::{CompactPlan, Prims, ReducePlan, ScanPlan, ScatterMode, SortPlan};
@@ -437,6 +437,16 @@ impl Bench<'_> {
                     .notes
                     .push(format!("mlp: no f16 record on this device: {e}")),
             }
+            match ctx.info().coop_tile() {
+                Some(tile) => {
+                    let mut m = Mlp::new(ctx, cfg.clone())?;
+                    m.set_path(ctx, MlpPath::Coop { tile })?;
+                    variants.push(("uniform block, coop weight gradient", m));
+                }
+                None => self.notes.push(
+                    "mlp: no cooperative-matrix path on this device (VK_KHR_cooperative_matrix with 8x8x8 or 16x16x16 f16*f16+f32 subgroup tiles)".into(),
+                ),
+            }
             variants.push((
                 "storage buffer",
                 Mlp::with_storage_kernels(ctx, cfg.clone())?,
@@ -485,6 +495,22 @@ impl Bench<'_> {
                     "mlp: uniform block vs {label} in this run: fwd {:.2}x, bwd {:.2}x faster",
                     fwd_ms / f,
                     bwd_ms / b
+                ));
+            }
+            if let Some(i) = variants
+                .iter()
+                .position(|(_, m)| m.path() != MlpPath::Scalar)
+            {
+                let (g32, gc) = (&grads[0], &grads[i]);
+                let scale = g32.iter().fold(0f32, |m, v| m.max(v.abs()));
+                let worst = g32
+                    .iter()
+                    .zip(gc)
+                    .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+                self.notes.push(format!(
+                    "mlp {} weight gradient at {pts} points: vs f32 max |d| {:.2e} of the largest gradient ({scale:.3e})",
+                    variants[i].1.path(),
+                    worst / scale
                 ));
             }
             if let Some(i) = variants.iter().position(|(_, m)| m.is_f16()) {

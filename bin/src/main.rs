@@ -146,6 +146,7 @@ fn context_with(cli: &Cli, share_with_wgpu: bool) -> anyhow::Result<Context> {
         max_binding_bytes: None,
         max_memory_bytes: cli.max_memory.map(|m| m.saturating_mul(1 << 20)),
         share_with_wgpu,
+        no_coop_matrix: false,
     })
     .context("creating the Vulkan device")
 }
@@ -284,6 +285,30 @@ fn info_text(i: &extranerf_gpu::DeviceInfo) -> String {
         yes(i.shader_float16),
         yes(i.storage_buffer_16bit)
     );
+    if i.coop_matrix.is_empty() {
+        s += "coop matrix     none (VK_KHR_cooperative_matrix absent): --mlp auto runs scalar\n";
+    } else {
+        for (k, shape) in i.coop_matrix.iter().enumerate() {
+            s += &format!(
+                "{}{shape}\n",
+                if k == 0 {
+                    "coop matrix     "
+                } else {
+                    "                "
+                }
+            );
+        }
+        s += &format!(
+            "                --mlp auto runs {}\n",
+            match i.coop_tile() {
+                Some(t) if i.is_cpu() => format!(
+                    "scalar on this CPU device (its {t}x{t}x{t} tiles are emulated, measured slower; --mlp coop uses them)"
+                ),
+                Some(t) => format!("coop ({t}x{t}x{t} f16*f16+f32 tiles)"),
+                None => "scalar (no f16*f16+f32 subgroup tile of 8 or 16)".into(),
+            }
+        );
+    }
     s += &format!(
         "validation      {}\n",
         if i.validation {
@@ -316,6 +341,8 @@ fn info_json(i: &extranerf_gpu::DeviceInfo) -> serde_json::Value {
         "float32_atomic_add": i.float32_atomic_add,
         "shader_float16": i.shader_float16,
         "storage_buffer_16bit": i.storage_buffer_16bit,
+        "coop_matrix": i.coop_matrix.iter().map(|c| serde_json::json!({"m": c.m, "n": c.n, "k": c.k, "a": c.types[0], "b": c.types[1], "c": c.types[2], "result": c.types[3], "scope": c.scope})).collect::<Vec<_>>(),
+        "coop_tile": i.coop_tile(),
         "validation": i.validation,
     })
 }

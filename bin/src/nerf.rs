@@ -8,6 +8,7 @@ use extranerf_extrapolate::driver::{default_lpips_dir, fit_budget, train_loop, T
 use extranerf_gpu::Context;
 use extranerf_nerf::autoconfig::model_for_scene;
 use extranerf_nerf::data::split::SplitKind;
+use extranerf_nerf::field::mlp::MlpMode;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
 use extranerf_nerf::model::Precision;
 use extranerf_nerf::render::march::MarchCuts;
@@ -127,6 +128,13 @@ pub struct TrainArgs {
     /// standalone; both take --occupancy-res. May be given with --resume.
     #[arg(long, value_name = "KIND", value_enum)]
     step: Option<KernelPath>,
+    /// MLP arithmetic: coop (cooperative matrices, VK_KHR_cooperative_matrix: f16 tiles with
+    /// f32 accumulation, for the MLP weight gradient; an error where the device lacks them),
+    /// scalar (per-thread f32), or auto (coop on a GPU that offers a usable tile shape, with
+    /// precision f32; scalar on CPU devices, where lavapipe's emulated tiles measured slower)
+    /// [default: auto]. May be given with --resume.
+    #[arg(long, value_name = "KIND", value_enum)]
+    mlp: Option<MlpMode>,
     /// Steps between progress lines (1 to 64).
     #[arg(long, default_value_t = 25)]
     log_every: u32,
@@ -366,6 +374,9 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
     }
     if let Some(step) = a.step {
         cfg.train.fused_step = step == KernelPath::Fused;
+    }
+    if let Some(mlp) = a.mlp {
+        cfg.train.mlp = mlp;
     }
     let run = TrainRun {
         out: a.out.clone(),
@@ -771,6 +782,16 @@ pub struct BenchTrainArgs {
     /// same-run reference of the fused step's speed).
     #[arg(long, value_name = "KIND", value_enum, default_value_t = BenchSteps::Both)]
     step: BenchSteps,
+    /// MLP weight-gradient paths to measure, each with every --step kind: auto, coop,
+    /// scalar, or several (comma-separated, e.g. coop,scalar).
+    #[arg(
+        long,
+        value_name = "KIND",
+        value_enum,
+        value_delimiter = ',',
+        default_value = "auto"
+    )]
+    mlp: Vec<MlpMode>,
     /// Train with an occupancy grid of this many cells per axis (0: none), with no warm-up:
     /// each step also runs its share of the grid's sweep, and once the first sweep has set
     /// the bits (step --occupancy-every) the strata cover only the rays' occupied probe
@@ -825,11 +846,16 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         BenchSteps::Both => &[true, false],
     };
     let mut results = Vec::new();
-    for &fused in kinds {
+    let runs: Vec<(bool, MlpMode)> = kinds
+        .iter()
+        .flat_map(|&f| a.mlp.iter().map(move |&m| (f, m)))
+        .collect();
+    for (fused, mlp) in runs {
         let train = TrainConfig {
             rays: a.rays,
             samples: a.samples,
             fused_step: fused,
+            mlp,
             occupancy_res: a.occupancy_res,
             occupancy_every: a.occupancy_every,
             occupancy_warmup: 0,
@@ -843,6 +869,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             Some(why) if fused => format!("standalone kernels ({why})"),
             Some(_) => "standalone kernels".to_string(),
         };
+        let label = format!("{label}, MLP weight gradient {}", t.mlp_path());
         let warm = Instant::now();
         t.run_steps(ctx, &prims, &data, 2)?;
         let warm_s = warm.elapsed().as_secs_f64();
@@ -901,6 +928,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         results.push(serde_json::json!({
             "step": label,
             "fused": t.is_fused(),
+            "mlp": t.mlp_path().to_string(),
             "step_ms_wall": secs * 1e3 / a.steps as f64,
             "samples_per_s": sps,
             "warmup_s": warm_s,

@@ -43,6 +43,9 @@ pub struct KernelDesc {
     /// Uses f16 arithmetic and f16 storage buffers (needs shaderFloat16 and
     /// storageBuffer16BitAccess).
     pub needs_f16: bool,
+    /// Edge of the cooperative-matrix tiles it multiplies (f16 A and B, f32 accumulator;
+    /// `VK_KHR_cooperative_matrix`), 0 when it uses none.
+    pub coop_tile: u32,
 }
 
 /// The generated host twin of one file's `Params` block, for the layout tests.

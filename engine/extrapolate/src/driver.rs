@@ -270,6 +270,11 @@ pub fn train_loop(
         ),
         Some(why) => rep.note(&format!("training step: standalone kernels ({why})")),
     }
+    rep.note(&format!(
+        "MLP weight gradient: {} (--mlp {})",
+        trainer.mlp_path(),
+        cfg.train.mlp.name()
+    ));
     if let Some(occ) = trainer.occupancy() {
         let g = occ.config();
         rep.note(&format!(

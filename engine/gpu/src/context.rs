@@ -62,6 +62,9 @@ pub struct ContextDesc {
     /// destroyed before the process exits, since wgpu users such as burn keep it in global
     /// registries.
     pub share_with_wgpu: bool,
+    /// Leave `VK_KHR_cooperative_matrix` off even where the device offers it, as on a device
+    /// without it (tests of the scalar fallbacks and of `--mlp coop`'s error).
+    pub no_coop_matrix: bool,
 }
 
 /// One heap of the device.
@@ -128,6 +131,63 @@ pub struct DeviceInfo {
     pub storage_buffer_16bit: bool,
     /// The validation layer is loaded.
     pub validation: bool,
+    /// The cooperative-matrix shapes the device offers (`VK_KHR_cooperative_matrix`, enabled
+    /// when present); empty without the extension.
+    pub coop_matrix: Vec<CoopMatrixShape>,
+}
+
+/// One cooperative-matrix shape a device offers
+/// (`vkGetPhysicalDeviceCooperativeMatrixPropertiesKHR`): `A (m x k) * B (k x n) + C (m x n)`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CoopMatrixShape {
+    /// Rows of A and C.
+    pub m: u32,
+    /// Columns of B and C.
+    pub n: u32,
+    /// Columns of A, rows of B.
+    pub k: u32,
+    /// Element types of A, B, C and the result (`f16`, `f32`, `bf16`, `i8`, `u8`, `i32`, ...).
+    pub types: [String; 4],
+    /// Scope (`subgroup`, `workgroup`, ...).
+    pub scope: String,
+}
+
+impl CoopMatrixShape {
+    /// True for a square `tile` shape with f16 A and B and an f32 accumulator at subgroup scope:
+    /// the one the engine's cooperative-matrix kernels use.
+    pub fn is_f16_f32(&self, tile: u32) -> bool {
+        self.m == tile
+            && self.n == tile
+            && self.k == tile
+            && self.types == ["f16", "f16", "f32", "f32"]
+            && self.scope == "subgroup"
+    }
+}
+
+impl std::fmt::Display for CoopMatrixShape {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let [a, b, c, r] = &self.types;
+        write!(
+            f,
+            "{}x{}x{} {a}*{b}+{c}->{r} ({})",
+            self.m, self.n, self.k, self.scope
+        )
+    }
+}
+
+impl DeviceInfo {
+    /// True for a CPU device (lavapipe).
+    pub fn is_cpu(&self) -> bool {
+        self.device_type == device_type_name(vk::PhysicalDeviceType::CPU)
+    }
+
+    /// The largest square f16 x f16 + f32 subgroup tile (8 or 16) that the engine's
+    /// cooperative-matrix kernels can use on this device, if any.
+    pub fn coop_tile(&self) -> Option<u32> {
+        [16, 8]
+            .into_iter()
+            .find(|&t| self.coop_matrix.iter().any(|s| s.is_f16_f32(t)))
+    }
 }
 
 /// One validation-layer message.
@@ -455,7 +515,14 @@ impl Context {
             .or_else(|| std::env::var("EXTRANERF_DEVICE").ok())
             .filter(|s| !s.trim().is_empty());
         let (index, physical) = select_device(instance_ref, requested.as_deref())?;
-        let (mut info, features) = probe_device(instance_ref, index, physical, api, validation)?;
+        let (mut info, mut features) =
+            probe_device(&entry, instance_ref, index, physical, api, validation)?;
+        // The device wgpu adopts gets wgpu-hal's feature chain, which enables cooperative
+        // matrices and the memory model they need only for wgpu's experimental feature: left off.
+        if desc.no_coop_matrix || desc.share_with_wgpu {
+            features.coop_matrix = false;
+            info.coop_matrix.clear();
+        }
         if let Some(limit) = desc.max_binding_bytes {
             // A smaller binding limit than the device's: the split and ranged paths run on any
             // device (tests, or reproducing a smaller device's behaviour).
@@ -490,6 +557,9 @@ impl Context {
         if features.atomic_float {
             ext_names.push(ash::ext::shader_atomic_float::NAME.as_ptr());
         }
+        if features.coop_matrix {
+            ext_names.push(ash::khr::cooperative_matrix::NAME.as_ptr());
+        }
         #[cfg(feature = "wgpu")]
         let mut share = if desc.share_with_wgpu {
             let sh = crate::wgpu_share::Share::new(
@@ -515,10 +585,14 @@ impl Context {
             .uniform_and_storage_buffer16_bit_access(info.storage_buffer_16bit);
         let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
             .timeline_semaphore(true)
-            .shader_float16(info.shader_float16);
+            .shader_float16(info.shader_float16)
+            .vulkan_memory_model(features.coop_matrix)
+            .vulkan_memory_model_device_scope(features.coop_matrix);
         let mut fatomic = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
             .shader_buffer_float32_atomic_add(true)
             .shader_buffer_float32_atomics(true);
+        let mut fcoop =
+            vk::PhysicalDeviceCooperativeMatrixFeaturesKHR::default().cooperative_matrix(true);
         let mut dci = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_ci)
             .enabled_extension_names(&ext_names);
@@ -537,6 +611,9 @@ impl Context {
             if features.atomic_float {
                 dci = dci.push_next(&mut fatomic);
             }
+        }
+        if features.coop_matrix {
+            dci = dci.push_next(&mut fcoop);
         }
         // SAFETY: all pointers in `dci` refer to locals alive across the call; features enabled
         // were reported as supported by `probe_device`.
@@ -995,9 +1072,40 @@ fn select_device(
 
 struct Features {
     atomic_float: bool,
+    coop_matrix: bool,
+}
+
+fn component_name(t: vk::ComponentTypeKHR) -> String {
+    match t {
+        vk::ComponentTypeKHR::FLOAT16 => "f16".into(),
+        vk::ComponentTypeKHR::FLOAT32 => "f32".into(),
+        vk::ComponentTypeKHR::FLOAT64 => "f64".into(),
+        vk::ComponentTypeKHR::SINT8 => "i8".into(),
+        vk::ComponentTypeKHR::SINT16 => "i16".into(),
+        vk::ComponentTypeKHR::SINT32 => "i32".into(),
+        vk::ComponentTypeKHR::SINT64 => "i64".into(),
+        vk::ComponentTypeKHR::UINT8 => "u8".into(),
+        vk::ComponentTypeKHR::UINT16 => "u16".into(),
+        vk::ComponentTypeKHR::UINT32 => "u32".into(),
+        vk::ComponentTypeKHR::UINT64 => "u64".into(),
+        // BFLOAT16_KHR (VK_KHR_shader_bfloat16) and the float8 types postdate ash 0.38.
+        other if other.as_raw() == 1_000_141_000 => "bf16".into(),
+        other => format!("type{}", other.as_raw()),
+    }
+}
+
+fn scope_name(s: vk::ScopeKHR) -> String {
+    match s {
+        vk::ScopeKHR::DEVICE => "device".into(),
+        vk::ScopeKHR::WORKGROUP => "workgroup".into(),
+        vk::ScopeKHR::SUBGROUP => "subgroup".into(),
+        vk::ScopeKHR::QUEUE_FAMILY => "queue family".into(),
+        other => format!("scope{}", other.as_raw()),
+    }
 }
 
 fn probe_device(
+    entry: &ash::Entry,
     instance: &ash::Instance,
     index: usize,
     pd: vk::PhysicalDevice,
@@ -1014,6 +1122,7 @@ fn probe_device(
     let mut f11 = vk::PhysicalDeviceVulkan11Features::default();
     let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
     let mut fatomic = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
+    let mut fcoop = vk::PhysicalDeviceCooperativeMatrixFeaturesKHR::default();
     // SAFETY: valid physical device; the chained structs live across the calls.
     let (exts, mem, families) = unsafe {
         instance.get_physical_device_properties2(pd, &mut props2);
@@ -1028,6 +1137,12 @@ fn probe_device(
             .push_next(&mut f12);
         if has_atomic {
             f2 = f2.push_next(&mut fatomic);
+        }
+        let has_coop = exts.iter().any(|e| {
+            c_name(&e.extension_name) == ash::khr::cooperative_matrix::NAME.to_string_lossy()
+        });
+        if has_coop {
+            f2 = f2.push_next(&mut fcoop);
         }
         instance.get_physical_device_features2(pd, &mut f2);
         (
@@ -1064,6 +1179,32 @@ fn probe_device(
         })
         .collect();
     let atomic_float = has_atomic_ext && fatomic.shader_buffer_float32_atomic_add == vk::TRUE;
+    // naga writes cooperative-matrix kernels in the Vulkan memory model, with device-scope
+    // atomics.
+    let coop_matrix = fcoop.cooperative_matrix == vk::TRUE
+        && f12.vulkan_memory_model == vk::TRUE
+        && f12.vulkan_memory_model_device_scope == vk::TRUE
+        && exts.iter().any(|e| {
+            c_name(&e.extension_name) == ash::khr::cooperative_matrix::NAME.to_string_lossy()
+        });
+    let coop_shapes = if coop_matrix {
+        let coop = ash::khr::cooperative_matrix::Instance::new(entry, instance);
+        // SAFETY: valid physical device that offers VK_KHR_cooperative_matrix; the function
+        // pointer was loaded from this instance.
+        unsafe { coop.get_physical_device_cooperative_matrix_properties(pd) }
+            .during("vkGetPhysicalDeviceCooperativeMatrixPropertiesKHR")?
+            .iter()
+            .map(|p| CoopMatrixShape {
+                m: p.m_size,
+                n: p.n_size,
+                k: p.k_size,
+                types: [p.a_type, p.b_type, p.c_type, p.result_type].map(component_name),
+                scope: scope_name(p.scope),
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
     let info = DeviceInfo {
         index,
         name,
@@ -1097,6 +1238,13 @@ fn probe_device(
         storage_buffer_16bit: f11.storage_buffer16_bit_access == vk::TRUE
             && f11.uniform_and_storage_buffer16_bit_access == vk::TRUE,
         validation,
+        coop_matrix: coop_shapes,
     };
-    Ok((info, Features { atomic_float }))
+    Ok((
+        info,
+        Features {
+            atomic_float,
+            coop_matrix,
+        },
+    ))
 }

@@ -24,8 +24,8 @@ mod wgpu_share;
 
 pub use buffer::{Binding, Buffer, BUFFER_ALIGN};
 pub use context::{
-    list_devices, Context, ContextDesc, DeviceInfo, DeviceListing, HeapInfo, Validation,
-    ValidationLogHandle, ValidationMessage,
+    list_devices, Context, ContextDesc, CoopMatrixShape, DeviceInfo, DeviceListing, HeapInfo,
+    Validation, ValidationLogHandle, ValidationMessage,
 };
 pub use error::{count_u32, GpuError, Result};
 pub use extranerf_kernels as kernels;

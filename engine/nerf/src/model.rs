@@ -12,7 +12,7 @@ use extranerf_prims::reference::Rng;
 
 use crate::field::encodings::{Contraction, Encodings, SceneBox};
 use crate::field::hash_grid::{HashGrid, HashGridConfig};
-use crate::field::mlp::{Mlp, MlpConfig};
+use crate::field::mlp::{Mlp, MlpConfig, MlpMode, MlpPath};
 
 /// Floats between parameter sections (256 bytes, the largest storage-offset alignment Vulkan
 /// allows), so every section binds as a slice of the flat buffer.
@@ -425,6 +425,15 @@ impl Field {
     /// The hash grid (for hash decay).
     pub fn grid(&self) -> &HashGrid {
         &self.grid
+    }
+
+    /// Resolves `mode` on `ctx`'s device and sets both MLPs' weight-gradient path; returns the
+    /// path taken.
+    pub fn set_mlp(&mut self, ctx: &Context, mode: MlpMode) -> Result<MlpPath> {
+        let path = mode.resolve(ctx, self.density.is_f16())?;
+        self.density.set_path(ctx, path)?;
+        self.color.set_path(ctx, path)?;
+        Ok(path)
     }
 
     /// The density MLP.

@@ -11,6 +11,7 @@ use extranerf_gpu::kernels::render::{batch as kb, pixels as kp};
 use extranerf_gpu::{Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result};
 use extranerf_prims::{Prims, ReducePlan};
 
+use crate::field::mlp::{MlpMode, MlpPath};
 use crate::model::{mark, Profiler};
 use crate::optim::{Adam, AdamConfig, TableDecay};
 use crate::render::composite::{Background, RayGrads};
@@ -91,6 +92,10 @@ pub struct TrainConfig {
     /// block), uses the standalone chain.
     #[serde(default = "default_fused_step")]
     pub fused_step: bool,
+    /// How the MLPs' weight gradient runs: cooperative matrices where the device offers them
+    /// (`auto`), always (`coop`, an error where it cannot), or per-thread f32 (`scalar`).
+    #[serde(default)]
+    pub mlp: MlpMode,
 }
 
 /// The photometric loss of captured views, as configs and the command line name it.
@@ -166,6 +171,7 @@ impl Default for TrainConfig {
             occupancy_probes: default_occupancy_probes(),
             occupancy_opacity: default_occupancy_opacity(),
             fused_step: default_fused_step(),
+            mlp: MlpMode::Auto,
         }
     }
 }
@@ -275,6 +281,8 @@ pub struct Trainer {
     fused: Option<FusedStep>,
     /// Why the standalone chain trains instead, when it does.
     standalone_reason: Option<String>,
+    /// The MLP path the steps take.
+    mlp_path: MlpPath,
 }
 
 impl Trainer {
@@ -288,6 +296,8 @@ impl Trainer {
         moments: Option<(&[f32], &[f32])>,
     ) -> Result<Trainer> {
         cfg.validate()?;
+        let mut nerf = nerf;
+        let mlp_path = nerf.field.set_mlp(ctx, cfg.mlp)?;
         let total = nerf.field.layout().total;
         let why_not = if !cfg.fused_step {
             Some("the standalone chain was asked for".to_string())
@@ -352,12 +362,18 @@ impl Trainer {
             step,
             fused,
             standalone_reason: why_not,
+            mlp_path,
         })
     }
 
     /// True when steps run the fused kernel ([`FusedStep`]).
     pub fn is_fused(&self) -> bool {
         self.fused.is_some()
+    }
+
+    /// The MLP path the steps take (`TrainConfig::mlp` resolved on the device).
+    pub fn mlp_path(&self) -> MlpPath {
+        self.mlp_path
     }
 
     /// Why the standalone chain trains instead of the fused step, when it does.

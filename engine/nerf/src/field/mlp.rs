@@ -3,8 +3,11 @@
 //! WGSL layout (`common/mlp.wgsl`).
 
 use extranerf_gpu::kernels::field::mlp as k;
+use extranerf_gpu::kernels::field::mlp_coop16 as kc16;
+use extranerf_gpu::kernels::field::mlp_coop8 as kc8;
 use extranerf_gpu::kernels::field::mlp_f16 as k16;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
+use serde::{Deserialize, Serialize};
 
 /// The identity table that the push constants of every kernel evaluating MLPs from the uniform
 /// weight block carry as `lut` (`mlp_uni` in `kernels/wgsl/common/mlp_block.wgsl`: weight
@@ -105,6 +108,95 @@ impl MlpConfig {
     }
 }
 
+/// How the MLPs' matrix products run, as the command line (`--mlp`) and configs name it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum MlpMode {
+    /// Cooperative matrices where a GPU offers a usable shape and the model keeps f32
+    /// records; the scalar kernels otherwise, and on CPU devices (lavapipe emulates the tiles:
+    /// its cooperative-matrix weight gradient measured slower than the scalar one,
+    /// `results/mlp_coop_lavapipe/`).
+    #[default]
+    Auto,
+    /// Cooperative matrices (`VK_KHR_cooperative_matrix`, f16 inputs, f32 accumulation); an
+    /// error where the device or the model cannot use them.
+    Coop,
+    /// Per-thread f32 arithmetic.
+    Scalar,
+}
+
+impl MlpMode {
+    /// The name in configs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            MlpMode::Auto => "auto",
+            MlpMode::Coop => "coop",
+            MlpMode::Scalar => "scalar",
+        }
+    }
+}
+
+/// The MLP path that runs, once [`MlpMode`] is resolved on a device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MlpPath {
+    /// Per-thread f32 arithmetic.
+    Scalar,
+    /// Cooperative matrices with `tile` x `tile` x `tile` f16 tiles and f32 accumulators.
+    Coop {
+        /// Tile edge: 8 (lavapipe) or 16 (NVIDIA).
+        tile: u32,
+    },
+}
+
+impl std::fmt::Display for MlpPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MlpPath::Scalar => write!(f, "scalar f32"),
+            MlpPath::Coop { tile } => write!(
+                f,
+                "cooperative matrix {tile}x{tile}x{tile} f16*f16+f32 (weight gradient)"
+            ),
+        }
+    }
+}
+
+impl MlpMode {
+    /// The path this mode takes on `ctx`'s device for MLPs whose backward record is f16
+    /// (`f16_record`) or f32. `Coop` where it cannot run is an error naming the reason.
+    pub fn resolve(self, ctx: &Context, f16_record: bool) -> Result<MlpPath> {
+        let info = ctx.info();
+        let tile = info.coop_tile();
+        match (self, tile) {
+            (MlpMode::Scalar, _) => Ok(MlpPath::Scalar),
+            (MlpMode::Auto, Some(tile)) if !f16_record && !info.is_cpu() => {
+                Ok(MlpPath::Coop { tile })
+            }
+            (MlpMode::Auto, _) => Ok(MlpPath::Scalar),
+            (MlpMode::Coop, Some(_)) if f16_record => Err(GpuError::Usage(
+                "--mlp coop reads the MLPs' f32 backward records; precision f16 keeps f16 ones (use --precision f32 or --mlp scalar)".into(),
+            )),
+            (MlpMode::Coop, Some(tile)) => Ok(MlpPath::Coop { tile }),
+            (MlpMode::Coop, None) => {
+                let offered = if info.coop_matrix.is_empty() {
+                    "it does not offer VK_KHR_cooperative_matrix".to_string()
+                } else {
+                    let shapes: Vec<String> =
+                        info.coop_matrix.iter().map(|s| s.to_string()).collect();
+                    format!("it offers only {}", shapes.join(", "))
+                };
+                Err(GpuError::MissingFeature {
+                    device: info.name.clone(),
+                    what: format!(
+                        "cooperative matrices with 8x8x8 or 16x16x16 f16*f16+f32 subgroup tiles ({offered})"
+                    ),
+                    needed_by: "--mlp coop (use --mlp scalar or auto)".into(),
+                })
+            }
+        }
+    }
+}
+
 /// The MLP kernels for one configuration.
 #[derive(Debug)]
 pub struct Mlp {
@@ -119,7 +211,23 @@ pub struct Mlp {
     block: Option<Block>,
     /// The backward kernels with an f16 record, when enabled ([`Mlp::with_f16`]).
     f16: Option<F16>,
+    /// The cooperative-matrix weight gradient, when enabled ([`Mlp::set_path`]).
+    coop: Option<Coop>,
 }
+
+/// The weight gradient through cooperative matrices (`common/mlp_coop.wgsl`).
+#[derive(Debug)]
+struct Coop {
+    wgrad: Kernel,
+    tile: u32,
+}
+
+/// Workgroups of the cooperative-matrix weight gradient (each adds its sums with one atomic per
+/// parameter): at most this many, each at least one block of points.
+pub const COOP_WORKGROUPS: u64 = 64;
+
+/// Points per block of the cooperative-matrix weight gradient (its workgroup size).
+const COOP_POINTS: u64 = 32;
 
 /// The backward pass with the saved record in f16 (`field/mlp_f16.wgsl`).
 #[derive(Debug)]
@@ -175,6 +283,7 @@ impl Mlp {
         Ok(Mlp {
             block,
             f16: None,
+            coop: None,
             groups: WGRAD_GROUPS.max(ctx.info().subgroup_size),
             shape: Buffer::from_slice(ctx, "mlp shape", &[config.shape()])?,
             config,
@@ -201,6 +310,87 @@ impl Mlp {
             wgrad: Kernel::new(ctx, &k16::mlp_wgrad_f16::DESC)?,
         });
         Ok(self)
+    }
+
+    /// Selects the path of the weight-gradient pass (see [`MlpPath`]); the f16 record has
+    /// only the scalar one.
+    pub fn set_path(&mut self, ctx: &Context, path: MlpPath) -> Result<()> {
+        self.coop = match path {
+            MlpPath::Scalar => None,
+            MlpPath::Coop { .. } if self.f16.is_some() => {
+                return Err(GpuError::Usage(
+                    "the cooperative-matrix weight gradient reads the f32 record; this MLP keeps an f16 one".into(),
+                ))
+            }
+            MlpPath::Coop { tile: 8 } => Some(Coop {
+                wgrad: Kernel::new(ctx, &kc8::mlp_wgrad_coop::DESC)?,
+                tile: 8,
+            }),
+            MlpPath::Coop { tile: 16 } => Some(Coop {
+                wgrad: Kernel::new(ctx, &kc16::mlp_wgrad_coop::DESC)?,
+                tile: 16,
+            }),
+            MlpPath::Coop { tile } => {
+                return Err(GpuError::Usage(format!(
+                    "cooperative-matrix tiles of {tile}: the kernels exist for 8 and 16"
+                )))
+            }
+        };
+        Ok(())
+    }
+
+    /// The path the weight-gradient pass takes.
+    pub fn path(&self) -> MlpPath {
+        match &self.coop {
+            Some(c) => MlpPath::Coop { tile: c.tile },
+            None => MlpPath::Scalar,
+        }
+    }
+
+    /// Records the cooperative-matrix weight gradient over `n` f32 records in `saved`.
+    fn coop_wgrad<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        coop: &'a Coop,
+        saved: Binding<'a>,
+        d_weights: Binding<'a>,
+        n: u64,
+    ) -> Result<()> {
+        if n == 0 {
+            return Ok(());
+        }
+        let chunk = n
+            .div_ceil(COOP_WORKGROUPS)
+            .next_multiple_of(COOP_POINTS)
+            .max(COOP_POINTS);
+        let p = kc8::Params {
+            n: count_u32(n, "MLP points")?,
+            chunk: count_u32(chunk, "MLP points per workgroup")?,
+            saved_stride: self.config.saved_stride() as u32,
+            _pad: 0,
+        };
+        let threads = n.div_ceil(chunk) * COOP_POINTS;
+        if coop.tile == 8 {
+            let b = kc8::mlp_wgrad_coop::Bindings {
+                shape_buf: self.shape.binding(),
+                saved4: saved,
+                d_weights,
+            };
+            rec.dispatch(&coop.wgrad, b.into_array(), &p, threads)
+        } else {
+            let b = kc16::mlp_wgrad_coop::Bindings {
+                shape_buf: self.shape.binding(),
+                saved4: saved,
+                d_weights,
+            };
+            let p = kc16::Params {
+                n: p.n,
+                chunk: p.chunk,
+                saved_stride: p.saved_stride,
+                _pad: 0,
+            };
+            rec.dispatch(&coop.wgrad, b.into_array(), &p, threads)
+        }
     }
 
     /// True when the backward pass keeps its record in f16.
@@ -248,6 +438,9 @@ impl Mlp {
         }
         d_weights.check_fits(c.param_count() as u64, 4, "MLP weight gradients")?;
         saved.check_fits(n * c.saved_stride() as u64, 4, "MLP records")?;
+        if let Some(coop) = &self.coop {
+            return self.coop_wgrad(rec, coop, saved, d_weights, n);
+        }
         let mut p = self.params(n)?;
         p.saved_stride = c.saved_stride() as u32;
         let b = k::mlp_wgrad::Bindings {
@@ -383,6 +576,9 @@ impl Mlp {
                 saved,
             };
             rec.dispatch(&self.bwd, b.into_array(), &p, n)?;
+        }
+        if let Some(coop) = &self.coop {
+            return self.coop_wgrad(rec, coop, saved, d_weights, n);
         }
         let b = k::mlp_wgrad::Bindings {
             shape_buf,
