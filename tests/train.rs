@@ -1055,8 +1055,9 @@ fn coop_and_scalar_mlp_paths_train_alike() {
     };
     let views = training_views(&spec, &loaded, &model).unwrap();
     let data = TrainData::new(ctx, &views).unwrap();
-    let windows = |mlp: MlpMode| {
+    let windows = |mlp: MlpMode, fused_step: bool| {
         let cfg = TrainConfig {
+            fused_step,
             steps: 200,
             decay_steps: 200,
             rays: 256,
@@ -1067,34 +1068,44 @@ fn coop_and_scalar_mlp_paths_train_alike() {
         };
         let nerf = Nerf::new(ctx, model.clone(), &init_params(&model, 5), cfg.background).unwrap();
         let mut t = Trainer::new(ctx, nerf, cfg, 0, None).unwrap();
-        assert!(t.is_fused());
+        assert_eq!(t.is_fused(), fused_step);
         let path = t.mlp_path();
         let losses: Vec<f64> = (0..8)
             .map(|_| t.run_steps(ctx, &e.prims, &data, 25).unwrap().loss)
             .collect();
         (path, losses)
     };
-    let (p_scalar, scalar) = windows(MlpMode::Scalar);
-    let (p_coop, coop) = windows(MlpMode::Coop);
-    assert_eq!(p_scalar, MlpPath::Scalar);
-    assert_eq!(p_coop, MlpPath::Coop { tile });
-    let rel: Vec<f64> = scalar
-        .iter()
-        .zip(&coop)
-        .map(|(s, c)| (c - s).abs() / s.abs().max(1e-12))
-        .collect();
-    eprintln!("window losses (25 steps each): scalar {scalar:.5?}, coop {coop:.5?}, relative difference {:?}", rel.iter().map(|r| format!("{r:.2e}")).collect::<Vec<_>>());
-    for (k, r) in rel.iter().enumerate() {
-        // The first window differs only by f16 rounding of the gradients; later ones also by
-        // the trajectories drifting apart (measured up to 0.76% on lavapipe). Stated tolerance:
-        // 2% of the window loss.
-        assert!(
-            *r < 0.02,
-            "window {k}: scalar {} vs coop {}",
-            scalar[k],
-            coop[k]
+    // The fused step (coop weight gradient) and the standalone chain (coop forward, input
+    // gradient and weight gradient).
+    for fused in [true, false] {
+        let (p_scalar, scalar) = windows(MlpMode::Scalar, fused);
+        let (p_coop, coop) = windows(MlpMode::Coop, fused);
+        assert_eq!(p_scalar, MlpPath::Scalar);
+        assert_eq!(p_coop, MlpPath::Coop { tile });
+        let rel: Vec<f64> = scalar
+            .iter()
+            .zip(&coop)
+            .map(|(s, c)| (c - s).abs() / s.abs().max(1e-12))
+            .collect();
+        eprintln!(
+            "{} step, window losses (25 steps each): scalar {scalar:.5?}, coop {coop:.5?}, relative difference {:?}",
+            if fused { "fused" } else { "standalone" },
+            rel.iter().map(|r| format!("{r:.2e}")).collect::<Vec<_>>()
         );
+        // The first window differs only by f16 rounding; later ones also by the trajectories
+        // drifting apart. Stated tolerances, of the window loss: 2% for the fused step, whose
+        // forward pass stays f32 (measured up to 0.76% on lavapipe), and 5% for the standalone
+        // chain, whose forward pass runs on f16 tiles too (measured up to 2.6%).
+        let tol = if fused { 0.02 } else { 0.05 };
+        for (k, r) in rel.iter().enumerate() {
+            assert!(
+                *r < tol,
+                "fused {fused}, window {k}: scalar {} vs coop {}",
+                scalar[k],
+                coop[k]
+            );
+        }
+        assert!(coop[7] < 0.7 * coop[0] && scalar[7] < 0.7 * scalar[0]);
     }
-    assert!(coop[7] < 0.7 * coop[0] && scalar[7] < 0.7 * scalar[0]);
     assert_no_validation_messages(ctx);
 }

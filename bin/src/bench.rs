@@ -441,7 +441,7 @@ impl Bench<'_> {
                 Some(tile) => {
                     let mut m = Mlp::new(ctx, cfg.clone())?;
                     m.set_path(ctx, MlpPath::Coop { tile })?;
-                    variants.push(("uniform block, coop weight gradient", m));
+                    variants.push(("cooperative matrix", m));
                 }
                 None => self.notes.push(
                     "mlp: no cooperative-matrix path on this device (VK_KHR_cooperative_matrix with 8x8x8 or 16x16x16 f16*f16+f32 subgroup tiles)".into(),

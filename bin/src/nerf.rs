@@ -129,7 +129,8 @@ pub struct TrainArgs {
     #[arg(long, value_name = "KIND", value_enum)]
     step: Option<KernelPath>,
     /// MLP arithmetic: coop (cooperative matrices, VK_KHR_cooperative_matrix: f16 tiles with
-    /// f32 accumulation, for the MLP weight gradient; an error where the device lacks them),
+    /// f32 accumulation, for the MLP weight gradient, and with --step standalone also the MLP
+    /// forward and input gradient; an error where the device lacks them),
     /// scalar (per-thread f32), or auto (coop on a GPU that offers a usable tile shape, with
     /// precision f32; scalar on CPU devices, where lavapipe's emulated tiles measured slower)
     /// [default: auto]. May be given with --resume.

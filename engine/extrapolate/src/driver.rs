@@ -271,7 +271,7 @@ pub fn train_loop(
         Some(why) => rep.note(&format!("training step: standalone kernels ({why})")),
     }
     rep.note(&format!(
-        "MLP weight gradient: {} (--mlp {})",
+        "MLPs: {} (--mlp {}; the weight gradient, and with the standalone step the forward pass and input gradient too)",
         trainer.mlp_path(),
         cfg.train.mlp.name()
     ));

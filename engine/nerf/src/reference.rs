@@ -98,7 +98,25 @@ pub fn mlp_forward(cfg: &MlpConfig, weights: &[f32], inputs: &[f32]) -> Vec<f64>
 
 /// Per-layer activations (the input, then each layer's output) and pre-activations of one point.
 fn mlp_point(cfg: &MlpConfig, weights: &[f32], x: &[f32]) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
-    let mut acts = vec![x.iter().map(|&v| v as f64).collect::<Vec<f64>>()];
+    mlp_point_with(cfg, weights, x, false)
+}
+
+/// [`mlp_point`], with every layer's input rounded to f16 when `f16_inputs` (the
+/// cooperative-matrix kernels' activations).
+fn mlp_point_with(
+    cfg: &MlpConfig,
+    weights: &[f32],
+    x: &[f32],
+    f16_inputs: bool,
+) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+    let round = |v: f64| {
+        if f16_inputs {
+            round_f16(v as f32) as f64
+        } else {
+            v
+        }
+    };
+    let mut acts = vec![x.iter().map(|&v| round(v as f64)).collect::<Vec<f64>>()];
     let mut pres = Vec::new();
     for l in 0..cfg.layers() {
         let (ni, no) = (cfg.dims[l] as usize, cfg.dims[l + 1] as usize);
@@ -112,12 +130,45 @@ fn mlp_point(cfg: &MlpConfig, weights: &[f32], x: &[f32]) -> (Vec<Vec<f64>>, Vec
         let last = l + 1 == cfg.layers();
         acts.push(
             pre.iter()
-                .map(|&z| if last { z } else { z.max(0.0) })
+                .map(|&z| if last { z } else { round(z.max(0.0)) })
                 .collect(),
         );
         pres.push(pre);
     }
     (acts, pres)
+}
+
+/// The cooperative-matrix MLP (`common/mlp_coop.wgsl`): the weights (not the biases) and every
+/// layer's input are rounded to f16 as the kernels' tiles hold them, the rest is exact: returns
+/// the outputs `[n, out]`, the input gradient `[n, in]` and the weight gradient (flat layout),
+/// with the ReLU gates of those rounded pre-activations. (The kernels also round the scaled
+/// pre-activation gradients to f16: the error the tests bound.)
+pub fn mlp_coop_reference(
+    cfg: &MlpConfig,
+    weights: &[f32],
+    inputs: &[f32],
+    d_outputs: &[f32],
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let mut w16 = weights.to_vec();
+    for l in 0..cfg.layers() {
+        let (ni, no) = (cfg.dims[l] as usize, cfg.dims[l + 1] as usize);
+        let off = cfg.offset(l);
+        for v in &mut w16[off..off + no * ni] {
+            *v = round_f16(*v);
+        }
+    }
+    let n_in = cfg.dims[0] as usize;
+    let out = inputs
+        .chunks_exact(n_in)
+        .flat_map(|x| {
+            mlp_point_with(cfg, &w16, x, true)
+                .1
+                .pop()
+                .unwrap_or_default()
+        })
+        .collect();
+    let (d_in, d_w) = mlp_backward_record(cfg, &w16, inputs, d_outputs, false, true);
+    (out, d_in, d_w)
 }
 
 /// f32 -> f16 -> f32: NaN to 0, clamped to +-65504, rounded to the nearest f16 (ties to even),
@@ -164,7 +215,7 @@ pub fn mlp_weight_grad_f16(
     inputs: &[f32],
     d_outputs: &[f32],
 ) -> Vec<f64> {
-    mlp_backward_record(cfg, weights, inputs, d_outputs, true).1
+    mlp_backward_record(cfg, weights, inputs, d_outputs, true, false).1
 }
 
 /// MLP backward in f64: (dL/dinputs, dL/dweights) for `d_outputs`.
@@ -174,22 +225,24 @@ pub fn mlp_backward(
     inputs: &[f32],
     d_outputs: &[f32],
 ) -> (Vec<f64>, Vec<f64>) {
-    mlp_backward_record(cfg, weights, inputs, d_outputs, false)
+    mlp_backward_record(cfg, weights, inputs, d_outputs, false, false)
 }
 
-/// [`mlp_backward`], with the weight gradient's record through [`f16_segment`] when `f16`.
+/// [`mlp_backward`], with the weight gradient's record through [`f16_segment`] when `f16`, and
+/// every layer's input rounded to f16 when `f16_inputs` ([`mlp_point_with`]).
 fn mlp_backward_record(
     cfg: &MlpConfig,
     weights: &[f32],
     inputs: &[f32],
     d_outputs: &[f32],
     f16: bool,
+    f16_inputs: bool,
 ) -> (Vec<f64>, Vec<f64>) {
     let (n_in, n_out) = (cfg.dims[0] as usize, cfg.dims[cfg.layers()] as usize);
     let mut d_in = Vec::with_capacity(inputs.len());
     let mut d_w = vec![0f64; cfg.param_count()];
     for (x, dy) in inputs.chunks_exact(n_in).zip(d_outputs.chunks_exact(n_out)) {
-        let (acts, pres) = mlp_point(cfg, weights, x);
+        let (acts, pres) = mlp_point_with(cfg, weights, x, f16_inputs);
         let mut g: Vec<f64> = dy.iter().map(|&v| v as f64).collect();
         for l in (0..cfg.layers()).rev() {
             let (ni, no) = (cfg.dims[l] as usize, cfg.dims[l + 1] as usize);

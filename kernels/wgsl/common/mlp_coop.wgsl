@@ -1,4 +1,17 @@
-// The tiny MLPs' weight gradient through cooperative matrices (VK_KHR_cooperative_matrix), from
+// The tiny MLPs through cooperative matrices (VK_KHR_cooperative_matrix): forward, backward to
+// the inputs, and the weight gradient.
+//
+// Forward and backward (mlp_fwd_coop, mlp_bwd_data_coop), tiny-cuda-nn style: a workgroup owns
+// a block of COOP_POINTS points whose activations stay in workgroup memory, in f16, between
+// layers; each subgroup multiplies TILE x TILE tiles of them with tiles of the f16 weights
+// (mlp_weights_to_f16 writes them per layer as [outputs][inputs], both padded to TILE) with f32
+// accumulation; the threads then add the f32 biases and apply ReLU, one point each. The
+// backward pass recomputes the forward pass, writing the f32 records that the weight gradient
+// reads (each layer's input as the f16 value the tiles used, and its pre-activation gradient),
+// and multiplies the pre-activation gradients, scaled per block and layer as below, with the
+// weights' tiles. Master weights and biases stay f32.
+//
+// The weight gradient, from
 // the f32 records that field/mlp.wgsl's mlp_bwd_data and the fused training step write (per
 // point and layer: the layer's input, then the gradient of its pre-activation, each padded to
 // 4 floats; common/mlp_wgrad.wgsl describes the layout).
@@ -37,6 +50,18 @@ var<immediate> params: Params;
 @group(0) @binding(0) var<storage, read> shape_buf: array<MlpShape>;
 @group(0) @binding(1) var<storage, read> saved4: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read_write> d_weights: array<atomic<f32>>;
+// The weights in f16, per layer [round_tile(outputs)][round_tile(inputs)], zero padded.
+@group(0) @binding(3) var<storage, read> w16: array<f16>;
+// The f32 weights (common/mlp.wgsl's layout; the biases are read from here).
+@group(0) @binding(4) var<storage, read> weights: array<f32>;
+@group(0) @binding(5) var<storage, read> inputs: array<f32>;
+@group(0) @binding(6) var<storage, read_write> outputs: array<f32>;
+@group(0) @binding(7) var<storage, read> d_outputs: array<f32>;
+@group(0) @binding(8) var<storage, read_write> d_inputs: array<f32>;
+// The records again, written by mlp_bwd_data_coop.
+@group(0) @binding(9) var<storage, read_write> saved: array<f32>;
+// w16, written by mlp_weights_to_f16.
+@group(0) @binding(10) var<storage, read_write> w16_out: array<f16>;
 
 // Block inputs [point][column] (stride xw: the padded inputs, then the bias tile whose first
 // column is 1) and deltas [point][output] (stride nop), scaled, in f16.
@@ -176,5 +201,212 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
         }
         workgroupBarrier();
         at += pad4(ni) + pad4(no);
+    }
+}
+
+// Element offset of layer l's f16 weights in w16.
+fn coop_w_offset(s: MlpShape, l: u32) -> u32 {
+    var off = 0u;
+    for (var k = 0u; k < l; k += 1u) {
+        off += round_tile(mlp_dim(s, k + 1u)) * round_tile(mlp_dim(s, k));
+    }
+    return off;
+}
+
+// Float offset of layer l's segment in a point's record (its input, then its pre-activation
+// gradient, each padded to 4).
+fn coop_record_offset(s: MlpShape, l: u32) -> u32 {
+    var at = 0u;
+    for (var k = 0u; k < l; k += 1u) {
+        at += pad4(mlp_dim(s, k)) + pad4(mlp_dim(s, k + 1u));
+    }
+    return at;
+}
+
+// One thread per element of w16.
+@compute @workgroup_size(64)
+fn mlp_weights_to_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                      @builtin(local_invocation_index) lid: u32) {
+    let e = linear_group(wid, nwg) * 64u + lid;
+    let s = shape_buf[0];
+    var off = 0u;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let nip = round_tile(ni);
+        let size = round_tile(no) * nip;
+        if e >= off && e < off + size {
+            let o = (e - off) / nip;
+            let j = (e - off) % nip;
+            var v = 0.0;
+            if o < no && j < ni {
+                v = weights[mlp_offset(s, l) + o * ni + j];
+            }
+            w16_out[e] = f16(v);
+        }
+        off += size;
+    }
+}
+
+// The forward pass of the workgroup's block of points (this thread's point p, `live` when it
+// exists). On return coop_acc holds the last layer's outputs, row lid at lid * round_tile(n_out).
+// With `record`, each layer's input (the f16 values the tiles read) and pre-activation go to
+// the point's record in `saved`.
+fn coop_forward(s: MlpShape, p: u32, live: bool, lid: u32, sg: u32, n_sg: u32, record: bool) {
+    let n_in = mlp_dim(s, 0u);
+    let nip0 = round_tile(n_in);
+    for (var j = 0u; j < nip0; j += 1u) {
+        var v = 0.0;
+        if live && j < n_in {
+            v = inputs[p * n_in + j];
+        }
+        coop_x[lid * nip0 + j] = f16(v);
+    }
+    workgroupBarrier();
+    var at = p * params.saved_stride;
+    for (var l = 0u; l < s.layers; l += 1u) {
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let nip = round_tile(ni);
+        let nop = round_tile(no);
+        let woff = coop_w_offset(s, l);
+        if record && live {
+            for (var j = 0u; j < pad4(ni); j += 1u) {
+                saved[at + j] = select(0.0, f32(coop_x[lid * nip + j]), j < ni);
+            }
+        }
+        let cols = nop / TILE;
+        for (var t = sg; t < (COOP_POINTS / TILE) * cols; t += n_sg) {
+            let rt = t / cols;
+            let ot = t % cols;
+            var c = CoopC();
+            for (var k = 0u; k < nip; k += TILE) {
+                // A(r, k): activations, row-major with stride nip.
+                let a = coopLoadT<CoopA>(&coop_x[rt * TILE * nip + k], nip);
+                // B(k, o) = W[o][k]: column-major with stride nip.
+                let b = coopLoad<CoopB>(&w16[woff + ot * TILE * nip + k], nip);
+                c = coopMultiplyAdd(a, b, c);
+            }
+            // (A let: naga 30 does not emit an index computed inside coopStore's pointer.)
+            let at_c = rt * TILE * nop + ot * TILE;
+            coopStoreT(c, &coop_acc[at_c], nop);
+        }
+        workgroupBarrier();
+        // Biases and ReLU, each thread its own row (the next layer's activations overwrite
+        // rows that no tile reads any more).
+        let boff = mlp_offset(s, l) + no * ni;
+        let last = l + 1u == s.layers;
+        for (var o = 0u; o < nop; o += 1u) {
+            var z = 0.0;
+            if o < no {
+                z = coop_acc[lid * nop + o] + weights[boff + o];
+            }
+            coop_acc[lid * nop + o] = z;
+            if record && live && o < pad4(no) {
+                saved[at + pad4(ni) + o] = z;
+            }
+            if !last {
+                coop_x[lid * nop + o] = f16(max(z, 0.0));
+            }
+        }
+        workgroupBarrier();
+        at += pad4(ni) + pad4(no);
+    }
+}
+
+// outputs[n, out] = mlp(inputs[n, in]), one point per thread.
+@compute @workgroup_size(32)
+fn mlp_fwd_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                @builtin(local_invocation_index) lid: u32,
+                @builtin(subgroup_id) sg: u32, @builtin(num_subgroups) n_sg: u32) {
+    let s = shape_buf[0];
+    let p = linear_group(wid, nwg) * COOP_POINTS + lid;
+    let live = p < params.n;
+    coop_forward(s, p, live, lid, sg, n_sg, false);
+    let n_out = mlp_dim(s, s.layers);
+    let nop = round_tile(n_out);
+    if live {
+        for (var o = 0u; o < n_out; o += 1u) {
+            outputs[p * n_out + o] = coop_acc[lid * nop + o];
+        }
+    }
+}
+
+// The forward pass again, then d_outputs back to d_inputs, writing every layer's input and
+// pre-activation gradient into the point's record (field/mlp.wgsl's layout) for the weight
+// gradient.
+@compute @workgroup_size(32)
+fn mlp_bwd_data_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                     @builtin(local_invocation_index) lid: u32,
+                     @builtin(subgroup_id) sg: u32, @builtin(num_subgroups) n_sg: u32) {
+    let s = shape_buf[0];
+    let p = linear_group(wid, nwg) * COOP_POINTS + lid;
+    let live = p < params.n;
+    coop_forward(s, p, live, lid, sg, n_sg, true);
+    // g: the gradient of this point's layer output, f32.
+    var g: array<f32, 64>;
+    let n_out = mlp_dim(s, s.layers);
+    for (var o = 0u; o < n_out; o += 1u) {
+        g[o] = select(0.0, d_outputs[p * n_out + o], live);
+    }
+    for (var li = 0u; li < s.layers; li += 1u) {
+        let l = s.layers - 1u - li;
+        let ni = mlp_dim(s, l);
+        let no = mlp_dim(s, l + 1u);
+        let nip = round_tile(ni);
+        let nop = round_tile(no);
+        let woff = coop_w_offset(s, l);
+        let d_at = p * params.saved_stride + coop_record_offset(s, l) + pad4(ni);
+        if lid == 0u {
+            atomicStore(&coop_max[1], 0u);
+        }
+        workgroupBarrier();
+        // The pre-activation gradient: ReLU'(pre) on hidden layers, identity on the last.
+        var md = 0.0;
+        for (var o = 0u; o < no; o += 1u) {
+            var d = 0.0;
+            if live {
+                let pre = saved[d_at + o];
+                d = select(select(0.0, g[o], pre > 0.0), g[o], l + 1u == s.layers);
+                saved[d_at + o] = d;
+            }
+            g[o] = d;
+            md = max(md, abs(d));
+        }
+        atomicMax(&coop_max[1], bitcast<u32>(md));
+        workgroupBarrier();
+        let ed = coop_exponent(bitcast<f32>(atomicLoad(&coop_max[1])));
+        let sd = exp2(ed);
+        for (var o = 0u; o < nop; o += 1u) {
+            coop_d[lid * nop + o] = f16(select(0.0, g[o] * sd, o < no));
+        }
+        workgroupBarrier();
+        // g_in (points x inputs) = delta (points x outputs) W (outputs x inputs).
+        let cols = nip / TILE;
+        for (var t = sg; t < (COOP_POINTS / TILE) * cols; t += n_sg) {
+            let rt = t / cols;
+            let jt = t % cols;
+            var c = CoopC();
+            for (var k = 0u; k < nop; k += TILE) {
+                // A(r, o): scaled deltas, row-major with stride nop.
+                let a = coopLoadT<CoopA>(&coop_d[rt * TILE * nop + k], nop);
+                // B(o, j) = W[o][j]: row-major with stride nip.
+                let b = coopLoadT<CoopB>(&w16[woff + k * nip + jt * TILE], nip);
+                c = coopMultiplyAdd(a, b, c);
+            }
+            let at_c = rt * TILE * nip + jt * TILE;
+            coopStoreT(c, &coop_acc[at_c], nip);
+        }
+        workgroupBarrier();
+        let inv = exp2(-ed);
+        for (var j = 0u; j < ni; j += 1u) {
+            g[j] = coop_acc[lid * nip + j] * inv;
+        }
+    }
+    let n_in = mlp_dim(s, 0u);
+    if live {
+        for (var j = 0u; j < n_in; j += 1u) {
+            d_inputs[p * n_in + j] = g[j];
+        }
     }
 }

@@ -153,10 +153,9 @@ impl std::fmt::Display for MlpPath {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             MlpPath::Scalar => write!(f, "scalar f32"),
-            MlpPath::Coop { tile } => write!(
-                f,
-                "cooperative matrix {tile}x{tile}x{tile} f16*f16+f32 (weight gradient)"
-            ),
+            MlpPath::Coop { tile } => {
+                write!(f, "cooperative matrix {tile}x{tile}x{tile} f16*f16+f32")
+            }
         }
     }
 }
@@ -215,11 +214,105 @@ pub struct Mlp {
     coop: Option<Coop>,
 }
 
-/// The weight gradient through cooperative matrices (`common/mlp_coop.wgsl`).
+/// The MLP through cooperative matrices (`common/mlp_coop.wgsl`): forward, backward to the
+/// inputs, weight gradient, and the f16 copy of the weights they multiply with.
 #[derive(Debug)]
 struct Coop {
     wgrad: Kernel,
+    fwd: Kernel,
+    bwd: Kernel,
+    to_f16: Kernel,
+    /// The weights in f16, per layer `[outputs][inputs]` padded to the tile.
+    w16: Buffer<u16>,
+    /// Bound as the forward kernel's `saved`, which it never writes (its record flag is off).
+    no_record: Buffer<f32>,
     tile: u32,
+}
+
+impl Coop {
+    fn new(ctx: &Context, config: &MlpConfig, tile: u32) -> Result<Coop> {
+        let descs = match tile {
+            8 => [
+                &kc8::mlp_wgrad_coop::DESC,
+                &kc8::mlp_fwd_coop::DESC,
+                &kc8::mlp_bwd_data_coop::DESC,
+                &kc8::mlp_weights_to_f16::DESC,
+            ],
+            16 => [
+                &kc16::mlp_wgrad_coop::DESC,
+                &kc16::mlp_fwd_coop::DESC,
+                &kc16::mlp_bwd_data_coop::DESC,
+                &kc16::mlp_weights_to_f16::DESC,
+            ],
+            _ => {
+                return Err(GpuError::Usage(format!(
+                    "cooperative-matrix tiles of {tile}: the kernels exist for 8 and 16"
+                )))
+            }
+        };
+        let halves: usize = config
+            .dims
+            .windows(2)
+            .map(|w| (w[0].next_multiple_of(tile) * w[1].next_multiple_of(tile)) as usize)
+            .sum();
+        Ok(Coop {
+            wgrad: Kernel::new(ctx, descs[0])?,
+            fwd: Kernel::new(ctx, descs[1])?,
+            bwd: Kernel::new(ctx, descs[2])?,
+            to_f16: Kernel::new(ctx, descs[3])?,
+            w16: Buffer::new(ctx, "mlp f16 weights", halves.next_multiple_of(2))?,
+            no_record: Buffer::new(ctx, "mlp forward without records", 4)?,
+            tile,
+        })
+    }
+
+    fn params(&self, n: u64, chunk: u64, saved_stride: usize) -> Result<kc8::Params> {
+        Ok(kc8::Params {
+            n: count_u32(n, "MLP points")?,
+            chunk: count_u32(chunk, "MLP points per workgroup")?,
+            saved_stride: saved_stride as u32,
+            _pad: 0,
+        })
+    }
+
+    /// Records a kernel of the tile's file with the 8x8 file's parameters and binding order
+    /// (both files are the same source, `common/mlp_coop.wgsl`).
+    fn dispatch<'a, const N: usize>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        kernel: &'a Kernel,
+        bindings: [Binding<'a>; N],
+        p: &kc8::Params,
+        threads: u64,
+    ) -> Result<()> {
+        if self.tile == 8 {
+            rec.dispatch(kernel, bindings, p, threads)
+        } else {
+            let p = kc16::Params {
+                n: p.n,
+                chunk: p.chunk,
+                saved_stride: p.saved_stride,
+                _pad: 0,
+            };
+            rec.dispatch(kernel, bindings, &p, threads)
+        }
+    }
+
+    /// Records the f16 copy of `weights`.
+    fn load_weights<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        shape: Binding<'a>,
+        weights: Binding<'a>,
+    ) -> Result<()> {
+        let b = kc8::mlp_weights_to_f16::Bindings {
+            shape_buf: shape,
+            weights,
+            w16_out: self.w16.binding(),
+        };
+        let p = self.params(0, 0, 0)?;
+        self.dispatch(rec, &self.to_f16, b.into_array(), &p, self.w16.len() as u64)
+    }
 }
 
 /// Workgroups of the cooperative-matrix weight gradient (each adds its sums with one atomic per
@@ -312,8 +405,8 @@ impl Mlp {
         Ok(self)
     }
 
-    /// Selects the path of the weight-gradient pass (see [`MlpPath`]); the f16 record has
-    /// only the scalar one.
+    /// Selects the path of the forward pass, the backward pass and the weight gradient (see
+    /// [`MlpPath`]); the f16 record has only the scalar one.
     pub fn set_path(&mut self, ctx: &Context, path: MlpPath) -> Result<()> {
         self.coop = match path {
             MlpPath::Scalar => None,
@@ -322,24 +415,12 @@ impl Mlp {
                     "the cooperative-matrix weight gradient reads the f32 record; this MLP keeps an f16 one".into(),
                 ))
             }
-            MlpPath::Coop { tile: 8 } => Some(Coop {
-                wgrad: Kernel::new(ctx, &kc8::mlp_wgrad_coop::DESC)?,
-                tile: 8,
-            }),
-            MlpPath::Coop { tile: 16 } => Some(Coop {
-                wgrad: Kernel::new(ctx, &kc16::mlp_wgrad_coop::DESC)?,
-                tile: 16,
-            }),
-            MlpPath::Coop { tile } => {
-                return Err(GpuError::Usage(format!(
-                    "cooperative-matrix tiles of {tile}: the kernels exist for 8 and 16"
-                )))
-            }
+            MlpPath::Coop { tile } => Some(Coop::new(ctx, &self.config, tile)?),
         };
         Ok(())
     }
 
-    /// The path the weight-gradient pass takes.
+    /// The path the MLP takes.
     pub fn path(&self) -> MlpPath {
         match &self.coop {
             Some(c) => MlpPath::Coop { tile: c.tile },
@@ -363,34 +444,14 @@ impl Mlp {
             .div_ceil(COOP_WORKGROUPS)
             .next_multiple_of(COOP_POINTS)
             .max(COOP_POINTS);
-        let p = kc8::Params {
-            n: count_u32(n, "MLP points")?,
-            chunk: count_u32(chunk, "MLP points per workgroup")?,
-            saved_stride: self.config.saved_stride() as u32,
-            _pad: 0,
-        };
+        let p = coop.params(n, chunk, self.config.saved_stride())?;
         let threads = n.div_ceil(chunk) * COOP_POINTS;
-        if coop.tile == 8 {
-            let b = kc8::mlp_wgrad_coop::Bindings {
-                shape_buf: self.shape.binding(),
-                saved4: saved,
-                d_weights,
-            };
-            rec.dispatch(&coop.wgrad, b.into_array(), &p, threads)
-        } else {
-            let b = kc16::mlp_wgrad_coop::Bindings {
-                shape_buf: self.shape.binding(),
-                saved4: saved,
-                d_weights,
-            };
-            let p = kc16::Params {
-                n: p.n,
-                chunk: p.chunk,
-                saved_stride: p.saved_stride,
-                _pad: 0,
-            };
-            rec.dispatch(&coop.wgrad, b.into_array(), &p, threads)
-        }
+        let b = kc8::mlp_wgrad_coop::Bindings {
+            shape_buf: self.shape.binding(),
+            saved4: saved,
+            d_weights,
+        };
+        coop.dispatch(rec, &coop.wgrad, b.into_array(), &p, threads)
     }
 
     /// True when the backward pass keeps its record in f16.
@@ -490,6 +551,20 @@ impl Mlp {
         weights.check_fits(c.param_count() as u64, 4, "MLP weights")?;
         inputs.check_fits(n * c.dims[0] as u64, 4, "MLP inputs")?;
         outputs.check_fits(n * c.dims[c.layers()] as u64, 4, "MLP outputs")?;
+        if let Some(coop) = &self.coop {
+            coop.load_weights(rec, self.shape.binding(), weights)?;
+            let b = kc8::mlp_fwd_coop::Bindings {
+                shape_buf: self.shape.binding(),
+                w16: coop.w16.binding(),
+                weights,
+                inputs,
+                outputs,
+                saved: coop.no_record.binding(),
+            };
+            let p = coop.params(n, 0, c.saved_stride())?;
+            let threads = n.next_multiple_of(COOP_POINTS);
+            return coop.dispatch(rec, &coop.fwd, b.into_array(), &p, threads);
+        }
         if let Some(block) = &self.block {
             let block_weights = block.load(rec, weights, c)?;
             let b = k::mlp_fwd_block::Bindings {
@@ -537,6 +612,22 @@ impl Mlp {
         )?;
         let p = self.params(n)?;
         let shape_buf = self.shape.binding();
+        if let Some(coop) = &self.coop {
+            coop.load_weights(rec, shape_buf, weights)?;
+            let b = kc8::mlp_bwd_data_coop::Bindings {
+                shape_buf,
+                w16: coop.w16.binding(),
+                weights,
+                inputs,
+                d_outputs,
+                d_inputs,
+                saved,
+            };
+            let pc = coop.params(n, 0, c.saved_stride())?;
+            let threads = n.next_multiple_of(COOP_POINTS);
+            coop.dispatch(rec, &coop.bwd, b.into_array(), &pc, threads)?;
+            return self.coop_wgrad(rec, coop, saved, d_weights, n);
+        }
         if let (Some(f16), Some(block)) = (&self.f16, &self.block) {
             let b = k16::mlp_bwd_data_f16::Bindings {
                 shape_buf,
@@ -576,9 +667,6 @@ impl Mlp {
                 saved,
             };
             rec.dispatch(&self.bwd, b.into_array(), &p, n)?;
-        }
-        if let Some(coop) = &self.coop {
-            return self.coop_wgrad(rec, coop, saved, d_weights, n);
         }
         let b = k::mlp_wgrad::Bindings {
             shape_buf,
