@@ -113,7 +113,6 @@ fn collect(dir: &Path, files: &mut Vec<PathBuf>) {
     }
 }
 
-/// Resolves `//!include path` lines (relative to wgsl/), each file at most once.
 /// naga writes cooperative-matrix modules in the Vulkan memory model, where its storage-buffer
 /// atomics (device scope) need the VulkanMemoryModelDeviceScope capability, which naga 30 does
 /// not declare (spirv-val in the validation layer rejects the module). Declares it: one
@@ -143,6 +142,7 @@ fn add_device_scope_capability(words: &mut Vec<u32>) {
     }
 }
 
+/// Resolves `//!include path` lines (relative to wgsl/), each file at most once.
 fn preprocess(
     wgsl_dir: &Path,
     file: &Path,

@@ -352,8 +352,7 @@ fn every_kernel_builds_on_the_device() {
     let e = engine();
     let info = e.ctx.info();
     for kd in kernels::ALL {
-        let offered =
-            kd.coop_tile == 0 || info.coop_matrix.iter().any(|s| s.is_f16_f32(kd.coop_tile));
+        let offered = kd.coop_tile == 0 || info.offers_coop_tile(kd.coop_tile);
         match Kernel::new(&e.ctx, kd) {
             Ok(_) => assert!(
                 offered,

@@ -9,6 +9,23 @@ use extranerf_nerf::reference::field_forward;
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine, scratch_dir, shared_data};
 
+/// A scene of `dir` as the training tests load it: 3 few-shot views, no dense depth maps.
+fn scene_spec(
+    dir: std::path::PathBuf,
+    split: extranerf_nerf::data::split::SplitKind,
+    factor: u32,
+    sparse_depth: bool,
+) -> extranerf_nerf::run::SceneSpec {
+    extranerf_nerf::run::SceneSpec {
+        dir,
+        split,
+        fewshot_views: 3,
+        factor,
+        sparse_depth,
+        depth_dir: None,
+    }
+}
+
 /// A model small enough for finite differences: 2 levels (one dense, one hashed), 8-wide MLPs.
 fn tiny() -> ModelConfig {
     ModelConfig {
@@ -295,19 +312,17 @@ fn checkpoints_round_trip_and_bad_ones_are_refused() {
 #[test]
 fn training_on_fern_raises_psnr_and_renders() {
     use extranerf_nerf::renderer::Nerf;
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     use extranerf_nerf::trainer::{TrainConfig, Trainer};
     use extranerf_nerf::views::TrainData;
     let e = engine();
     let ctx = &e.ctx;
-    let spec = SceneSpec {
-        dir: shared_data().join("llff/fern"),
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 8,
-        sparse_depth: true,
-        depth_dir: None,
-    };
+    let spec = scene_spec(
+        shared_data().join("llff/fern"),
+        extranerf_nerf::data::split::SplitKind::Extrapolation,
+        8,
+        true,
+    );
     let loaded = spec.load().unwrap();
     let model = ModelConfig {
         levels: 8,
@@ -403,17 +418,18 @@ fn training_on_fern_raises_psnr_and_renders() {
 fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
     use extranerf_nerf::data::npy::{read_npy, write_npy_f64};
     use extranerf_nerf::demo::write_demo_scene;
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     let dir = scratch_dir("dense-depth");
     let scene = dir.join("scene");
     write_demo_scene(&scene, 32, 24).unwrap();
-    let mut spec = SceneSpec {
-        dir: scene.clone(),
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
+    let mut spec = extranerf_nerf::run::SceneSpec {
         depth_dir: Some(dir.join("depth")),
+        ..scene_spec(
+            scene.clone(),
+            extranerf_nerf::data::split::SplitKind::Extrapolation,
+            1,
+            false,
+        )
     };
     let loaded = spec.load().unwrap();
     let model = ModelConfig::default();
@@ -515,21 +531,19 @@ fn dense_depth_maps_become_ndc_targets_and_missing_ones_are_named() {
 fn all_black_and_all_white_images_train_without_nan() {
     use extranerf_nerf::demo::write_demo_scene;
     use extranerf_nerf::renderer::Nerf;
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     use extranerf_nerf::trainer::{TrainConfig, Trainer};
     use extranerf_nerf::views::TrainData;
     let e = engine();
     let ctx = &e.ctx;
     let dir = scratch_dir("black-white");
     write_demo_scene(&dir, 32, 24).unwrap();
-    let spec = SceneSpec {
-        dir: dir.clone(),
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-    };
+    let spec = scene_spec(
+        dir.clone(),
+        extranerf_nerf::data::split::SplitKind::Extrapolation,
+        1,
+        false,
+    );
     let loaded = spec.load().unwrap();
     let model = tiny();
     for value in [0.0f32, 1.0] {
@@ -577,21 +591,19 @@ fn all_black_and_all_white_images_train_without_nan() {
 fn fused_step_gradient_matches_the_standalone_chain() {
     use extranerf_nerf::demo::write_demo_scene;
     use extranerf_nerf::renderer::Nerf;
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer};
     use extranerf_nerf::views::{TrainData, ViewKind, ViewSampling};
     let e = engine();
     let ctx = &e.ctx;
     let dir = scratch_dir("fused-step");
     write_demo_scene(&dir, 32, 24).unwrap();
-    let spec = SceneSpec {
-        dir: dir.clone(),
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-    };
+    let spec = scene_spec(
+        dir.clone(),
+        extranerf_nerf::data::split::SplitKind::Extrapolation,
+        1,
+        false,
+    );
     let loaded = spec.load().unwrap();
     let world = ModelConfig {
         space: extranerf_nerf::model::Space::World,
@@ -940,7 +952,7 @@ fn turntable_scene_trains_to_its_exact_views_over_white() {
     use extranerf_nerf::metrics::psnr;
     use extranerf_nerf::render::march::MarchCuts;
     use extranerf_nerf::renderer::{March, Nerf};
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     use extranerf_nerf::trainer::{TrainConfig, Trainer};
     use extranerf_nerf::views::TrainData;
     let e = engine();
@@ -948,14 +960,7 @@ fn turntable_scene_trains_to_its_exact_views_over_white() {
     let dir = scratch_dir("turntable-train");
     let (w, h) = (32, 32);
     write_turntable_scene(&dir, w, h, 16, 3).unwrap();
-    let spec = SceneSpec {
-        dir: dir.clone(),
-        split: SplitKind::Given,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: true,
-        depth_dir: None,
-    };
+    let spec = scene_spec(dir.clone(), SplitKind::Given, 1, true);
     let loaded = spec.load().unwrap();
     let model = ModelConfig {
         levels: 8,
@@ -1019,16 +1024,17 @@ fn turntable_scene_trains_to_its_exact_views_over_white() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
-/// 200 fused steps on the demo scene with the MLP weight gradient through cooperative matrices
-/// (f16 tiles, f32 accumulation) and through the scalar f32 kernel, from the same start: the
-/// window losses agree within the stated f16 tolerance and both fall. Skips (saying so) where
+/// 200 steps on the demo scene with the MLPs through cooperative matrices (f16 tiles, f32
+/// accumulation) and through the scalar f32 kernels, from the same start, with the fused step
+/// (coop weight gradient) and the standalone chain (coop forward, input and weight gradients):
+/// the window losses agree within the stated f16 tolerances and both fall. Skips (saying so) where
 /// the device offers no usable cooperative matrix, unless `EXTRANERF_REQUIRE_COOP` is set.
 #[test]
 fn coop_and_scalar_mlp_paths_train_alike() {
     use extranerf_nerf::data::split::SplitKind;
     use extranerf_nerf::field::mlp::{MlpMode, MlpPath};
     use extranerf_nerf::renderer::Nerf;
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     use extranerf_nerf::trainer::{TrainConfig, Trainer};
     use extranerf_nerf::views::TrainData;
     let e = engine();
@@ -1038,14 +1044,7 @@ fn coop_and_scalar_mlp_paths_train_alike() {
     };
     let dir = scratch_dir("coop-train");
     extranerf_nerf::demo::write_demo_scene(&dir, 48, 36).unwrap();
-    let spec = SceneSpec {
-        dir: dir.clone(),
-        split: SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: true,
-        depth_dir: None,
-    };
+    let spec = scene_spec(dir.clone(), SplitKind::Extrapolation, 1, true);
     let loaded = spec.load().unwrap();
     let model = ModelConfig {
         levels: 8,

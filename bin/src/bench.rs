@@ -497,35 +497,30 @@ impl Bench<'_> {
                     bwd_ms / b
                 ));
             }
+            // A variant's weight gradient against the f32 one: (max, mean) |difference| over
+            // the largest f32 gradient, and that gradient.
+            let differs = |i: usize| {
+                let (g32, g) = (&grads[0], &grads[i]);
+                let scale = g32.iter().fold(0f32, |m, v| m.max(v.abs()));
+                let d = g32.iter().zip(g).map(|(a, b)| (a - b).abs());
+                let worst = d.clone().fold(0f32, f32::max);
+                let mean = d.sum::<f32>() / g32.len() as f32;
+                (worst / scale, mean / scale, scale)
+            };
             if let Some(i) = variants
                 .iter()
                 .position(|(_, m)| m.path() != MlpPath::Scalar)
             {
-                let (g32, gc) = (&grads[0], &grads[i]);
-                let scale = g32.iter().fold(0f32, |m, v| m.max(v.abs()));
-                let worst = g32
-                    .iter()
-                    .zip(gc)
-                    .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+                let (worst, _, scale) = differs(i);
                 self.notes.push(format!(
-                    "mlp {} weight gradient at {pts} points: vs f32 max |d| {:.2e} of the largest gradient ({scale:.3e})",
+                    "mlp {} weight gradient at {pts} points: vs f32 max |d| {worst:.2e} of the largest gradient ({scale:.3e})",
                     variants[i].1.path(),
-                    worst / scale
                 ));
             }
             if let Some(i) = variants.iter().position(|(_, m)| m.is_f16()) {
-                let (g32, g16) = (&grads[0], &grads[i]);
-                let scale = g32.iter().fold(0f32, |m, v| m.max(v.abs()));
-                let worst = g32
-                    .iter()
-                    .zip(g16)
-                    .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-                let mean =
-                    g32.iter().zip(g16).map(|(a, b)| (a - b).abs()).sum::<f32>() / g32.len() as f32;
+                let (worst, mean, scale) = differs(i);
                 self.notes.push(format!(
-                    "mlp f16 record at {pts} points: weight gradient vs f32 max |d| {:.2e}, mean |d| {:.2e} of the largest gradient ({scale:.3e}); record {} vs {} bytes per point",
-                    worst / scale,
-                    mean / scale,
+                    "mlp f16 record at {pts} points: weight gradient vs f32 max |d| {worst:.2e}, mean |d| {mean:.2e} of the largest gradient ({scale:.3e}); record {} vs {} bytes per point",
                     4 * variants[i].1.saved_words(),
                     4 * cfg.saved_stride()
                 ));

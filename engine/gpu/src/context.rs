@@ -184,9 +184,12 @@ impl DeviceInfo {
     /// The largest square f16 x f16 + f32 subgroup tile (8 or 16) that the engine's
     /// cooperative-matrix kernels can use on this device, if any.
     pub fn coop_tile(&self) -> Option<u32> {
-        [16, 8]
-            .into_iter()
-            .find(|&t| self.coop_matrix.iter().any(|s| s.is_f16_f32(t)))
+        [16, 8].into_iter().find(|&t| self.offers_coop_tile(t))
+    }
+
+    /// True when the device offers the square f16 x f16 + f32 subgroup tile of edge `tile`.
+    pub fn offers_coop_tile(&self, tile: u32) -> bool {
+        self.coop_matrix.iter().any(|s| s.is_f16_f32(tile))
     }
 }
 
@@ -1124,38 +1127,34 @@ fn probe_device(
     let mut fatomic = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
     let mut fcoop = vk::PhysicalDeviceCooperativeMatrixFeaturesKHR::default();
     // SAFETY: valid physical device; the chained structs live across the calls.
-    let (exts, mem, families) = unsafe {
+    // An extension's feature struct is chained only when the device has the extension, so it
+    // stays all-false (its Default) otherwise: its flags alone say what is usable.
+    let (mem, families) = unsafe {
         instance.get_physical_device_properties2(pd, &mut props2);
         let exts = instance
             .enumerate_device_extension_properties(pd)
             .during("vkEnumerateDeviceExtensionProperties")?;
-        let has_atomic = exts.iter().any(|e| {
-            c_name(&e.extension_name) == ash::ext::shader_atomic_float::NAME.to_string_lossy()
-        });
+        let has = |n: &CStr| {
+            exts.iter()
+                .any(|e| c_name(&e.extension_name) == n.to_string_lossy())
+        };
         let mut f2 = vk::PhysicalDeviceFeatures2::default()
             .push_next(&mut f11)
             .push_next(&mut f12);
-        if has_atomic {
+        if has(ash::ext::shader_atomic_float::NAME) {
             f2 = f2.push_next(&mut fatomic);
         }
-        let has_coop = exts.iter().any(|e| {
-            c_name(&e.extension_name) == ash::khr::cooperative_matrix::NAME.to_string_lossy()
-        });
-        if has_coop {
+        if has(ash::khr::cooperative_matrix::NAME) {
             f2 = f2.push_next(&mut fcoop);
         }
         instance.get_physical_device_features2(pd, &mut f2);
         (
-            exts,
             instance.get_physical_device_memory_properties(pd),
             instance.get_physical_device_queue_family_properties(pd),
         )
     };
     let p = props2.properties;
     let name = c_name(&p.device_name);
-    let has_atomic_ext = exts.iter().any(|e| {
-        c_name(&e.extension_name) == ash::ext::shader_atomic_float::NAME.to_string_lossy()
-    });
     if f12.timeline_semaphore == vk::FALSE {
         return Err(GpuError::MissingFeature {
             device: name,
@@ -1178,15 +1177,12 @@ fn probe_device(
             device_local: h.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL),
         })
         .collect();
-    let atomic_float = has_atomic_ext && fatomic.shader_buffer_float32_atomic_add == vk::TRUE;
+    let atomic_float = fatomic.shader_buffer_float32_atomic_add == vk::TRUE;
     // naga writes cooperative-matrix kernels in the Vulkan memory model, with device-scope
     // atomics.
     let coop_matrix = fcoop.cooperative_matrix == vk::TRUE
         && f12.vulkan_memory_model == vk::TRUE
-        && f12.vulkan_memory_model_device_scope == vk::TRUE
-        && exts.iter().any(|e| {
-            c_name(&e.extension_name) == ash::khr::cooperative_matrix::NAME.to_string_lossy()
-        });
+        && f12.vulkan_memory_model_device_scope == vk::TRUE;
     let coop_shapes = if coop_matrix {
         let coop = ash::khr::cooperative_matrix::Instance::new(entry, instance);
         // SAFETY: valid physical device that offers VK_KHR_cooperative_matrix; the function

@@ -44,12 +44,7 @@ impl Kernel {
                 "shaderFloat16 and storageBuffer16BitAccess (the f16 path)",
             ));
         }
-        if desc.coop_tile != 0
-            && !info
-                .coop_matrix
-                .iter()
-                .any(|s| s.is_f16_f32(desc.coop_tile))
-        {
+        if desc.coop_tile != 0 && !info.offers_coop_tile(desc.coop_tile) {
             return Err(missing(match desc.coop_tile {
                 8 => "VK_KHR_cooperative_matrix with 8x8x8 f16*f16+f32 subgroup tiles",
                 _ => "VK_KHR_cooperative_matrix with 16x16x16 f16*f16+f32 subgroup tiles",

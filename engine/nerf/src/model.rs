@@ -427,8 +427,8 @@ impl Field {
         &self.grid
     }
 
-    /// Resolves `mode` on `ctx`'s device and sets both MLPs' weight-gradient path; returns the
-    /// path taken.
+    /// Resolves `mode` on `ctx`'s device and sets both MLPs' path ([`Mlp::set_path`]); returns
+    /// the path taken.
     pub fn set_mlp(&mut self, ctx: &Context, mode: MlpMode) -> Result<MlpPath> {
         let path = mode.resolve(ctx, self.density.is_f16())?;
         self.density.set_path(ctx, path)?;

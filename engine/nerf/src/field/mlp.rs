@@ -135,32 +135,7 @@ impl MlpMode {
             MlpMode::Scalar => "scalar",
         }
     }
-}
 
-/// The MLP path that runs, once [`MlpMode`] is resolved on a device.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MlpPath {
-    /// Per-thread f32 arithmetic.
-    Scalar,
-    /// Cooperative matrices with `tile` x `tile` x `tile` f16 tiles and f32 accumulators.
-    Coop {
-        /// Tile edge: 8 (lavapipe) or 16 (NVIDIA).
-        tile: u32,
-    },
-}
-
-impl std::fmt::Display for MlpPath {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            MlpPath::Scalar => write!(f, "scalar f32"),
-            MlpPath::Coop { tile } => {
-                write!(f, "cooperative matrix {tile}x{tile}x{tile} f16*f16+f32")
-            }
-        }
-    }
-}
-
-impl MlpMode {
     /// The path this mode takes on `ctx`'s device for MLPs whose backward record is f16
     /// (`f16_record`) or f32. `Coop` where it cannot run is an error naming the reason.
     pub fn resolve(self, ctx: &Context, f16_record: bool) -> Result<MlpPath> {
@@ -191,6 +166,29 @@ impl MlpMode {
                     ),
                     needed_by: "--mlp coop (use --mlp scalar or auto)".into(),
                 })
+            }
+        }
+    }
+}
+
+/// The MLP path that runs, once [`MlpMode`] is resolved on a device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MlpPath {
+    /// Per-thread f32 arithmetic.
+    Scalar,
+    /// Cooperative matrices with `tile` x `tile` x `tile` f16 tiles and f32 accumulators.
+    Coop {
+        /// Tile edge: 8 (lavapipe) or 16 (NVIDIA).
+        tile: u32,
+    },
+}
+
+impl std::fmt::Display for MlpPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MlpPath::Scalar => write!(f, "scalar f32"),
+            MlpPath::Coop { tile } => {
+                write!(f, "cooperative matrix {tile}x{tile}x{tile} f16*f16+f32")
             }
         }
     }
