@@ -109,6 +109,10 @@ fn max_diff(a: &Image, b: &Image) -> (f32, f32) {
     )
 }
 
+/// Tolerance of the f32 fused march against the f64 reference (colour, opacity, and depth
+/// relative to 1 + |depth|).
+const F32_TOL: f64 = 2e-4;
+
 fn check_against_reference(
     cfg: &ModelConfig,
     p: &[f32],
@@ -116,25 +120,34 @@ fn check_against_reference(
     samples: u32,
     got: &Image,
     occupied: &dyn Fn([f32; 3]) -> bool,
-) {
+    tol: f64,
+) -> f64 {
+    let mut worst = 0f64;
     let mut lit = 0;
     for px in 0..cam.width * cam.height {
         let want = march_pixel(cfg, p, cam, px, samples, BACKGROUND, occupied);
         let i = px as usize;
         for c in 0..3 {
             let g = got.rgb[3 * i + c] as f64;
+            worst = worst.max((g - want[c]).abs());
             assert!(
-                (g - want[c]).abs() < 2e-4,
+                (g - want[c]).abs() < tol,
                 "pixel {px} channel {c}: fused {g} vs reference {}",
                 want[c]
             );
         }
+        let o = (got.opacity[i] as f64 - want[3]).abs();
+        worst = worst.max(o);
         assert!(
-            (got.opacity[i] as f64 - want[3]).abs() < 2e-4,
-            "opacity {px}"
+            o < tol,
+            "opacity {px}: fused {} vs reference {}",
+            got.opacity[i],
+            want[3]
         );
+        let d = (got.depth[i] as f64 - want[4]).abs() / (1.0 + want[4].abs());
+        worst = worst.max(d);
         assert!(
-            (got.depth[i] as f64 - want[4]).abs() < 2e-4 * (1.0 + want[4].abs()),
+            d < tol,
             "depth {px}: fused {} vs reference {}",
             got.depth[i],
             want[4]
@@ -147,6 +160,7 @@ fn check_against_reference(
         "only {lit} partly transparent pixels; opacity {:?}",
         got.opacity
     );
+    worst
 }
 
 #[test]
@@ -162,13 +176,93 @@ fn fused_march_matches_the_reference_and_the_standalone_chain() {
         let nerf = Nerf::new(ctx, cfg.clone(), &p, BACKGROUND).unwrap();
         let cam = camera(eye);
         let fused = render(&nerf, &cam, samples, March::Fused(MarchCuts::EXACT));
-        check_against_reference(&cfg, &p, &cam, samples, &fused, &|_| true);
+        check_against_reference(&cfg, &p, &cam, samples, &fused, &|_| true, F32_TOL);
         let chain = render(&nerf, &cam, samples, March::Standalone);
         let (c, d) = max_diff(&fused, &chain);
         assert!(
             c < 2e-5 && d < 2e-5,
             "{space}: fused and standalone differ by {c} (colour) and {d} (depth)"
         );
+    }
+    assert_no_validation_messages(ctx);
+}
+
+/// Tolerance of the fused march with cooperative-matrix MLPs (f16 activations and weights, f32
+/// accumulation and biases) against the f64 reference and the f32 march, as F32_TOL.
+const COOP_TOL: f64 = 2e-3;
+
+/// The fused march with both MLPs through cooperative matrices against the f64 reference and
+/// the scalar march: NDC and world space (24 and 37 samples; the colour MLP's 24 inputs are a
+/// partial 16-wide tile), exact and with the cuts (each within its bound of the exact render),
+/// and skipping the cells of an occupancy grid as the scalar march does. Skips (saying so)
+/// where the device offers no usable cooperative matrix, unless `EXTRANERF_REQUIRE_COOP` is set.
+#[test]
+fn coop_march_matches_the_reference_and_the_scalar_march() {
+    use extranerf_nerf::field::mlp::{MlpMode, MlpPath};
+    let e = engine();
+    let ctx = &e.ctx;
+    let Some(tile) = extranerf_tests::coop_tile_or_skip(ctx) else {
+        return;
+    };
+    for (space, eye, bias, samples) in [
+        ("ndc", [0.0, 0.0, 0.0], 0.0, 24),
+        ("world", [0.3, 0.2, 3.0], -4.0, 37),
+    ] {
+        let cfg = model(space);
+        let p = params(&cfg, 11, bias);
+        let mut nerf = Nerf::new(ctx, cfg.clone(), &p, BACKGROUND).unwrap();
+        let cam = camera(eye);
+        let scalar = render(&nerf, &cam, samples, March::Fused(MarchCuts::EXACT));
+        assert_eq!(
+            nerf.set_mlp(ctx, MlpMode::Coop).unwrap(),
+            MlpPath::Coop { tile }
+        );
+        assert_eq!(nerf.march_mlp_path(), MlpPath::Coop { tile });
+        let coop = render(&nerf, &cam, samples, March::Fused(MarchCuts::EXACT));
+        let worst = check_against_reference(&cfg, &p, &cam, samples, &coop, &|_| true, COOP_TOL);
+        let (c, d) = max_diff(&coop, &scalar);
+        // Depth within COOP_TOL of 1 + the largest depth.
+        let depth_tol = COOP_TOL * (1.0 + scalar.depth.iter().fold(0f32, |m, v| m.max(*v)) as f64);
+        eprintln!("{space}: coop march vs reference {worst:.1e}, vs scalar march {c:.1e} (colour) {d:.1e} (depth)");
+        assert!((c as f64) < COOP_TOL && (d as f64) < depth_tol);
+        for cuts in [
+            MarchCuts::FAST,
+            MarchCuts {
+                min_weight: 1e-2,
+                min_transmittance: 0.05,
+            },
+        ] {
+            let cut = render(&nerf, &cam, samples, March::Fused(cuts));
+            let bound =
+                samples as f64 * cuts.min_weight as f64 + cuts.min_transmittance as f64 + COOP_TOL;
+            let (c, _) = max_diff(&scalar, &cut);
+            assert!(
+                (c as f64) <= bound,
+                "{space} {cuts:?}: error {c} above {bound}"
+            );
+        }
+        if space == "world" {
+            // The same grid for both paths (the occupancy update stays scalar).
+            let occ = OccupancyConfig {
+                res: 8,
+                cascades: 3,
+                decay: 0.95,
+                threshold: 0.5,
+            };
+            nerf.build_occupancy(ctx, &e.prims, Some(occ), 2).unwrap();
+            let coop_skip = render(&nerf, &cam, samples, March::Fused(MarchCuts::EXACT));
+            nerf.set_mlp(ctx, MlpMode::Scalar).unwrap();
+            assert_eq!(nerf.march_mlp_path(), MlpPath::Scalar);
+            let scalar_skip = render(&nerf, &cam, samples, March::Fused(MarchCuts::EXACT));
+            let (c, d) = max_diff(&coop_skip, &scalar_skip);
+            let (moved, _) = max_diff(&scalar_skip, &scalar);
+            eprintln!("world with a grid: coop vs scalar {c:.1e} (colour) {d:.1e} (depth); skipping moved {moved:.1e}");
+            assert!(
+                moved > 1e-3,
+                "skipping changed nothing: the case shows nothing"
+            );
+            assert!((c as f64) < COOP_TOL && (d as f64) < depth_tol);
+        }
     }
     assert_no_validation_messages(ctx);
 }
@@ -317,8 +411,10 @@ fn fused_occupancy_matches_the_reference_and_renders_skip_only_empty_cells() {
 
 #[test]
 fn fused_march_extremes_stay_finite() {
+    use extranerf_nerf::field::mlp::MlpMode;
     let e = engine();
     let ctx = &e.ctx;
+    let coop = extranerf_tests::coop_tile_or_skip(ctx).is_some();
     for space in ["ndc", "world"] {
         let cfg = model(space);
         for (scale, bias) in [(1e3f32, 40.0), (0.0, -80.0), (1.0, 1e6)] {
@@ -343,13 +439,38 @@ fn fused_march_extremes_stay_finite() {
             let mut cam = camera([0.0, 0.0, 1e6]);
             cam.c2w = DMat4::from_translation(DVec3::new(0.0, 0.0, 1e6));
             cam.cx = 5.5;
-            for c in [camera([0.0, 0.0, 0.5]), cam] {
-                for cuts in [MarchCuts::EXACT, MarchCuts::FAST] {
-                    let img = render(&nerf, &c, 16, March::Fused(cuts));
-                    for v in img.rgb.iter().chain(&img.opacity).chain(&img.depth) {
-                        assert!(v.is_finite(), "{space} scale {scale} bias {bias}: {v}");
+            // Both MLP paths where the device offers cooperative matrices, whose f16
+            // activations saturate rather than overflow: they render what the scalar path
+            // renders (a density logit of 1e6 overflowed f16 and gave grey, not white).
+            let mut modes = vec![MlpMode::Scalar];
+            if coop {
+                modes.push(MlpMode::Coop);
+            }
+            let mut scalar = Vec::new();
+            for mode in modes {
+                nerf.set_mlp(ctx, mode).unwrap();
+                let mut k = 0;
+                for c in [camera([0.0, 0.0, 0.5]), cam.clone()] {
+                    for cuts in [MarchCuts::EXACT, MarchCuts::FAST] {
+                        let img = render(&nerf, &c, 16, March::Fused(cuts));
+                        for v in img.rgb.iter().chain(&img.opacity).chain(&img.depth) {
+                            assert!(
+                                v.is_finite(),
+                                "{space} scale {scale} bias {bias} {mode:?}: {v}"
+                            );
+                        }
+                        assert!(img.opacity.iter().all(|&o| (0.0..=1.0 + 1e-5).contains(&o)));
+                        if mode == MlpMode::Scalar {
+                            scalar.push(img);
+                        } else {
+                            let (c, _) = max_diff(&img, &scalar[k]);
+                            assert!(
+                                c < 0.05,
+                                "{space} scale {scale} bias {bias}: coop differs by {c}"
+                            );
+                        }
+                        k += 1;
                     }
-                    assert!(img.opacity.iter().all(|&o| (0.0..=1.0 + 1e-5).contains(&o)));
                 }
             }
         }

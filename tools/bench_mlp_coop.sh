@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
-# The MLP weight gradient through cooperative matrices against the scalar kernel, on the device
-# this machine selects: device and driver (`extranerf info`, which lists the cooperative-matrix
-# shapes), `bench kernels --only mlp` (both paths, and the coop gradient's difference from f32),
-# and `bench train --mlp coop,scalar` on fern 8x with the paper's MLPs (fused and standalone
-# steps) in ROUNDS alternating rounds. Writes results/mlp_coop_<NAME>/.
+# The MLPs through cooperative matrices against the scalar kernels, on the device this machine
+# selects: device and driver (`extranerf info`, which lists the cooperative-matrix shapes),
+# `bench kernels --only mlp` (both paths, and the coop gradient's difference from f32),
+# `bench train --mlp coop,scalar` on fern 8x with the paper's MLPs (fused and standalone
+# steps) in ROUNDS alternating rounds, and `bench render` (the fused march with either path,
+# exact, with cuts and occupancy grids) of view 0 of a 300-step fern run.
+# Writes results/mlp_coop_<NAME>/.
 #
 # On lavapipe select the Mesa 26 driver first: eval "$(tools/lavapipe_coop.sh)".
-# Usage: tools/bench_mlp_coop.sh [NAME] [ROUNDS]   (EXTRANERF_BIN: a built binary to use)
+# Usage: tools/bench_mlp_coop.sh [NAME] [ROUNDS]   (EXTRANERF_BIN: a built binary to use;
+# EXTRANERF_DATA: the data folder, default ../shared/data)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 name="${1:-lavapipe}"
@@ -34,3 +37,8 @@ for r in $(seq 1 "$rounds"); do
     done
 done
 grep -h "samples/s;" "$out/train.txt" | sed 's/^/  /' | tee "$out/summary.txt"
+data="${EXTRANERF_DATA:-../shared/data}"
+"$bin" train --scene "$data/llff/fern" --steps 300 --mlp scalar --out "$out/fern_run" \
+    >"$out/fern_run.txt" 2>&1
+"$bin" bench render "$out/fern_run" --views 0 --json "$out/render.json" | tee "$out/render.txt"
+rm -rf "$out/fern_run"

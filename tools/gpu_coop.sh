@@ -7,6 +7,8 @@
 #   2. `bench kernels` (all primitives and the MLP variants)
 #   3. `bench train --mlp coop,scalar` (fused and standalone steps, 2^17 table)
 #   4. `train` on fern 4x, 5000 steps, --mlp auto, then `eval` on the held-out views
+#   5. `bench render` of that run's views 0 and 1 (the fused march with scalar and
+#      coop MLPs, exact, with cuts and occupancy grids)
 # Usage: tools/gpu_coop.sh [NAME]   (EXTRANERF_BIN: a built binary; else a release build,
 # several minutes from cold on 16 cores). Each step has its own time limit, so one that hangs
 # does not eat the window; a failed step is recorded and the next one runs.
@@ -34,5 +36,6 @@ step bench_train 180 "$bin" bench train --log2-table 17 --steps 20 --mlp coop,sc
 data="${EXTRANERF_DATA:-../shared/data}"
 step train_fern 300 "$bin" train --scene "$data/llff/fern" --factor 4 --steps 5000 --mlp auto --out "$out/fern_run"
 step eval_fern 120 "$bin" eval "$out/fern_run" --out "$out/fern_eval.json"
+step bench_render 90 "$bin" bench render "$out/fern_run" --views 0,1 --json "$out/bench_render.json"
 rm -f "$out/fern_run/"*.safetensors
 echo "results in $out"

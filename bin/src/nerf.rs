@@ -129,8 +129,9 @@ pub struct TrainArgs {
     #[arg(long, value_name = "KIND", value_enum)]
     step: Option<KernelPath>,
     /// MLP arithmetic: coop (cooperative matrices, VK_KHR_cooperative_matrix: f16 tiles with
-    /// f32 accumulation, for the MLP weight gradient, and with --step standalone also the MLP
-    /// forward and input gradient; an error where the device lacks them),
+    /// f32 accumulation, for the MLPs' forward pass, input gradient and weight gradient in the
+    /// fused step, the standalone chain and the fused march; an error where the device lacks
+    /// them),
     /// scalar (per-thread f32), or auto (coop on a GPU that offers a usable tile shape, with
     /// precision f32; scalar on CPU devices, where lavapipe's emulated tiles measured slower)
     /// [default: auto]. May be given with --resume.
@@ -428,6 +429,12 @@ pub struct MarchArgs {
     /// uses 1e-4). Off by default for the same reason as --min-weight.
     #[arg(long, default_value_t = MarchArgs::default().min_transmittance)]
     pub min_transmittance: f32,
+    /// MLP arithmetic: coop (cooperative matrices: f16 tiles with f32 accumulation; an error
+    /// where the device lacks them), scalar (per-thread f32), or auto (coop on a GPU that
+    /// offers a usable tile shape; scalar on CPU devices, where lavapipe's emulated tiles
+    /// measured slower).
+    #[arg(long, value_name = "KIND", value_enum, default_value_t = MarchArgs::default().mlp)]
+    pub mlp: MlpMode,
 }
 
 impl Default for MarchArgs {
@@ -439,6 +446,7 @@ impl Default for MarchArgs {
             occupancy_threshold: 0.01,
             min_weight: 0.0,
             min_transmittance: 0.0,
+            mlp: MlpMode::Auto,
         }
     }
 }
@@ -504,6 +512,7 @@ impl MarchArgs {
             "occupancy_threshold": self.occupancy_threshold,
             "min_weight": self.min_weight,
             "min_transmittance": self.min_transmittance,
+            "mlp": self.mlp.name(),
         })
     }
 }
@@ -569,6 +578,8 @@ fn render_views(
         .map(|i| (i, role(i)))
         .collect();
     let mut nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
+    let mlp_path = nerf.set_mlp(ctx, march.mlp)?;
+    eprintln!("MLPs: {mlp_path}");
     let samples = samples.unwrap_or(cfg.train.samples);
     let how = march.march()?;
     if let Some(occ) = march.occupancy(&cfg.model)? {
@@ -870,7 +881,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             Some(why) if fused => format!("standalone kernels ({why})"),
             Some(_) => "standalone kernels".to_string(),
         };
-        let label = format!("{label}, MLP weight gradient {}", t.mlp_path());
+        let label = format!("{label}, MLPs {}", t.mlp_path());
         let warm = Instant::now();
         t.run_steps(ctx, &prims, &data, 2)?;
         let warm_s = warm.elapsed().as_secs_f64();
@@ -1179,11 +1190,42 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
         ("fused, cuts + occupancy 64^3", fused(64, 1e-4, 1e-4)),
         ("fused, cuts + occupancy 128^3", fused(128, 1e-4, 1e-4)),
     ];
+    // Every path with scalar MLPs, then the fused ones again through cooperative matrices
+    // where the device offers them.
+    let scalar = |m: MarchArgs| MarchArgs {
+        mlp: MlpMode::Scalar,
+        ..m
+    };
+    let mut configs: Vec<(String, MarchArgs)> = configs
+        .into_iter()
+        .map(|(name, m)| (name.to_string(), scalar(m)))
+        .collect();
+    match ctx.info().coop_tile() {
+        Some(t) => {
+            let coop: Vec<(String, MarchArgs)> = configs
+                .iter()
+                .filter(|(_, m)| m.march == KernelPath::Fused)
+                .map(|(name, m)| {
+                    (
+                        format!("{name}, coop {t}x{t}"),
+                        MarchArgs {
+                            mlp: MlpMode::Coop,
+                            ..m.clone()
+                        },
+                    )
+                })
+                .collect();
+            configs.extend(coop);
+        }
+        None => println!(
+            "no cooperative-matrix MLPs on this device (VK_KHR_cooperative_matrix with 8x8x8 or 16x16x16 f16*f16+f32 subgroup tiles)"
+        ),
+    }
     let mut exact: Vec<Vec<f32>> = Vec::new();
     let mut rows = Vec::new();
     println!("device: {}", ctx.info().name);
     println!(
-        "{:<40} {:>9} {:>11} {:>11} {:>8} {:>10} {:>10}",
+        "{:<50} {:>9} {:>11} {:>11} {:>8} {:>10} {:>10}",
         "render path", "s/view", "rays/s", "samples/s", "PSNR", "max |d|", "mean |d|"
     );
     // Kernels compile when each path's pipelines are created, before the timed renders.
@@ -1216,7 +1258,7 @@ pub fn bench_render(ctx: &Context, a: &BenchRenderArgs) -> anyhow::Result<()> {
         let rays_s = rays as f64 / secs;
         let mean_d = if count > 0 { sum_d / count as f64 } else { 0.0 };
         println!(
-            "{:<40} {:>9.3} {:>11.3e} {:>11.3e} {:>8.3} {:>10.2e} {:>10.2e}",
+            "{:<50} {:>9.3} {:>11.3e} {:>11.3e} {:>8.3} {:>10.2e} {:>10.2e}",
             name,
             secs / views,
             rays_s,

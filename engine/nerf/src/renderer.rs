@@ -8,6 +8,7 @@ use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recor
 use extranerf_prims::Prims;
 
 use crate::data::Camera;
+use crate::field::mlp::{MlpMode, MlpPath};
 use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler, Space};
 use crate::render::composite::{Background, Compositor, Samples};
 use crate::render::march::{MarchCuts, Marcher};
@@ -227,6 +228,19 @@ impl Nerf {
             marcher: Marcher::new(ctx)?,
             occupancy: None,
         })
+    }
+
+    /// Resolves `mode` on `ctx`'s device and sets the MLP path of the field (the standalone
+    /// kernels) and of the fused march; returns the path taken.
+    pub fn set_mlp(&mut self, ctx: &Context, mode: MlpMode) -> Result<MlpPath> {
+        let path = self.field.set_mlp(ctx, mode)?;
+        self.marcher.set_path(ctx, &self.field, path)?;
+        Ok(path)
+    }
+
+    /// The MLP path the fused march renders with.
+    pub fn march_mlp_path(&self) -> MlpPath {
+        self.marcher.mlp_path()
     }
 
     /// The field.

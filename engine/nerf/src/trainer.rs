@@ -298,7 +298,7 @@ impl Trainer {
     ) -> Result<Trainer> {
         cfg.validate()?;
         let mut nerf = nerf;
-        let mlp_path = nerf.field.set_mlp(ctx, cfg.mlp)?;
+        let mlp_path = nerf.set_mlp(ctx, cfg.mlp)?;
         let total = nerf.field.layout().total;
         let why_not = if !cfg.fused_step {
             Some("the standalone chain was asked for".to_string())
@@ -374,7 +374,8 @@ impl Trainer {
 
     /// The MLP path the steps take (`TrainConfig::mlp` resolved on the device).
     pub fn mlp_path(&self) -> MlpPath {
-        self.mlp_path
+        // The fused step's own kernel, when it trains.
+        self.fused.as_ref().map_or(self.mlp_path, |f| f.mlp_path())
     }
 
     /// Why the standalone chain trains instead of the fused step, when it does.

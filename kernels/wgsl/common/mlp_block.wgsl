@@ -32,6 +32,11 @@ fn mlp_uni(x: u32, bits: u32) -> u32 {
     return r;
 }
 
+// Float e of the block.
+fn mlp_block_at(e: u32) -> f32 {
+    return mlp[e >> 2u][e & 3u];
+}
+
 // Activations of one point: a[j / 4][j % 4] is activation j (at most 64).
 alias Act = array<vec4<f32>, 16>;
 

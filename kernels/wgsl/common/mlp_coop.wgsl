@@ -25,16 +25,17 @@
 // unscaled tile to the workgroup's f32 sum of the layer. The bias is one more column of ones.
 // At the end of the chunk one f32 atomic per parameter adds the sums to d_weights.
 //
-// The including file enables f16 and wgpu_cooperative_matrix and declares TILE (8 or 16) and
-// the matrix types CoopA (f16, role A), CoopB (f16, role B) and CoopC (f32, accumulator).
+// The including file includes common/coop8.wgsl or common/coop16.wgsl first (the tile).
 //!include common/dispatch.wgsl
-//!include common/mlp.wgsl
+//!include common/coop_tiles.wgsl
 
-// Points per block: the workgroup size, one point per thread while staging. (64 would put the
-// workgroup memory past lavapipe's 32 KiB.)
-const COOP_POINTS: u32 = 32u;
 // Widest padded layer input plus the bias tile.
 const COOP_XW: u32 = MLP_MAX + TILE;
+// Workgroup memory of common/coop_tiles.wgsl: the weight gradient's block inputs
+// [point][column] (stride xw: the padded inputs, then the bias tile whose first column is 1)
+// and its layer sums [output][column] (stride xw, f32).
+const COOP_X: u32 = COOP_POINTS * COOP_XW;
+const COOP_ACC: u32 = MLP_MAX * COOP_XW;
 
 struct Params {
     // Points.
@@ -63,25 +64,8 @@ var<immediate> params: Params;
 // w16, written by mlp_weights_to_f16.
 @group(0) @binding(10) var<storage, read_write> w16_out: array<f16>;
 
-// Block inputs [point][column] (stride xw: the padded inputs, then the bias tile whose first
-// column is 1) and deltas [point][output] (stride nop), scaled, in f16.
-var<workgroup> coop_x: array<f16, COOP_POINTS * COOP_XW>;
-var<workgroup> coop_d: array<f16, COOP_POINTS * MLP_MAX>;
-// The layer's sums [output][column] (stride xw), f32.
-var<workgroup> coop_acc: array<f32, MLP_MAX * COOP_XW>;
-// Largest |input| and |delta| of the block, as f32 bits (non-negative floats order as u32).
-var<workgroup> coop_max: array<atomic<u32>, 2>;
-
-fn round_tile(x: u32) -> u32 {
-    return (x + TILE - 1u) / TILE * TILE;
-}
-
-// Exponent e with m * 2^e in [2^13, 2^14) (0 for m = 0; clamped so the scale stays finite).
-fn coop_exponent(m: f32) -> f32 {
-    if m <= 0.0 {
-        return 0.0;
-    }
-    return clamp(floor(13.0 - log2(m)), -100.0, 100.0);
+fn coop_bias(e: u32) -> f32 {
+    return weights[e];
 }
 
 // v (the floats j..j+3 of a segment of n) with the lanes past n zeroed: the records' padding
@@ -204,15 +188,6 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     }
 }
 
-// Element offset of layer l's f16 weights in w16.
-fn coop_w_offset(s: MlpShape, l: u32) -> u32 {
-    var off = 0u;
-    for (var k = 0u; k < l; k += 1u) {
-        off += round_tile(mlp_dim(s, k + 1u)) * round_tile(mlp_dim(s, k));
-    }
-    return off;
-}
-
 // Float offset of layer l's segment in a point's record (its input, then its pre-activation
 // gradient, each padded to 4).
 fn coop_record_offset(s: MlpShape, l: u32) -> u32 {
@@ -228,24 +203,15 @@ fn coop_record_offset(s: MlpShape, l: u32) -> u32 {
 fn mlp_weights_to_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                       @builtin(local_invocation_index) lid: u32) {
     let e = linear_group(wid, nwg) * 64u + lid;
-    let s = shape_buf[0];
-    var off = 0u;
-    for (var l = 0u; l < s.layers; l += 1u) {
-        let ni = mlp_dim(s, l);
-        let no = mlp_dim(s, l + 1u);
-        let nip = round_tile(ni);
-        let size = round_tile(no) * nip;
-        if e >= off && e < off + size {
-            let o = (e - off) / nip;
-            let j = (e - off) % nip;
-            var v = 0.0;
-            if o < no && j < ni {
-                v = weights[mlp_offset(s, l) + o * ni + j];
-            }
-            w16_out[e] = f16(v);
-        }
-        off += size;
+    if e >= arrayLength(&w16_out) {
+        return;
     }
+    let src = coop_w16_source(shape_buf[0], e);
+    var v = 0.0;
+    if src != COOP_PAD {
+        v = weights[src];
+    }
+    w16_out[e] = coop_f16(v);
 }
 
 // The forward pass of the workgroup's block of points (this thread's point p, `live` when it
@@ -260,9 +226,8 @@ fn coop_forward(s: MlpShape, p: u32, live: bool, lid: u32, sg: u32, n_sg: u32, r
         if live && j < n_in {
             v = inputs[p * n_in + j];
         }
-        coop_x[lid * nip0 + j] = f16(v);
+        coop_x[lid * nip0 + j] = coop_f16(v);
     }
-    workgroupBarrier();
     var at = p * params.saved_stride;
     for (var l = 0u; l < s.layers; l += 1u) {
         let ni = mlp_dim(s, l);
@@ -275,41 +240,13 @@ fn coop_forward(s: MlpShape, p: u32, live: bool, lid: u32, sg: u32, n_sg: u32, r
                 saved[at + j] = select(0.0, f32(coop_x[lid * nip + j]), j < ni);
             }
         }
-        let cols = nop / TILE;
-        for (var t = sg; t < (COOP_POINTS / TILE) * cols; t += n_sg) {
-            let rt = t / cols;
-            let ot = t % cols;
-            var c = CoopC();
-            for (var k = 0u; k < nip; k += TILE) {
-                // A(r, k): activations, row-major with stride nip.
-                let a = coopLoadT<CoopA>(&coop_x[rt * TILE * nip + k], nip);
-                // B(k, o) = W[o][k]: column-major with stride nip.
-                let b = coopLoad<CoopB>(&w16[woff + ot * TILE * nip + k], nip);
-                c = coopMultiplyAdd(a, b, c);
-            }
-            // (A let: naga 30 does not emit an index computed inside coopStore's pointer.)
-            let at_c = rt * TILE * nop + ot * TILE;
-            coopStoreT(c, &coop_acc[at_c], nop);
-        }
-        workgroupBarrier();
-        // Biases and ReLU, each thread its own row (the next layer's activations overwrite
-        // rows that no tile reads any more).
-        let boff = mlp_offset(s, l) + no * ni;
-        let last = l + 1u == s.layers;
-        for (var o = 0u; o < nop; o += 1u) {
-            var z = 0.0;
-            if o < no {
-                z = coop_acc[lid * nop + o] + weights[boff + o];
-            }
-            coop_acc[lid * nop + o] = z;
-            if record && live && o < pad4(no) {
-                saved[at + pad4(ni) + o] = z;
-            }
-            if !last {
-                coop_x[lid * nop + o] = f16(max(z, 0.0));
+        coop_layer_forward(woff, nip, nop, sg, n_sg);
+        coop_bias_relu(lid, no, nop, mlp_offset(s, l) + no * ni, l + 1u == s.layers);
+        if record && live {
+            for (var o = 0u; o < pad4(no); o += 1u) {
+                saved[at + pad4(ni) + o] = coop_acc[lid * nop + o];
             }
         }
-        workgroupBarrier();
         at += pad4(ni) + pad4(no);
     }
 }
@@ -357,10 +294,6 @@ fn mlp_bwd_data_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgro
         let nop = round_tile(no);
         let woff = coop_w_offset(s, l);
         let d_at = p * params.saved_stride + coop_record_offset(s, l) + pad4(ni);
-        if lid == 0u {
-            atomicStore(&coop_max[1], 0u);
-        }
-        workgroupBarrier();
         // The pre-activation gradient: ReLU'(pre) on hidden layers, identity on the last.
         var md = 0.0;
         for (var o = 0u; o < no; o += 1u) {
@@ -373,31 +306,13 @@ fn mlp_bwd_data_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgro
             g[o] = d;
             md = max(md, abs(d));
         }
-        atomicMax(&coop_max[1], bitcast<u32>(md));
-        workgroupBarrier();
-        let ed = coop_exponent(bitcast<f32>(atomicLoad(&coop_max[1])));
+        let ed = coop_block_exponent(lid, md);
         let sd = exp2(ed);
         for (var o = 0u; o < nop; o += 1u) {
             coop_d[lid * nop + o] = f16(select(0.0, g[o] * sd, o < no));
         }
-        workgroupBarrier();
         // g_in (points x inputs) = delta (points x outputs) W (outputs x inputs).
-        let cols = nip / TILE;
-        for (var t = sg; t < (COOP_POINTS / TILE) * cols; t += n_sg) {
-            let rt = t / cols;
-            let jt = t % cols;
-            var c = CoopC();
-            for (var k = 0u; k < nop; k += TILE) {
-                // A(r, o): scaled deltas, row-major with stride nop.
-                let a = coopLoadT<CoopA>(&coop_d[rt * TILE * nop + k], nop);
-                // B(o, j) = W[o][j]: row-major with stride nip.
-                let b = coopLoadT<CoopB>(&w16[woff + k * nip + jt * TILE], nip);
-                c = coopMultiplyAdd(a, b, c);
-            }
-            let at_c = rt * TILE * nip + jt * TILE;
-            coopStoreT(c, &coop_acc[at_c], nip);
-        }
-        workgroupBarrier();
+        coop_layer_backward(woff, nip, nop, sg, n_sg);
         let inv = exp2(-ed);
         for (var j = 0u; j < ni; j += 1u) {
             g[j] = coop_acc[lid * nip + j] * inv;

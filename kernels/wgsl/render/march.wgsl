@@ -18,81 +18,16 @@
 // density at a jittered point, then folds it into the cell's EMA:
 // grid = max(decay * grid, density).
 //
+// common/march_body.wgsl holds the parameters, bindings and the ray of a pixel, shared with the
+// cooperative-matrix march (common/march_coop.wgsl, built as render/march_coop8.wgsl and
+// render/march_coop16.wgsl), which runs the MLPs on blocks of 32 rays' samples.
+//
 // The layouts match the standalone kernels: common/hash_grid.wgsl (levels, table),
 // common/mlp.wgsl (weights row-major, then the bias, per layer), common/occupancy.wgsl. The
 // MLPs' inputs and hidden widths must be multiples of 4 and both MLPs fit 16384 floats. The
 // standalone pipeline (render/sample.wgsl, field/*, render/field_heads.wgsl,
 // render/composite.wgsl) computes the same quantities sample by sample.
-//!include common/dispatch.wgsl
-//!include common/heads.wgsl
-//!include common/camera.wgsl
-//!include common/contract.wgsl
-//!include common/hash_grid.wgsl
-//!include common/mlp.wgsl
-//!include common/mlp_block.wgsl
-//!include common/occupancy.wgsl
-//!include common/rng.wgsl
-//!include common/sh.wgsl
-//!include common/volume.wgsl
-//!include common/field_eval.wgsl
-
-struct Params {
-    // Rays (march_render) or cells in the window (march_occupancy).
-    n: u32,
-    // Samples per ray.
-    samples: u32,
-    // 0: linear in t, 1: linear in disparity.
-    spacing: u32,
-    // Non-zero: march in NDC (near plane at `ndc_near`).
-    ndc: u32,
-    // Sampling range along the ray.
-    near: f32,
-    far: f32,
-    ndc_near: f32,
-    // Contraction mode (common/contract.wgsl) and 1 / scene radius.
-    contraction: u32,
-    inv_radius: f32,
-    // Occupancy grid resolution and cascades; cascades = 0 disables skipping in the march.
-    occ_res: u32,
-    occ_cascades: u32,
-    // Hash-grid levels and features per level.
-    levels: u32,
-    features: u32,
-    // Float offset of the colour MLP in the uniform weight block (the density MLP is at 0).
-    color_base: u32,
-    min_weight: f32,
-    min_transmittance: f32,
-    // Scene centre (xyz).
-    center: vec4<f32>,
-    // Background colour (xyz).
-    background: vec4<f32>,
-    // Occupancy update: first cell of the window, jitter seed, EMA decay.
-    first: u32,
-    seed: u32,
-    decay: f32,
-    n_cameras: u32,
-    // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
-    lut: vec4<u32>,
-}
-var<immediate> params: Params;
-
-@group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
-// (camera, pixel = y * width + x) per ray.
-@group(0) @binding(1) var<storage, read> pixels: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> level_info: array<HashLevel>;
-@group(0) @binding(3) var<storage, read> table: array<f32>;
-@group(0) @binding(4) var<storage, read> density_shape: array<MlpShape>;
-@group(0) @binding(6) var<storage, read> color_shape: array<MlpShape>;
-@group(0) @binding(8) var<storage, read> occ_bits: array<u32>;
-@group(0) @binding(9) var<storage, read_write> out_rgba: array<vec4<f32>>;
-@group(0) @binding(10) var<storage, read_write> out_depth: array<f32>;
-@group(0) @binding(11) var<storage, read_write> occ_grid: array<f32>;
-// Both MLPs' weights (common/mlp.wgsl layout; density at 0, colour at params.color_base),
-// copied here from the parameter buffer before each pass. Every lane reads the same entry; a
-// uniform block lets lavapipe load it without the per-lane branches of a storage buffer.
-@group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
-// The second part of a split hash table (common/hash_grid.wgsl).
-@group(0) @binding(13) var<storage, read> table_hi: array<f32>;
+//!include common/march_body.wgsl
 
 @compute @workgroup_size(64)
 fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -101,27 +36,13 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     if i >= params.n {
         return;
     }
-    let pc = pixels[i];
-    // Out-of-range camera or pixel indices give a zero pixel rather than reading out of bounds.
-    if pc.x >= params.n_cameras {
-        out_rgba[i] = vec4<f32>(0.0);
-        out_depth[i] = 0.0;
+    let r = march_ray(i);
+    if !r.valid {
         return;
     }
-    let cam = cameras[pc.x];
-    if pc.y >= cam.size.x * cam.size.y {
-        out_rgba[i] = vec4<f32>(0.0);
-        out_depth[i] = 0.0;
-        return;
-    }
-    let world = camera_ray(cam, pixel_centre(cam, pc.y));
-    var ray = world;
-    if params.ndc != 0u {
-        ray = ndc_ray(cam, world[0], world[1], params.ndc_near);
-    }
-    let sh = sh4(unit_dir(world[1]));
+    let ray = r.ray;
+    let sh = r.sh;
     let k = params.samples;
-    let inv_k = 1.0 / f32(k);
     var tau = 0.0;
     var c = vec3<f32>(0.0);
     var depth = 0.0;
@@ -149,10 +70,8 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             }
             let j = next;
             next += 1u;
-            let s0 = f32(j) * inv_k;
-            let s1 = f32(j + 1u) * inv_k;
-            let tj = t_of(mix(s0, s1, 0.5));
-            let u = scene_point(ray, tj);
+            let td = march_stratum(j, k);
+            let u = scene_point(ray, td.x);
             if !occupied(u) {
                 continue;
             }
@@ -162,8 +81,8 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             for (var q = 0u; q < MLP_GROUP; q += 1u) {
                 if q == n {
                     a[q] = e;
-                    t[q] = tj;
-                    dt[q] = t_of(s1) - t_of(s0);
+                    t[q] = td.x;
+                    dt[q] = td.y;
                     live[q] = true;
                 }
             }

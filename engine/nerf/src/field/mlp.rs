@@ -68,6 +68,16 @@ impl MlpConfig {
         self.offset(self.layers())
     }
 
+    /// Elements of the f16 copy of the weights that the cooperative-matrix kernels multiply
+    /// with (`common/coop_tiles.wgsl`): per layer `[outputs][inputs]`, both rounded up to
+    /// `tile`.
+    pub fn coop_halves(&self, tile: u32) -> usize {
+        self.dims
+            .windows(2)
+            .map(|w| (w[0].next_multiple_of(tile) * w[1].next_multiple_of(tile)) as usize)
+            .sum()
+    }
+
     /// Floats per point the backward pass saves: per layer its input and the gradient of its
     /// pre-activation, each padded to a multiple of 4 floats (read as vec4s).
     pub fn saved_stride(&self) -> usize {
@@ -115,7 +125,7 @@ impl MlpConfig {
 pub enum MlpMode {
     /// Cooperative matrices where a GPU offers a usable shape and the model keeps f32
     /// records; the scalar kernels otherwise, and on CPU devices (lavapipe emulates the tiles:
-    /// its cooperative-matrix weight gradient measured slower than the scalar one,
+    /// its cooperative-matrix step and march measured slower than the scalar ones,
     /// `results/mlp_coop_lavapipe/`).
     #[default]
     Auto,
@@ -248,11 +258,7 @@ impl Coop {
                 )))
             }
         };
-        let halves: usize = config
-            .dims
-            .windows(2)
-            .map(|w| (w[0].next_multiple_of(tile) * w[1].next_multiple_of(tile)) as usize)
-            .sum();
+        let halves = config.coop_halves(tile);
         Ok(Coop {
             wgrad: Kernel::new(ctx, descs[0])?,
             fwd: Kernel::new(ctx, descs[1])?,

@@ -6,12 +6,20 @@
 //! This path is forward only (rendering, evaluation, occupancy). Training runs the fused step
 //! of `render::train_step`, built on the same WGSL functions, or the standalone chain
 //! (`model::Field` + `render::composite`).
+//!
+//! With [`Marcher::set_path`] on the cooperative-matrix path the render runs
+//! `common/march_coop.wgsl`: 32 rays per workgroup, each round one occupied sample per ray
+//! through the MLPs' f16 tiles with f32 accumulation (the occupancy update stays scalar).
 
 use extranerf_gpu::kernels::render::march as k;
+use extranerf_gpu::kernels::render::march_coop16 as kc16;
+use extranerf_gpu::kernels::render::march_coop8 as kc8;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
+use crate::field::mlp::MlpPath;
 use crate::model::Field;
 use crate::render::occupancy::Occupancy;
+use crate::render::FusedCoop;
 
 /// The accuracy cuts of the fused march (0 and 0: exact).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -64,10 +72,20 @@ pub(crate) fn check_sampling_range(ndc: bool, near: f32, far: f32) -> Result<()>
     Ok(())
 }
 
+// The cooperative-matrix march (`common/march_coop.wgsl`) shares the scalar march's parameter
+// block (`common/march_body.wgsl`); its render bindings are the scalar render's, in order,
+// then `w16`.
+const _: () = assert!(
+    std::mem::size_of::<k::Params>() == std::mem::size_of::<kc8::Params>()
+        && std::mem::size_of::<k::Params>() == std::mem::size_of::<kc16::Params>()
+);
+
 /// The fused march kernels.
 #[derive(Debug)]
 pub struct Marcher {
     render: Kernel,
+    /// The cooperative-matrix render, when set ([`Marcher::set_path`]).
+    coop: Option<FusedCoop>,
     occupancy: Kernel,
     /// Bound as the occupancy bitfield when no grid is used (the kernel does not read it).
     no_bits: Buffer<u32>,
@@ -124,10 +142,38 @@ impl Marcher {
     pub fn new(ctx: &Context) -> Result<Marcher> {
         Ok(Marcher {
             render: Kernel::new(ctx, &k::march_render::DESC)?,
+            coop: None,
             occupancy: Kernel::new(ctx, &k::march_occupancy::DESC)?,
             no_bits: Buffer::from_slice(ctx, "no occupancy bits", &[u32::MAX])?,
             mlp_block: Buffer::new(ctx, "march MLP weights", MLP_BLOCK_FLOATS)?,
         })
+    }
+
+    /// Renders with the MLPs of `field` through `path`: the scalar kernel, or cooperative
+    /// matrices of the path's tile (the device must offer it).
+    pub fn set_path(&mut self, ctx: &Context, field: &Field, path: MlpPath) -> Result<()> {
+        self.coop = match path {
+            MlpPath::Scalar => None,
+            MlpPath::Coop { tile } => Some(FusedCoop::new(
+                ctx,
+                field,
+                tile,
+                [&kc8::march_render_coop::DESC, &kc8::march_weights_f16::DESC],
+                [
+                    &kc16::march_render_coop::DESC,
+                    &kc16::march_weights_f16::DESC,
+                ],
+            )?),
+        };
+        Ok(())
+    }
+
+    /// The MLP path renders take.
+    pub fn mlp_path(&self) -> MlpPath {
+        match &self.coop {
+            Some(c) => MlpPath::Coop { tile: c.tile() },
+            None => MlpPath::Scalar,
+        }
     }
 
     /// Records the copy of both MLPs into the uniform block; returns the colour MLP's offset.
@@ -228,7 +274,12 @@ impl Marcher {
             out_depth,
             mlp: self.mlp_block.binding(),
         };
-        rec.dispatch(&self.render, b.into_array(), &p, n)
+        let Some(coop) = &self.coop else {
+            return rec.dispatch(&self.render, b.into_array(), &p, n);
+        };
+        let shapes = [b.density_shape, b.color_shape];
+        let mlp = b.mlp;
+        coop.record::<_, 11, 12>(rec, field, shapes, mlp, b.into_array(), &p, n)
     }
 
     /// Records the fused occupancy update of the window of `count` cells from `first`

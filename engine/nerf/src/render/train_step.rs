@@ -15,16 +15,24 @@
 //! ray's occupied probe intervals, as the standalone sampler's `stratified_occupied` does
 //! (`common/strata.wgsl`, shared by both): the same count per ray, none in empty
 //! space.
+//!
+//! Where the field's MLPs take the cooperative-matrix path ([`crate::field::mlp::MlpPath`]),
+//! the step runs `common/step_coop.wgsl` instead: the same step with a workgroup of 32 rays
+//! walking their samples in step, each sample index a block of 32 points through the MLPs'
+//! f16 tiles with f32 accumulation, after an f16 copy of both MLPs' weights.
 
 use extranerf_gpu::kernels::render::train_step as k;
+use extranerf_gpu::kernels::render::train_step_coop16 as kc16;
+use extranerf_gpu::kernels::render::train_step_coop8 as kc8;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
-use crate::field::mlp::BLOCK_FLOATS;
+use crate::field::mlp::{MlpPath, BLOCK_FLOATS};
 use crate::model::Field;
 use crate::render::composite::Background;
 use crate::render::loss::{LossConfig, RgbLoss, Targets};
 use crate::render::march::{check_sampling_range, color_base, copy_mlp_block, UNIFORM_LUT};
 use crate::render::sample::SkipEmpty;
+use crate::render::FusedCoop;
 
 /// Bits of the fused step's `flags` (`STEP_*` in `kernels/wgsl/render/train_step.wgsl`).
 const STEP_JITTER: u32 = 1;
@@ -62,10 +70,20 @@ pub struct StepLosses {
     pub grad_scaling: bool,
 }
 
+// The cooperative-matrix step (`common/step_coop.wgsl`) shares the scalar step's parameter
+// block (`common/step.wgsl`); its bindings are the scalar step's, in order, then `w16`.
+const _: () = assert!(
+    std::mem::size_of::<k::Params>() == std::mem::size_of::<kc8::Params>()
+        && std::mem::size_of::<k::Params>() == std::mem::size_of::<kc16::Params>()
+);
+
 /// The fused training-step kernel and its scratch for one batch shape.
 #[derive(Debug)]
 pub struct FusedStep {
     kernel: Kernel,
+    /// The cooperative-matrix step (`common/step_coop.wgsl`), when the field's MLPs take that
+    /// path.
+    coop: Option<FusedCoop>,
     mlp_block: Buffer<f32>,
     /// Bound as the occupancy bitfield without a grid (the kernel does not read it then).
     no_bits: Buffer<u32>,
@@ -104,8 +122,19 @@ impl FusedStep {
             })?;
             Buffer::new(ctx, what, floats)
         };
+        let coop = match field.density().path() {
+            MlpPath::Scalar => None,
+            MlpPath::Coop { tile } => Some(FusedCoop::new(
+                ctx,
+                field,
+                tile,
+                [&kc8::train_step_coop::DESC, &kc8::step_weights_f16::DESC],
+                [&kc16::train_step_coop::DESC, &kc16::step_weights_f16::DESC],
+            )?),
+        };
         Ok(FusedStep {
             kernel: Kernel::new(ctx, &k::train_step::DESC)?,
+            coop,
             mlp_block: Buffer::new(ctx, "fused step MLP weights", BLOCK_FLOATS)?,
             no_bits: Buffer::from_slice(ctx, "fused step: no occupancy bits", &[u32::MAX])?,
             saved_density: records(
@@ -260,7 +289,20 @@ impl FusedStep {
             saved_density: self.saved_density.binding(),
             saved_color: self.saved_color.binding(),
         };
-        rec.dispatch(&self.kernel, b.into_array(), &p, n)
+        let Some(coop) = &self.coop else {
+            return rec.dispatch(&self.kernel, b.into_array(), &p, n);
+        };
+        let shapes = [b.density_shape, b.color_shape];
+        let mlp = b.mlp;
+        coop.record::<_, 20, 21>(rec, field, shapes, mlp, b.into_array(), &p, n)
+    }
+
+    /// The MLP path this step takes.
+    pub fn mlp_path(&self) -> MlpPath {
+        match &self.coop {
+            Some(c) => MlpPath::Coop { tile: c.tile() },
+            None => MlpPath::Scalar,
+        }
     }
 
     /// Records the MLP weight-gradient pass over the records of the last [`FusedStep::record`],
