@@ -1,10 +1,11 @@
-//! Image-quality metrics on the host: PSNR, SSIM and LPIPS.
+//! Image-quality metrics on the host: PSNR, SSIM, LPIPS, and the KID estimator ([`kid`]).
 //!
 //! Images are interleaved RGB f32 in [0, 1], row-major (`3 * width * height` values), as
 //! [`crate::data::load_image`] returns them. PSNR and SSIM follow the NeRF / mip-NeRF evaluation
 //! code (SSIM with 'valid' filtering), LPIPS the authors' v0.1 models ([`lpips`]); weights are
 //! read from safetensors files ([`crate::safetensors`]).
 
+pub mod kid;
 pub mod lpips;
 
 use std::path::PathBuf;
@@ -55,6 +56,14 @@ pub enum MetricsError {
         /// The OS error (in the message, not a separate source, so a chain does not print it
         /// twice).
         error: std::io::Error,
+    },
+    /// A set of feature vectors cannot be used (rows, values, or too few for the subsets).
+    #[error("KID features ({set}): {problem}")]
+    Features {
+        /// Which set: real, fake or both.
+        set: &'static str,
+        /// What is wrong.
+        problem: String,
     },
     /// A weights file is malformed or lacks what the network needs.
     #[error("{path}: {problem}")]
