@@ -154,6 +154,73 @@ pub fn kid(real: &[f32], fake: &[f32], dim: usize, cfg: &KidConfig) -> Result<Ki
     })
 }
 
+/// Top-left corners of `count` square `size` x `size` crops of a `width` x `height` image,
+/// each covering at least `min_fraction` of its pixels with the mask (`mask[y * width + x]`
+/// true: the region the crops study, such as what no training camera saw), drawn uniformly
+/// among all such positions with a fixed seed, so the same crops can be taken from a render and
+/// its ground truth (patch KID). Crops may repeat. Refuses a mask that no crop covers enough,
+/// and sizes that do not fit the image.
+pub fn masked_crops(
+    mask: &[bool],
+    width: u32,
+    height: u32,
+    size: u32,
+    count: usize,
+    min_fraction: f64,
+    seed: u64,
+) -> Result<Vec<(u32, u32)>> {
+    let (w, h, s) = (width as usize, height as usize, size as usize);
+    if mask.len() != w * h {
+        return Err(MetricsError::SizeMismatch {
+            len: mask.len(),
+            width,
+            height,
+        });
+    }
+    if s == 0 || s > w || s > h {
+        return Err(MetricsError::TooSmall {
+            width,
+            height,
+            min: size.max(1),
+            metric: "patch crops",
+        });
+    }
+    // Summed-area table of the mask: each crop's coverage in O(1).
+    let mut sat = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        for x in 0..w {
+            sat[(y + 1) * (w + 1) + x + 1] =
+                u32::from(mask[y * w + x]) + sat[y * (w + 1) + x + 1] + sat[(y + 1) * (w + 1) + x]
+                    - sat[y * (w + 1) + x];
+        }
+    }
+    let covered = |x: usize, y: usize| {
+        sat[(y + s) * (w + 1) + x + s] + sat[y * (w + 1) + x]
+            - sat[y * (w + 1) + x + s]
+            - sat[(y + s) * (w + 1) + x]
+    };
+    let need = (min_fraction * (s * s) as f64).ceil() as u32;
+    let valid: Vec<(u32, u32)> = (0..=h - s)
+        .flat_map(|y| (0..=w - s).map(move |x| (x, y)))
+        .filter(|&(x, y)| covered(x, y) >= need)
+        .map(|(x, y)| (x as u32, y as u32))
+        .collect();
+    if valid.is_empty() {
+        return Err(MetricsError::Features {
+            set: "both",
+            problem: format!(
+                "no {size}x{size} crop of the {width}x{height} mask covers {:.0}% of its pixels ({} mask pixels in all)",
+                100.0 * min_fraction,
+                mask.iter().filter(|m| **m).count()
+            ),
+        });
+    }
+    let mut rng = Rng::new(seed);
+    Ok((0..count)
+        .map(|_| valid[(rng.next_u64() % valid.len() as u64) as usize])
+        .collect())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -285,5 +352,45 @@ mod tests {
         );
         let e = msg(kid(&x, &x, 0, &cfg));
         assert!(e.contains("0 features"), "{e}");
+    }
+
+    /// Every crop covers the mask by at least the fraction asked (counted directly), lies in
+    /// the image, and the same seed gives the same crops; a mask with too little coverage, a
+    /// crop larger than the image and a mask of the wrong size are refused.
+    #[test]
+    fn masked_crops_cover_the_mask() {
+        let (w, h, s) = (40u32, 30u32, 8u32);
+        // A disc of radius 5.5, narrower than a crop: crops must sit mostly inside it, and
+        // none fits wholly inside.
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f32 - 25.0, (i / w) as f32 - 12.0);
+                x * x + y * y < 30.25
+            })
+            .collect();
+        let crops = masked_crops(&mask, w, h, s, 300, 0.5, 7).unwrap();
+        assert_eq!(crops.len(), 300);
+        let mut distinct = std::collections::BTreeSet::new();
+        for &(x, y) in &crops {
+            assert!(x + s <= w && y + s <= h);
+            let inside = (y..y + s)
+                .flat_map(|yy| (x..x + s).map(move |xx| (xx, yy)))
+                .filter(|&(xx, yy)| mask[(yy * w + xx) as usize])
+                .count();
+            assert!(
+                inside * 2 >= (s * s) as usize,
+                "crop ({x}, {y}): {inside} inside"
+            );
+            distinct.insert((x, y));
+        }
+        // Spread over the valid positions, not stuck on one.
+        assert!(distinct.len() > 30, "{} distinct crops", distinct.len());
+        assert_eq!(masked_crops(&mask, w, h, s, 300, 0.5, 7).unwrap(), crops);
+        let e = masked_crops(&mask, w, h, s, 10, 0.99, 7)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("covers 99%"), "{e}");
+        assert!(masked_crops(&mask, w, h, 41, 10, 0.5, 7).is_err());
+        assert!(masked_crops(&mask[1..], w, h, s, 10, 0.5, 7).is_err());
     }
 }
