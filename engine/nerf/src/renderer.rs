@@ -232,10 +232,18 @@ impl Nerf {
 
     /// Resolves `mode` on `ctx`'s device and sets the MLP path of the field (the standalone
     /// kernels) and of the fused march; returns the path taken.
+    /// On an error both keep their previous paths.
     pub fn set_mlp(&mut self, ctx: &Context, mode: MlpMode) -> Result<MlpPath> {
-        let path = self.field.set_mlp(ctx, mode)?;
+        let path = mode.resolve(ctx, self.field.density().is_f16())?;
+        let before = self.marcher.mlp_path();
         self.marcher.set_path(ctx, &self.field, path)?;
-        Ok(path)
+        match self.field.set_mlp(ctx, mode) {
+            Ok(p) => Ok(p),
+            Err(e) => {
+                self.marcher.set_path(ctx, &self.field, before)?;
+                Err(e)
+            }
+        }
     }
 
     /// The MLP path the fused march renders with.

@@ -92,9 +92,10 @@ pub struct TrainConfig {
     /// block), uses the standalone chain.
     #[serde(default = "default_fused_step")]
     pub fused_step: bool,
-    /// How the MLPs run ([`MlpMode`]): the weight gradient, and in the standalone chain also
-    /// the forward pass and input gradient, through cooperative matrices (`coop`, an error
-    /// where the device cannot; `auto`, where a GPU offers them) or per-thread f32 (`scalar`).
+    /// How the MLPs run ([`MlpMode`]): forward pass, input gradient and weight gradient, in the
+    /// fused step, the standalone chain and the fused march of evaluations, through
+    /// cooperative matrices (`coop`, an error where the device cannot; `auto`, where a GPU
+    /// offers them) or per-thread f32 (`scalar`).
     #[serde(default)]
     pub mlp: MlpMode,
 }

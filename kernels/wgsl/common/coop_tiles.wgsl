@@ -18,7 +18,9 @@
 //   - declares COOP_X (halves of coop_x) and COOP_ACC (floats of coop_acc);
 //   - defines `fn coop_bias(e: u32) -> f32`, the f32 parameter at float e of the MLPs'
 //     weights (common/mlp.wgsl's layout).
-// Every function here must be called by the whole workgroup in uniform control flow.
+// The functions with barriers or cooperative operations (coop_block_max and its users,
+// coop_layer_forward, coop_layer_backward, coop_mlp_forward) must be called by the whole
+// workgroup in uniform control flow.
 //!include common/mlp.wgsl
 
 // Points per block: the workgroup size, one point per thread. (64 would put the standalone
@@ -64,9 +66,16 @@ fn coop_block_max(lid: u32, v: u32) -> u32 {
     return atomicLoad(&coop_max[1]);
 }
 
-// coop_exponent of the largest m over the workgroup (m >= 0).
+// m (>= 0) as a block's scale sees it: a non-finite magnitude counts as 0, so one point's
+// infinite or NaN gradient does not flush the rest of its block to zero (its own values
+// saturate, or stay NaN, in coop_f16).
+fn coop_finite(m: f32) -> f32 {
+    return select(0.0, m, m <= 3.4028235e38);
+}
+
+// coop_exponent of the largest finite m over the workgroup (m >= 0).
 fn coop_block_exponent(lid: u32, m: f32) -> f32 {
-    return coop_exponent(bitcast<f32>(coop_block_max(lid, bitcast<u32>(m))));
+    return coop_exponent(bitcast<f32>(coop_block_max(lid, bitcast<u32>(coop_finite(m)))));
 }
 
 // Whether any thread of the workgroup passes true: the same answer in every thread.

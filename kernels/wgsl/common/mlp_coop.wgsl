@@ -115,8 +115,8 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                     md = max(md, max(max(d.x, d.y), max(d.z, d.w)));
                 }
             }
-            atomicMax(&coop_max[0], bitcast<u32>(mx));
-            atomicMax(&coop_max[1], bitcast<u32>(md));
+            atomicMax(&coop_max[0], bitcast<u32>(coop_finite(mx)));
+            atomicMax(&coop_max[1], bitcast<u32>(coop_finite(md)));
             workgroupBarrier();
             let ex = coop_exponent(bitcast<f32>(atomicLoad(&coop_max[0])));
             let ed = coop_exponent(bitcast<f32>(atomicLoad(&coop_max[1])));
@@ -131,10 +131,10 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                     x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
                 }
                 let o = lid * xw + j;
-                coop_x[o] = f16(x.x);
-                coop_x[o + 1u] = f16(x.y);
-                coop_x[o + 2u] = f16(x.z);
-                coop_x[o + 3u] = f16(x.w);
+                coop_x[o] = coop_f16(x.x);
+                coop_x[o + 1u] = coop_f16(x.y);
+                coop_x[o + 2u] = coop_f16(x.z);
+                coop_x[o + 3u] = coop_f16(x.w);
             }
             for (var j = 0u; j < nop; j += 4u) {
                 var d = vec4<f32>(0.0);
@@ -142,10 +142,10 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
                     d = coop_lanes(saved4[p * stride4 + d_at + j / 4u], j, no) * sd;
                 }
                 let o = lid * nop + j;
-                coop_d[o] = f16(d.x);
-                coop_d[o + 1u] = f16(d.y);
-                coop_d[o + 2u] = f16(d.z);
-                coop_d[o + 3u] = f16(d.w);
+                coop_d[o] = coop_f16(d.x);
+                coop_d[o + 1u] = coop_f16(d.y);
+                coop_d[o + 2u] = coop_f16(d.z);
+                coop_d[o + 3u] = coop_f16(d.w);
             }
             workgroupBarrier();
             // Tiles of [outputs] x [columns], round-robin over the subgroups (uniform within
@@ -309,7 +309,7 @@ fn mlp_bwd_data_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgro
         let ed = coop_block_exponent(lid, md);
         let sd = exp2(ed);
         for (var o = 0u; o < nop; o += 1u) {
-            coop_d[lid * nop + o] = f16(select(0.0, g[o] * sd, o < no));
+            coop_d[lid * nop + o] = coop_f16(select(0.0, g[o] * sd, o < no));
         }
         // g_in (points x inputs) = delta (points x outputs) W (outputs x inputs).
         coop_layer_backward(woff, nip, nop, sg, n_sg);

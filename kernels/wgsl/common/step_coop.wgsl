@@ -95,7 +95,7 @@ fn coop_backward_recorded(color: bool, s: MlpShape, wbase: u32, at_in: u32, live
         let ed = coop_block_exponent(lid, md);
         let sd = exp2(ed);
         for (var o = 0u; o < nop; o += 1u) {
-            coop_d[lid * nop + o] = f16(act_get(&dz, o) * sd);
+            coop_d[lid * nop + o] = coop_f16(act_get(&dz, o) * sd);
         }
         at -= pad4(ni);
         coop_layer_backward(wbase + coop_w_offset(s, l), nip, nop, sg, n_sg);

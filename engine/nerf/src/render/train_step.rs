@@ -34,7 +34,7 @@ use crate::render::march::{check_sampling_range, color_base, copy_mlp_block, UNI
 use crate::render::sample::SkipEmpty;
 use crate::render::FusedCoop;
 
-/// Bits of the fused step's `flags` (`STEP_*` in `kernels/wgsl/render/train_step.wgsl`).
+/// Bits of the fused step's `flags` (`STEP_*` in `kernels/wgsl/common/step.wgsl`).
 const STEP_JITTER: u32 = 1;
 const STEP_RANDOM_BG: u32 = 2;
 const STEP_NDC: u32 = 4;
