@@ -794,8 +794,8 @@ pub struct BenchTrainArgs {
     /// same-run reference of the fused step's speed).
     #[arg(long, value_name = "KIND", value_enum, default_value_t = BenchSteps::Both)]
     step: BenchSteps,
-    /// MLP weight-gradient paths to measure, each with every --step kind: auto, coop,
-    /// scalar, or several (comma-separated, e.g. coop,scalar).
+    /// MLP paths to measure (forward pass, input and weight gradients), each with every --step
+    /// kind: auto, coop, scalar, or several (comma-separated, e.g. coop,scalar).
     #[arg(
         long,
         value_name = "KIND",
