@@ -35,3 +35,9 @@ fn mlp_offset(s: MlpShape, l: u32) -> u32 {
 fn pad4(x: u32) -> u32 {
     return (x + 3u) & ~3u;
 }
+
+// v, the floats 4 j4 .. 4 j4 + 3 of a record segment n wide, with the entries at n and past
+// zeroed (the segment's padding).
+fn below(v: vec4<f32>, j4: u32, n: u32) -> vec4<f32> {
+    return select(vec4<f32>(0.0), v, vec4<u32>(4u * j4) + vec4<u32>(0u, 1u, 2u, 3u) < vec4<u32>(n));
+}

@@ -68,12 +68,6 @@ fn coop_bias(e: u32) -> f32 {
     return weights[e];
 }
 
-// v (the floats j..j+3 of a segment of n) with the lanes past n zeroed: the records' padding
-// is not written.
-fn coop_lanes(v: vec4<f32>, j: u32, n: u32) -> vec4<f32> {
-    return select(vec4<f32>(0.0), v, vec4<u32>(j, j + 1u, j + 2u, j + 3u) < vec4<u32>(n));
-}
-
 @compute @workgroup_size(32)
 fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                   @builtin(local_invocation_index) lid: u32,
@@ -107,11 +101,11 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
             var md = 0.0;
             if live {
                 for (var v = 0u; v < pad4(ni) / 4u; v += 1u) {
-                    let x = abs(coop_lanes(saved4[p * stride4 + x_at + v], 4u * v, ni));
+                    let x = abs(below(saved4[p * stride4 + x_at + v], v, ni));
                     mx = max(mx, max(max(x.x, x.y), max(x.z, x.w)));
                 }
                 for (var v = 0u; v < pad4(no) / 4u; v += 1u) {
-                    let d = abs(coop_lanes(saved4[p * stride4 + d_at + v], 4u * v, no));
+                    let d = abs(below(saved4[p * stride4 + d_at + v], v, no));
                     md = max(md, max(max(d.x, d.y), max(d.z, d.w)));
                 }
             }
@@ -126,7 +120,7 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
             for (var j = 0u; j < xw; j += 4u) {
                 var x = vec4<f32>(0.0);
                 if live && j < pad4(ni) {
-                    x = coop_lanes(saved4[p * stride4 + x_at + j / 4u], j, ni) * sx;
+                    x = below(saved4[p * stride4 + x_at + j / 4u], j / 4u, ni) * sx;
                 } else if live && j == nip {
                     x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
                 }
@@ -139,7 +133,7 @@ fn mlp_wgrad_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
             for (var j = 0u; j < nop; j += 4u) {
                 var d = vec4<f32>(0.0);
                 if live && j < pad4(no) {
-                    d = coop_lanes(saved4[p * stride4 + d_at + j / 4u], j, no) * sd;
+                    d = below(saved4[p * stride4 + d_at + j / 4u], j / 4u, no) * sd;
                 }
                 let o = lid * nop + j;
                 coop_d[o] = coop_f16(d.x);

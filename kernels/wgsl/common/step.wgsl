@@ -119,11 +119,6 @@ fn rec_get(color: bool, e: u32) -> vec4<f32> {
     return saved_density[e >> 2u];
 }
 
-// v with the entries at 4 j4 + c >= n zeroed (the padding of a record segment n wide).
-fn below(v: vec4<f32>, j4: u32, n: u32) -> vec4<f32> {
-    return select(vec4<f32>(0.0), v, vec4<u32>(4u * j4) + vec4<u32>(0u, 1u, 2u, 3u) < vec4<u32>(n));
-}
-
 // The forward pass of MLP `s` (weights at float `base` of the block) on the group a, writing
 // each valid slot's layer inputs and its output layer's pre-activations into its record at at[k]
 // (mlp_bwd_data's layout; the hidden layers' pre-activation segments are left for the backward

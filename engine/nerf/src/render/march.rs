@@ -170,10 +170,7 @@ impl Marcher {
 
     /// The MLP path renders take.
     pub fn mlp_path(&self) -> MlpPath {
-        match &self.coop {
-            Some(c) => MlpPath::Coop { tile: c.tile() },
-            None => MlpPath::Scalar,
-        }
+        FusedCoop::path(self.coop.as_ref())
     }
 
     /// Records the copy of both MLPs into the uniform block; returns the colour MLP's offset.

@@ -16,6 +16,7 @@ use bytemuck::Pod;
 use extranerf_gpu::kernels::KernelDesc;
 use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
+use crate::field::mlp::MlpPath;
 use crate::model::Field;
 
 /// A fused kernel's cooperative-matrix twin (`common/coop_fused.wgsl`: the fused step's or the
@@ -63,9 +64,12 @@ impl FusedCoop {
         cfg.density_mlp().coop_halves(tile) + cfg.color_mlp().coop_halves(tile)
     }
 
-    /// The tile edge.
-    pub(crate) fn tile(&self) -> u32 {
-        self.tile
+    /// The MLP path of a fused kernel that has this cooperative-matrix twin, or none.
+    pub(crate) fn path(coop: Option<&FusedCoop>) -> MlpPath {
+        match coop {
+            Some(c) => MlpPath::Coop { tile: c.tile },
+            None => MlpPath::Scalar,
+        }
     }
 
     /// Records the f16 copy of `field`'s MLPs from the uniform block `mlp`, then the kernel

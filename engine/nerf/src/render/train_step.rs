@@ -299,10 +299,7 @@ impl FusedStep {
 
     /// The MLP path this step takes.
     pub fn mlp_path(&self) -> MlpPath {
-        match &self.coop {
-            Some(c) => MlpPath::Coop { tile: c.tile() },
-            None => MlpPath::Scalar,
-        }
+        FusedCoop::path(self.coop.as_ref())
     }
 
     /// Records the MLP weight-gradient pass over the records of the last [`FusedStep::record`],
