@@ -134,6 +134,7 @@ fn fixture_model(dev: &Device) -> InpaintModel {
             null_tokens: None,
         },
         schedule: Schedule::new(&SchedulerConfig::default()).unwrap(),
+        task: extranerf_diffusion::inpaint::Task::Inpaint,
     }
 }
 

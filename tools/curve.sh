@@ -15,8 +15,9 @@ cd "$(dirname "$0")/.."
 [ $# -ge 3 ] || { sed -n 2,13p "$0"; exit 2; }
 scene="$1"; name="$2"; every="$3"; shift 3
 data="${EXTRANERF_DATA:-../shared/data}"
-bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
-cargo build --release -p extranerf >&2
+# EXTRANERF_BIN: a binary to use instead of building the release one.
+bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
+[ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
 case "$scene" in
     fern17) args=(--scene "$data/llff/fern" --split fewshot --fewshot-views 17) ;;
     fernx) args=(--scene "$data/llff/fern" --split extrapolation) ;;

@@ -12,13 +12,17 @@
 # when its model is missing and the default inpainters are used.
 # The fly-throughs (RUN/flythrough/*.gif) are copied too.
 #
-# Usage: [PRIOR_STEPS=N] tools/extrapolate_fern.sh [extrapolate flags...]
-#   (default: --inpainter harmonic,exemplar,diffusion)
+# Stage 3 runs too (the enhancer trained here from scratch) unless --no-stage3 is given.
+#
+# Usage: [PRIOR_STEPS=N] [OUT=results/...] [EXTRANERF_BIN=...] tools/extrapolate_fern.sh
+#        [extrapolate flags...]
+#   (default: --inpainter harmonic,exemplar,diffusion; OUT: results/extrapolate_fern_lavapipe)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 data="${EXTRANERF_DATA:-../shared/data}"
-bin="${CARGO_TARGET_DIR:-target}/release/extranerf"
-cargo build --release -p extranerf >&2
+# EXTRANERF_BIN: a binary to use instead of building the release one.
+bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
+[ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
 base=runs/curve_fernx_steps6889
 if [ ! -f "$base/checkpoint.safetensors" ]; then
     tools/curve.sh fernx steps6889 2000 --steps 6889
@@ -31,11 +35,11 @@ if [ ${#inp[@]} -gt 0 ] && [ ! -f "$prior/model/model_index.json" ]; then
     "$bin" diffusion prior --scene "$data/llff/fern" --out "$prior" --steps "$steps" \
         2>&1 | tee "$prior.log" >&2
 fi
-run=runs/extrapolate_fern
+run="${RUN:-runs/extrapolate_fern}"
 rm -rf "$run"
 /usr/bin/time -f "extrapolate wall %e s" "$bin" extrapolate --base "$base" --out "$run" "${inp[@]}" "$@"
 "$bin" eval "$run"
-out=results/extrapolate_fern_lavapipe
+out="${OUT:-results/extrapolate_fern_lavapipe}"
 rm -rf "$out"
 mkdir -p "$out/images"
 cp "$run/eval.md" "$run/eval.json" "$run/extrapolate.json" "$run/extrapolate.log" \
@@ -45,13 +49,20 @@ if [ ${#inp[@]} -gt 0 ] && [ -f "$prior.log" ]; then cp "$prior.log" "$out/prior
 view=$(ls "$run"/visibility/test_*_base.png | head -1 | sed 's/.*test_\([0-9]*\)_base.png/\1/')
 cp "$run/visibility/test_${view}_base.png" "$out/images/test_${view}_base.png"
 cp "$run/visibility/test_${view}_mask.png" "$out/images/test_${view}_mask.png"
-for d in "$run"/stage2-*; do
+for d in "$run"/stage2-* "$run"/stage3-*; do
+    case "$d" in *stage3-data|*stage3-enhancer|*'*') continue ;; esac
     v=$(basename "$d")
     cp "$d/test_${view}.png" "$out/images/test_${view}_$v.png"
     last=$(ls -d "$d"/round_* | tail -1)
     cp "$last/virtual_004.png" "$out/images/virtual_004_$v.png"
 done
 cp "$run/visibility/virtual_004_base.png" "$run/visibility/virtual_004_mask.png" "$out/images/"
+if [ -d "$run/stage3-enhancer" ]; then
+    cp "$run/stage3-enhancer/enhancer.json" "$out/"
+    cp "$run/stage3-data/triplets.json" "$out/"
+    mkdir -p "$out/images/stage3-data"
+    cp "$run"/stage3-data/pseudo_mask_000.png "$run"/stage3-data/t*_view000_*.png "$out/images/stage3-data/"
+fi
 if [ -d "$run/flythrough" ]; then
     mkdir -p "$out/flythrough"
     cp "$run"/flythrough/*.gif "$out/flythrough/"

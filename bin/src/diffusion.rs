@@ -16,7 +16,7 @@ use extranerf_diffusion::fill;
 use extranerf_diffusion::inpaint::{seeded_noise, Codec, SampleSettings, SplitMix};
 use extranerf_diffusion::lora::{self, LoraConfig};
 use extranerf_diffusion::pipeline::Pipeline;
-use extranerf_diffusion::scheduler::{BetaSchedule, Prediction, SchedulerConfig};
+use extranerf_diffusion::scheduler::{Prediction, SchedulerConfig};
 use extranerf_diffusion::text::LearnedTokens;
 use extranerf_diffusion::train::{self, Augment, Progress, TrainImage, TrainSettings, Trainable};
 use extranerf_diffusion::train_state::{self, Checkpointing};
@@ -61,6 +61,10 @@ pub enum DiffusionCommand {
     Prior(PriorArgs),
     /// Inpaint an image where a mask is white, with a model folder (and optional LoRA).
     Inpaint(InpaintArgs),
+    /// Enhance a whole image (a NeRF render) with an enhancer: noised to --strength and
+    /// denoised with itself as guidance (ExtraNeRF's stage 3). --model is an enhancer folder
+    /// (`extrapolate`'s RUN/stage3-enhancer) or a model folder with enhancer adapters.
+    Enhance(EnhanceArgs),
     /// DreamBooth-style LoRA fine-tuning of a model folder on a scene's training views with
     /// their pseudo-disocclusion masks (`extranerf visibility --training-masks`) plus random
     /// masks; writes the adapters apart from the model.
@@ -176,6 +180,39 @@ pub struct InpaintArgs {
     /// carry learned tokens instead).
     #[arg(long, default_value = "a photo of a scene")]
     pub prompt: String,
+    #[command(flatten)]
+    pub backend: BackendArgs,
+}
+
+/// `extranerf diffusion enhance`.
+#[derive(Args, Debug)]
+pub struct EnhanceArgs {
+    /// Enhancer folder (enhancer.json with model/ or lora/), or a model folder whose model
+    /// (with --lora) was trained to enhance.
+    #[arg(long)]
+    pub model: PathBuf,
+    /// LoRA adapter folder written for enhancement (with a plain model folder).
+    #[arg(long)]
+    pub lora: Option<PathBuf>,
+    /// Image (PNG/JPEG).
+    #[arg(long)]
+    pub image: PathBuf,
+    /// Mask image, white (> 0.5) where an earlier stage filled the image in (as in stage 3:
+    /// the not-visible mask). Without it: nothing.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Noise strength of the starting point in (0, 1] (stage 3's default).
+    #[arg(long, default_value_t = 0.3)]
+    pub strength: f64,
+    /// DDIM steps.
+    #[arg(long, default_value_t = 10)]
+    pub steps: usize,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
     #[command(flatten)]
     pub backend: BackendArgs,
 }
@@ -342,48 +379,21 @@ pub fn run(ctx: &Context, cmd: &DiffusionCommand) -> anyhow::Result<()> {
     match cmd {
         DiffusionCommand::Prior(a) => prior(ctx, a),
         DiffusionCommand::Inpaint(a) => inpaint(ctx, a),
+        DiffusionCommand::Enhance(a) => enhance(ctx, a),
         DiffusionCommand::Finetune(a) => finetune(ctx, a),
         DiffusionCommand::Init(a) => init(a),
     }
 }
 
-/// The pixel-space prior's U-Net: DownBlock2D levels, attention (self and cross) on the last
-/// level and in the middle block, 7 inputs (noisy RGB, mask, masked RGB), 3 outputs.
+/// The pixel-space prior's U-Net ([`UNetConfig::pixel_space`]).
 pub fn prior_unet_config(channels: &[usize], token_dim: usize) -> anyhow::Result<UNetConfig> {
-    let n = channels.len();
-    if n < 2 {
-        bail!("--channels needs at least two levels, got {channels:?}");
-    }
-    let mut down = vec![DOWN.to_string(); n];
-    down[n - 1] = CROSS_ATTN_DOWN.into();
-    let mut up = vec![UP.to_string(); n];
-    up[0] = CROSS_ATTN_UP.into();
-    let c = UNetConfig {
-        sample_size: 48,
-        in_channels: 7,
-        out_channels: 3,
-        down_block_types: down,
-        up_block_types: up,
-        block_out_channels: channels.to_vec(),
-        layers_per_block: extranerf_diffusion::config::PerBlock::One(1),
-        norm_num_groups: 8,
-        cross_attention_dim: token_dim,
-        attention_head_dim: extranerf_diffusion::config::PerBlock::One(4),
-        ..UNetConfig::default()
-    };
-    c.validate()
-        .map_err(|e| anyhow::anyhow!("--channels {channels:?}: {e}"))?;
-    Ok(c)
+    UNetConfig::pixel_space(channels, token_dim)
+        .map_err(|e| anyhow::anyhow!("--channels {channels:?}: {e}"))
 }
 
-/// The prior's noise process: cosine betas, v-prediction by default (stable at every noise
-/// level for a small pixel model).
+/// The prior's noise process ([`SchedulerConfig::pixel_space`]).
 pub fn prior_scheduler(prediction: Prediction) -> SchedulerConfig {
-    SchedulerConfig {
-        beta_schedule: BetaSchedule::SquaredCosCapV2,
-        prediction_type: prediction,
-        ..SchedulerConfig::default()
-    }
+    SchedulerConfig::pixel_space(prediction)
 }
 
 struct View {
@@ -780,6 +790,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                     rgb: v.rgb.clone(),
                     known,
                     masks: Vec::new(),
+                    guides: Vec::new(),
                 });
             }
             let ad = dev.clone().autodiff();
@@ -846,6 +857,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
                     tokens: model.tokens,
                     codec: Codec::Pixels(Default::default()),
                     schedule,
+                    task: extranerf_diffusion::inpaint::Task::Inpaint,
                 },
                 unet_config: cfg,
                 vae_config: None,
@@ -1112,18 +1124,7 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
         eprintln!("model: {n}");
     }
     let (w, h, rgb) = read_rgb(&a.image)?;
-    let (mw, mh, mrgb) = read_rgb(&a.mask)?;
-    if (mw, mh) != (w, h) {
-        bail!(
-            "{} is {mw}x{mh} but {} is {w}x{h}",
-            a.mask.display(),
-            a.image.display()
-        );
-    }
-    let mask: Vec<f32> = mrgb
-        .chunks(3)
-        .map(|p| f32::from((p[0] + p[1] + p[2]) / 3.0 > 0.5))
-        .collect();
+    let mask = read_mask(&a.mask, &a.image, w, h)?;
     let t = Instant::now();
     let out = pipe.model.inpaint_image(
         &rgb,
@@ -1142,6 +1143,74 @@ fn inpaint(ctx: &Context, a: &InpaintArgs) -> anyhow::Result<()> {
     write_png(&a.out, w as u32, h as u32, &out.rgb)?;
     println!(
         "wrote {} ({} DDIM steps from t = {} (noise level {:.3}) in {:.1} s)",
+        a.out.display(),
+        a.steps,
+        out.t_start,
+        out.noise_level,
+        t.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// A mask image as `[h, w]` (white > 0.5: 1), of the size `w x h` of `image`.
+fn read_mask(path: &Path, image: &Path, w: usize, h: usize) -> anyhow::Result<Vec<f32>> {
+    let (mw, mh, m) = read_rgb(path)?;
+    if (mw, mh) != (w, h) {
+        bail!(
+            "{} is {mw}x{mh} but {} is {w}x{h}",
+            path.display(),
+            image.display()
+        );
+    }
+    Ok(m.chunks(3)
+        .map(|p| f32::from((p[0] + p[1] + p[2]) / 3.0 > 0.5))
+        .collect())
+}
+
+/// `extranerf diffusion enhance`.
+fn enhance(ctx: &Context, a: &EnhanceArgs) -> anyhow::Result<()> {
+    if !(a.strength > 0.0 && a.strength <= 1.0) || a.steps == 0 {
+        bail!(
+            "--strength {} must be in (0, 1] and --steps {} at least 1",
+            a.strength,
+            a.steps
+        );
+    }
+    let (_, dev) = a.backend.device(ctx)?;
+    let pipe = extranerf_diffusion::enhancer::load_any(&a.model, a.lora.as_deref(), &dev)?;
+    for n in &pipe.notes {
+        eprintln!("model: {n}");
+    }
+    let (w, h, rgb) = read_rgb(&a.image)?;
+    let mask = a
+        .mask
+        .as_ref()
+        .map(|m| read_mask(m, &a.image, w, h))
+        .transpose()?;
+    let t = Instant::now();
+    let out = pipe.model.enhance_image(
+        &rgb,
+        mask.as_deref(),
+        w,
+        h,
+        a.seed,
+        &SampleSettings {
+            strength: a.strength,
+            steps: a.steps,
+            guidance: 1.0,
+            keep_known: false,
+        },
+        &dev,
+    )?;
+    write_png(&a.out, w as u32, h as u32, &out.rgb)?;
+    let change = rgb
+        .iter()
+        .zip(&out.rgb)
+        .map(|(x, y)| f64::from((x - y).abs()))
+        .sum::<f64>()
+        / rgb.len() as f64;
+    println!(
+        "wrote {} ({} DDIM steps from t = {} (noise level {:.3}) in {:.1} s; mean absolute change {change:.4})",
         a.out.display(),
         a.steps,
         out.t_start,

@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use extranerf_diffusion::device::Backend;
+use extranerf_diffusion::enhancer::EnhancerSpec;
 use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
 use extranerf_extrapolate::eval::compare;
 use extranerf_extrapolate::inpaint::InpainterKind;
@@ -11,6 +12,7 @@ use extranerf_extrapolate::pipeline::{
     extrapolate as run_pipeline, BaseSpec, DiffusionSpec, FlythroughSpec, Options, Stage2Spec,
     VirtualSpec,
 };
+use extranerf_extrapolate::stage3::Stage3Spec;
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
@@ -50,7 +52,7 @@ pub struct ExtrapolateArgs {
     #[command(flatten)]
     views: SplitArgs,
     /// Run folder: extrapolate.json (the manifest), base/, visibility/, stage2-NAME/,
-    /// flythrough/, extrapolate.log.
+    /// stage3-data/, stage3-enhancer/, stage3-NAME/, flythrough/, extrapolate.log.
     #[arg(long, value_name = "RUN")]
     out: PathBuf,
     /// Reuse a trained BaseNeRF (a run folder of `extranerf train`) instead of training one;
@@ -74,7 +76,7 @@ pub struct ExtrapolateArgs {
     /// DDIM steps per inpainting (ExtraNeRF: about 10).
     #[arg(long, default_value_t = 10)]
     diffusion_steps: usize,
-    /// burn backend of the diffusion inpainter: auto (the engine's device, or burn's CPU
+    /// burn backend of the diffusion inpainter and the enhancer: auto (the engine's device, or burn's CPU
     /// backend on a CPU Vulkan driver such as lavapipe), device or cpu.
     #[arg(long, value_enum, default_value_t = Backend::Auto)]
     diffusion_backend: Backend,
@@ -127,8 +129,66 @@ pub struct ExtrapolateArgs {
     /// Divide the virtual views' resolution by this for the fly-through frames.
     #[arg(long, default_value_t = FlythroughSpec::default().downscale)]
     flythrough_downscale: u32,
-    /// Continue the run in --out: finished stages are skipped, stage 2 resumes after its last
-    /// finished round. The settings must be those it was started with.
+    /// Stop after stage 2 (no enhancer, no stage 3).
+    #[arg(long)]
+    no_stage3: bool,
+    /// Stage 3: rounds of the inpainting-supervised field whose renders of the training views
+    /// train the enhancer.
+    #[arg(long, default_value_t = Stage3Spec::default().data_rounds)]
+    data_rounds: u32,
+    /// Stage 3: training steps per data round.
+    #[arg(long, default_value_t = Stage3Spec::default().data_steps_per_round)]
+    data_steps_per_round: u32,
+    /// Stage 3: step counts of a fresh field whose renders of the training views (the blur of
+    /// an under-fitted field) also train the enhancer; `none` for none.
+    #[arg(long, value_delimiter = ',', default_value = "100,400", value_parser = parse_checkpoint)]
+    fresh_checkpoints: Vec<Option<u32>>,
+    /// Stage 3: a Stable Diffusion inpainting folder (diffusers layout) to adapt into the
+    /// enhancer with LoRA; without it the enhancer is a pixel-space U-Net trained from scratch
+    /// on the scene.
+    #[arg(long, value_name = "DIR")]
+    enhancer_model: Option<PathBuf>,
+    /// Stage 3: channels per level of the from-scratch enhancer.
+    #[arg(long, value_delimiter = ',', default_value = "32,64,96")]
+    enhancer_channels: Vec<usize>,
+    /// Stage 3: LoRA rank (with --enhancer-model).
+    #[arg(long, default_value_t = EnhancerSpec::default().rank)]
+    enhancer_rank: usize,
+    /// Stage 3: the enhancer's optimiser steps.
+    #[arg(long, default_value_t = EnhancerSpec::default().steps)]
+    enhancer_steps: usize,
+    /// Stage 3: crops per enhancer step.
+    #[arg(long, default_value_t = EnhancerSpec::default().batch)]
+    enhancer_batch: usize,
+    /// Stage 3: the enhancer's crop side (a multiple of its size step, at most the training
+    /// views' side at the virtual views' scale).
+    #[arg(long, default_value_t = EnhancerSpec::default().crop)]
+    enhancer_crop: usize,
+    /// Stage 3: the enhancer's AdamW learning rate.
+    #[arg(long, default_value_t = EnhancerSpec::default().lr)]
+    enhancer_lr: f64,
+    /// Stage 3: rounds over the virtual views (render, enhance, train).
+    #[arg(long, default_value_t = Stage3Spec::default().rounds)]
+    stage3_rounds: u32,
+    /// Stage 3: training steps per round (the paper: 500 in all).
+    #[arg(long, default_value_t = Stage3Spec::default().steps_per_round)]
+    stage3_steps_per_round: u32,
+    /// Stage 3: the noise strength the renders are enhanced from (the loss weight is
+    /// sqrt(1 - t^2)).
+    #[arg(long, default_value_t = Stage3Spec::default().t)]
+    stage3_t: f32,
+    /// Stage 3: DDIM steps per enhancement.
+    #[arg(long, default_value_t = Stage3Spec::default().ddim_steps)]
+    stage3_ddim_steps: usize,
+    /// Stage 3: fraction of each batch's rays drawn from the virtual views.
+    #[arg(long, default_value_t = Stage3Spec::default().virtual_fraction)]
+    stage3_virtual_fraction: f32,
+    /// Stage 3: learning rate of its steps.
+    #[arg(long, default_value_t = Stage3Spec::default().lr)]
+    stage3_lr: f32,
+    /// Continue the run in --out: finished stages are skipped, stages 2 and 3 resume after
+    /// their last finished round, the enhancer's training at its last save. The settings must
+    /// be those it was started with.
     #[arg(long)]
     resume: bool,
 }
@@ -136,7 +196,19 @@ pub struct ExtrapolateArgs {
 impl ExtrapolateArgs {
     /// Whether burn may run on the engine's own device (the context must then be shareable).
     pub fn needs_wgpu(&self) -> bool {
-        self.inpainter.contains(&InpainterKind::Diffusion) && self.diffusion_backend != Backend::Cpu
+        (self.inpainter.contains(&InpainterKind::Diffusion) || !self.no_stage3)
+            && self.diffusion_backend != Backend::Cpu
+    }
+}
+
+/// A `--fresh-checkpoints` entry: a step count, or `none`.
+fn parse_checkpoint(s: &str) -> Result<Option<u32>, String> {
+    if s == "none" {
+        return Ok(None);
+    }
+    match s.parse::<u32>() {
+        Ok(n) if n > 0 => Ok(Some(n)),
+        _ => Err(format!("{s:?}: give positive step counts, or `none`")),
     }
 }
 
@@ -193,6 +265,30 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             downscale: a.flythrough_downscale,
             ..FlythroughSpec::default()
         },
+        stage3: (!a.no_stage3).then(|| Stage3Spec {
+            data_rounds: a.data_rounds,
+            data_steps_per_round: a.data_steps_per_round,
+            base_checkpoints: a.fresh_checkpoints.iter().flatten().copied().collect(),
+            enhancer: EnhancerSpec {
+                base_model: a.enhancer_model.clone(),
+                channels: a.enhancer_channels.clone(),
+                rank: a.enhancer_rank,
+                steps: a.enhancer_steps,
+                batch: a.enhancer_batch,
+                crop: a.enhancer_crop,
+                lr: a.enhancer_lr,
+                seed: a.seed,
+                ..EnhancerSpec::default()
+            },
+            rounds: a.stage3_rounds,
+            steps_per_round: a.stage3_steps_per_round,
+            t: a.stage3_t,
+            ddim_steps: a.stage3_ddim_steps,
+            virtual_fraction: a.stage3_virtual_fraction,
+            lr: a.stage3_lr,
+            seed: a.seed,
+            backend: a.diffusion_backend,
+        }),
         resume: a.resume,
     };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;

@@ -831,6 +831,13 @@ fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
     }
 }
 
+/// A 32x24 mask (another size than the demo's views).
+fn small_mask_for_enhance(dir: &std::path::Path) -> std::path::PathBuf {
+    let p = dir.join("small_enhance_mask.png");
+    write_mask_png(&p, 32, 24, (0, 0, 4, 4));
+    p
+}
+
 fn write_mask_png(path: &std::path::Path, w: u32, h: u32, hole: (u32, u32, u32, u32)) {
     let (x0, y0, hw, hh) = hole;
     let img = image::RgbImage::from_fn(w, h, |x, y| {
@@ -1140,6 +1147,67 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
         "cpu",
     ]);
     assert!(ok, "{err}");
+
+    // Enhancement: an inpainting model is refused; an enhancer (two steps on the view paired
+    // with itself) enhances the whole view, mask or not.
+    let enhanced = dir.join("enhanced.png");
+    let enhance = |model: &std::path::Path, extra: &[&str]| {
+        let mut args = vec![
+            "diffusion".to_string(),
+            "enhance".into(),
+            "--model".into(),
+            s(model),
+            "--image".into(),
+            s(&view),
+            "--out".into(),
+            s(&enhanced),
+            "--steps".into(),
+            "2".into(),
+            "--diffusion-backend".into(),
+            "cpu".into(),
+        ];
+        args.extend(extra.iter().map(|a| a.to_string()));
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        extranerf(&args)
+    };
+    let (ok, _, err) = enhance(&tiny, &[]);
+    assert!(!ok && err.contains("not an enhancer"), "{err}");
+    let photo = image::open(&view).unwrap().to_rgb8();
+    let (w, h) = photo.dimensions();
+    let rgb: Vec<f32> = photo.as_raw().iter().map(|&v| v as f32 / 255.0).collect();
+    let mut pair = extranerf_diffusion::train::TrainImage::new(w as usize, h as usize, rgb.clone());
+    pair.guides = vec![extranerf_diffusion::train::Guide {
+        rgb,
+        mask: vec![0.0; (w * h) as usize],
+    }];
+    let enhancer_dir = dir.join("enhancer");
+    extranerf_diffusion::enhancer::train_enhancer(
+        &[pair],
+        &extranerf_diffusion::enhancer::EnhancerSpec {
+            channels: vec![8, 16],
+            steps: 2,
+            batch: 1,
+            crop: 16,
+            ..Default::default()
+        },
+        &enhancer_dir,
+        &burn::tensor::Device::flex(),
+        &mut |_| {},
+    )
+    .unwrap();
+    let (ok, out, err) = enhance(&enhancer_dir, &["--mask", &s(&mask)]);
+    assert!(ok && out.contains("mean absolute change"), "{err}");
+    assert_eq!(
+        image::open(&enhanced).unwrap().to_rgb8().dimensions(),
+        (w, h)
+    );
+    let (ok, _, err) = enhance(&enhancer_dir, &["--strength", "0"]);
+    assert!(!ok && err.contains("--strength 0"), "{err}");
+    let (ok, _, err) = enhance(
+        &enhancer_dir,
+        &["--mask", &s(&small_mask_for_enhance(&dir))],
+    );
+    assert!(!ok && err.contains("is 32x24"), "{err}");
 
     // Clear errors.
     let (ok, _, err) = extranerf(&[

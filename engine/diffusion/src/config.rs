@@ -308,6 +308,36 @@ impl UNetConfig {
         }
     }
 
+    /// The pixel-space U-Net this project trains from scratch (the scene prior, the
+    /// enhancer): DownBlock2D levels of `channels`, attention (self and cross, `token_dim`
+    /// wide context) on the last level and in the middle block, 7 inputs (noisy RGB, mask,
+    /// guidance RGB), 3 outputs.
+    pub fn pixel_space(channels: &[usize], token_dim: usize) -> Result<UNetConfig, String> {
+        let n = channels.len();
+        if n < 2 {
+            return Err(format!("needs at least two levels, got {channels:?}"));
+        }
+        let mut down = vec![DOWN.to_string(); n];
+        down[n - 1] = CROSS_ATTN_DOWN.into();
+        let mut up = vec![UP.to_string(); n];
+        up[0] = CROSS_ATTN_UP.into();
+        let c = UNetConfig {
+            sample_size: 48,
+            in_channels: 7,
+            out_channels: 3,
+            down_block_types: down,
+            up_block_types: up,
+            block_out_channels: channels.to_vec(),
+            layers_per_block: PerBlock::One(1),
+            norm_num_groups: 8,
+            cross_attention_dim: token_dim,
+            attention_head_dim: PerBlock::One(4),
+            ..UNetConfig::default()
+        };
+        c.validate()?;
+        Ok(c)
+    }
+
     /// A tiny inpainting U-Net with the same structure (two levels, one ResNet each, 2-head
     /// attention), for tests and the benches' small row.
     pub fn tiny_inpainting() -> UNetConfig {

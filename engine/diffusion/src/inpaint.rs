@@ -84,6 +84,29 @@ pub fn unet_input(noisy: Tensor<4>, mask: Tensor<4>, masked: Tensor<4>) -> Tenso
     Tensor::cat(vec![noisy, mask, masked], 1)
 }
 
+/// What a model of the inpainting architecture was trained to do; it decides the U-Net's
+/// guidance input.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Task {
+    /// Fill a hole: the guidance is the image with the hole blanked (diffusers' inpainting).
+    #[default]
+    Inpaint,
+    /// Enhance a whole render (ExtraNeRF's stage 3): the guidance is the image itself, not
+    /// masked; the mask channel says where an earlier stage filled it in.
+    Enhance,
+}
+
+impl Task {
+    /// Its name in `model_index.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Task::Inpaint => "inpaint",
+            Task::Enhance => "enhance",
+        }
+    }
+}
+
 /// An inpainting model: U-Net, codec, conditioning and noise schedule.
 #[derive(Debug)]
 pub struct InpaintModel {
@@ -95,6 +118,8 @@ pub struct InpaintModel {
     pub tokens: LearnedTokens,
     /// The noise process.
     pub schedule: Schedule,
+    /// Inpainter or enhancer.
+    pub task: Task,
 }
 
 /// How to sample.
@@ -248,6 +273,34 @@ impl InpaintModel {
         Ok(out.remove(0))
     }
 
+    /// Enhances one render (an enhancer's [`Task::Enhance`]): `rgb` `[h, w, 3]` in [0, 1] is
+    /// noised to `s.strength` and denoised with itself as guidance; `mask` `[h, w]` marks what
+    /// an earlier stage filled in (None: nothing). Every pixel may change (`s.keep_known` is
+    /// ignored).
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn enhance_image(
+        &self,
+        rgb: &[f32],
+        mask: Option<&[f32]>,
+        w: usize,
+        h: usize,
+        seed: u64,
+        s: &SampleSettings,
+        device: &Device,
+    ) -> Result<InpaintedImage> {
+        if self.task != Task::Enhance {
+            return Err(DiffusionError::Input(
+                "this model was trained to inpaint, not to enhance (train an enhancer: `extranerf extrapolate` stage 3, or LoRA adapters written by it)".into(),
+            ));
+        }
+        let zeros = vec![0f32; w * h];
+        let s = SampleSettings {
+            keep_known: false,
+            ..s.clone()
+        };
+        self.inpaint_image(rgb, mask.unwrap_or(&zeros), w, h, seed, &s, device)
+    }
+
     /// [`InpaintModel::inpaint_image`] for a batch of same-sized images sampled together (one
     /// noise tensor of the batch's shape from `seed`).
     pub fn inpaint_images(
@@ -353,7 +406,11 @@ impl InpaintModel {
         let x = image.clone() * 2.0 - 1.0;
         let keep = mask.clone().neg() + 1.0;
         let z0 = self.codec.encode(x.clone());
-        let masked = self.codec.encode(x * keep.clone());
+        // The guidance: the image with its hole blanked, or (an enhancer) all of it.
+        let masked = match self.task {
+            Task::Inpaint => self.codec.encode(x * keep.clone()),
+            Task::Enhance => z0.clone(),
+        };
         let mask_z = self.codec.mask(mask.clone());
         if noise.dims() != z0.dims() {
             return Err(DiffusionError::Input(format!(

@@ -9,6 +9,7 @@
 //! - [`scheduler`]: DDPM training noise, DDIM sampling from a noised image, guidance, w(t).
 //! - [`weights`]: diffusers-layout safetensors folders in and out.
 //! - [`lora`]: LoRA adapters on attention (and optionally convolutions), saved apart.
+//! - [`enhancer`]: stage 3's enhancer (guidance not masked), trained on render/photo pairs.
 //! - [`train`]: the training loops (from scratch, LoRA fine-tuning) and [`inpaint`] the
 //!   inpainting pipeline; [`fill`] the simple fills they are measured against.
 #![forbid(unsafe_code)]
@@ -19,6 +20,7 @@ pub mod blocks;
 pub mod clip;
 pub mod config;
 pub mod device;
+pub mod enhancer;
 pub mod fill;
 pub mod inpaint;
 pub mod layers;

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
 use crate::config::{UNetConfig, VaeConfig};
-use crate::inpaint::{Codec, InpaintModel, PixelCodec};
+use crate::inpaint::{Codec, InpaintModel, PixelCodec, Task};
 use crate::scheduler::{Schedule, SchedulerConfig};
 use crate::text::LearnedTokens;
 use crate::unet::UNet2DConditionModel;
@@ -25,6 +25,23 @@ use crate::{weights, DiffusionError, Result};
 pub const OWN_CLASS: &str = "ExtraNerfInpaintPipeline";
 /// Stable Diffusion's inpainting pipeline class.
 pub const SD_INPAINT_CLASS: &str = "StableDiffusionInpaintPipeline";
+/// The file beside LoRA adapters that says what they adapt the model to (absent: inpainting).
+pub const TASK_FILE: &str = "extranerf_task.json";
+
+/// Writes [`TASK_FILE`] into an adapter folder.
+pub fn save_task(dir: &Path, task: Task) -> Result<()> {
+    crate::config::write_json(&dir.join(TASK_FILE), &serde_json::json!({ "task": task }))
+}
+
+fn read_task(path: &Path, v: &Value) -> Result<Task> {
+    match v.get("task") {
+        None => Ok(Task::Inpaint),
+        Some(t) => serde_json::from_value(t.clone()).map_err(|e| DiffusionError::Config {
+            path: path.to_path_buf(),
+            problem: format!("\"task\": {e} (known: \"inpaint\", \"enhance\")"),
+        }),
+    }
+}
 
 /// `model_index.json`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -73,6 +90,7 @@ impl Pipeline {
             unet,
             codec,
             schedule,
+            task: Task::Inpaint,
         };
         model.validate()?;
         Ok(Pipeline {
@@ -91,6 +109,11 @@ impl Pipeline {
         self.model.unet = unet;
         self.notes
             .push(format!("LoRA adapters from {}", dir.display()));
+        let task_path = dir.join(TASK_FILE);
+        if task_path.is_file() {
+            let v: Value = crate::config::read_json(&task_path)?;
+            self.model.task = read_task(&task_path, &v)?;
+        }
         let tdir = dir.join("text_encoder");
         if tdir.join(crate::text::TOKENS_FILE).is_file() {
             self.model.tokens = LearnedTokens::load(&tdir, device)?;
@@ -178,11 +201,17 @@ impl Pipeline {
             ));
             LearnedTokens::new(8, unet_config.cross_attention_dim, device)
         };
+        let task = if own {
+            read_task(&index_path, &Value::Object(index.other.clone()))?
+        } else {
+            Task::Inpaint
+        };
         let model = InpaintModel {
             unet,
             codec,
             tokens,
             schedule,
+            task,
         };
         model.validate().map_err(|e| DiffusionError::Config {
             path: dir.to_path_buf(),
@@ -217,6 +246,7 @@ impl Pipeline {
             }),
         );
         other.insert("conditioning".into(), Value::from("learned_tokens"));
+        other.insert("task".into(), Value::from(self.model.task.name()));
         crate::config::write_json(
             &dir.join("model_index.json"),
             &ModelIndex {

@@ -91,6 +91,16 @@ impl Default for SchedulerConfig {
 }
 
 impl SchedulerConfig {
+    /// The noise process of the pixel-space models trained here: cosine betas and
+    /// `prediction` (v-prediction is stable at every noise level for a small pixel model).
+    pub fn pixel_space(prediction: Prediction) -> SchedulerConfig {
+        SchedulerConfig {
+            beta_schedule: BetaSchedule::SquaredCosCapV2,
+            prediction_type: prediction,
+            ..SchedulerConfig::default()
+        }
+    }
+
     /// Parses `scheduler_config.json`. Keys that change the noise process and are not
     /// modelled (`trained_betas`, `rescale_betas_zero_snr`, `thresholding`) must be off; the
     /// sampler-spacing keys (`timestep_spacing`, `steps_offset`, `set_alpha_to_one`,

@@ -34,6 +34,20 @@ pub struct TrainImage {
     /// `[h, w]` hole masks to train with besides the random ones (pseudo-disocclusion masks):
     /// 1 = hole.
     pub masks: Vec<Vec<f32>>,
+    /// Corrupted versions of this image for an enhancer ([`crate::inpaint::Task::Enhance`]):
+    /// a batch item shows one of them, whole, as guidance and learns the image. Empty for an
+    /// inpainter.
+    pub guides: Vec<Guide>,
+}
+
+/// A corrupted version of a training image (a NeRF render of its view) and where an
+/// earlier stage filled it in: the enhancer's input for that image.
+#[derive(Clone, Debug)]
+pub struct Guide {
+    /// `[h, w, 3]` in [0, 1].
+    pub rgb: Vec<f32>,
+    /// `[h, w]`: 1 where the render's supervision came from an inpainter.
+    pub mask: Vec<f32>,
 }
 
 impl TrainImage {
@@ -45,6 +59,7 @@ impl TrainImage {
             known: vec![1.0; width * height],
             rgb,
             masks: Vec::new(),
+            guides: Vec::new(),
         }
     }
 
@@ -53,17 +68,30 @@ impl TrainImage {
         if self.rgb.len() != 3 * n
             || self.known.len() != n
             || self.masks.iter().any(|m| m.len() != n)
+            || self
+                .guides
+                .iter()
+                .any(|g| g.rgb.len() != 3 * n || g.mask.len() != n)
         {
             return Err(DiffusionError::Input(format!(
-                "training image {i}: {}x{} but {} colour values, {} known flags, masks of {:?}",
+                "training image {i}: {}x{} but {} colour values, {} known flags, masks of {:?}, guides of {:?}",
                 self.width,
                 self.height,
                 self.rgb.len(),
                 self.known.len(),
-                self.masks.iter().map(Vec::len).collect::<Vec<_>>()
+                self.masks.iter().map(Vec::len).collect::<Vec<_>>(),
+                self.guides
+                    .iter()
+                    .map(|g| (g.rgb.len(), g.mask.len()))
+                    .collect::<Vec<_>>()
             )));
         }
-        if let Some(v) = self.rgb.iter().find(|v| !v.is_finite()) {
+        if let Some(v) = self
+            .rgb
+            .iter()
+            .chain(self.guides.iter().flat_map(|g| &g.rgb))
+            .find(|v| !v.is_finite())
+        {
             return Err(DiffusionError::Input(format!(
                 "training image {i} has a non-finite value {v}"
             )));
@@ -126,6 +154,14 @@ pub struct TrainSettings {
     /// Fraction of batch items conditioned on the null context (classifier-free guidance needs
     /// it trained; 0 for LoRA fine-tuning of a model that already has it).
     pub cond_dropout: f64,
+    /// Train on the first this fraction of the schedule's timesteps only (an enhancer starts
+    /// from a lightly noised render and never sees the rest); 1: all of them.
+    #[serde(default = "all_timesteps")]
+    pub max_strength: f64,
+}
+
+fn all_timesteps() -> f64 {
+    1.0
 }
 
 impl Default for TrainSettings {
@@ -140,6 +176,7 @@ impl Default for TrainSettings {
             log_every: 25,
             clip: 1.0,
             cond_dropout: 0.1,
+            max_strength: 1.0,
         }
     }
 }
@@ -170,6 +207,9 @@ pub struct Batch {
     pub hole: Vec<f32>,
     /// `[n, 1, s, s]`: 1 = known (enters the loss).
     pub known: Vec<f32>,
+    /// An enhancer's batch: `[n, 3, s, s]` in [0, 1], the corrupted images shown whole as
+    /// guidance (`hole` is then their fill masks).
+    pub guide: Option<Vec<f32>>,
 }
 
 fn paint_rect(m: &mut [f32], s: usize, rng: &mut SplitMix, max_frac: f64) {
@@ -257,9 +297,19 @@ pub fn draw_batch(
             im.width, im.height
         )));
     }
+    let enhancer = images.iter().any(|im| !im.guides.is_empty());
+    if let Some(i) = images
+        .iter()
+        .position(|im| enhancer && im.guides.is_empty())
+    {
+        return Err(DiffusionError::Input(format!(
+            "training image {i} has no corrupted version, but others do: an enhancer needs one for every image"
+        )));
+    }
     let mut image = vec![0.5f32; n * 3 * s * s];
     let mut hole = vec![0.0f32; n * s * s];
     let mut known = vec![0.0f32; n * s * s];
+    let mut guide = enhancer.then(|| vec![0.5f32; n * 3 * s * s]);
     for b in 0..n {
         let im = &images[rng.below(images.len())];
         let (x0, y0) = (rng.below(im.width - s + 1), rng.below(im.height - s + 1));
@@ -271,15 +321,22 @@ pub fn draw_batch(
         let own = (!im.masks.is_empty() && rng.unit() < aug.own_mask_probability)
             .then(|| &im.masks[rng.below(im.masks.len())]);
         let random = random_hole(s, rng, aug.max_hole_fraction);
+        let g = enhancer.then(|| &im.guides[rng.below(im.guides.len())]);
+        let jitter = |px: [f64; 3], c: usize| {
+            let grey = (px[0] + px[1] + px[2]) / 3.0;
+            let v = grey + (px[c] - grey) * sat;
+            (((v - 0.5) * contrast + 0.5) * bright).clamp(0.0, 1.0) as f32
+        };
         for y in 0..s {
             for x in 0..s {
                 let sx = if flip { x0 + s - 1 - x } else { x0 + x };
                 let si = (y0 + y) * im.width + sx;
                 let di = y * s + x;
                 let k = im.known[si] >= 0.5;
-                let mut h = match own {
-                    Some(m) => m[si] >= 0.5,
-                    None => random[di] >= 0.5,
+                let mut h = match (g, own) {
+                    (Some(g), _) => g.mask[si] >= 0.5,
+                    (None, Some(m)) => m[si] >= 0.5,
+                    (None, None) => random[di] >= 0.5,
                 };
                 if !k {
                     h = true;
@@ -288,11 +345,16 @@ pub fn draw_batch(
                 known[b * s * s + di] = if k { 1.0 } else { 0.0 };
                 if k {
                     let px: [f64; 3] = std::array::from_fn(|c| im.rgb[3 * si + c] as f64);
-                    let grey = (px[0] + px[1] + px[2]) / 3.0;
                     for c in 0..3 {
-                        let v = grey + (px[c] - grey) * sat;
-                        let v = ((v - 0.5) * contrast + 0.5) * bright;
-                        image[b * 3 * s * s + c * s * s + di] = v.clamp(0.0, 1.0) as f32;
+                        image[b * 3 * s * s + c * s * s + di] = jitter(px, c);
+                    }
+                }
+                // The corrupted version goes through the same crop, flip and jitter, all of
+                // it (its unknown pixels are no less its input).
+                if let (Some(g), Some(out)) = (g, guide.as_mut()) {
+                    let px: [f64; 3] = std::array::from_fn(|c| g.rgb[3 * si + c] as f64);
+                    for c in 0..3 {
+                        out[b * 3 * s * s + c * s * s + di] = jitter(px, c);
                     }
                 }
             }
@@ -304,6 +366,7 @@ pub fn draw_batch(
         image,
         hole,
         known,
+        guide,
     })
 }
 
@@ -316,13 +379,38 @@ pub struct Trainable {
     pub tokens: LearnedTokens,
 }
 
-/// The diffusion loss of one batch (on the device; nothing is read back).
+/// The diffusion loss of one batch (on the device; nothing is read back), over every
+/// timestep.
 pub fn batch_loss(
     model: &Trainable,
     codec: &Codec,
     schedule: &Schedule,
     batch: &Batch,
     cond_dropout: f64,
+    rng: &mut SplitMix,
+    device: &Device,
+) -> Tensor<1> {
+    batch_loss_upto(
+        model,
+        codec,
+        schedule,
+        batch,
+        cond_dropout,
+        1.0,
+        rng,
+        device,
+    )
+}
+
+/// [`batch_loss`] with the timesteps drawn from the first `max_strength` of the schedule.
+#[allow(clippy::too_many_arguments)] // each is a distinct operand
+pub fn batch_loss_upto(
+    model: &Trainable,
+    codec: &Codec,
+    schedule: &Schedule,
+    batch: &Batch,
+    cond_dropout: f64,
+    max_strength: f64,
     rng: &mut SplitMix,
     device: &Device,
 ) -> Tensor<1> {
@@ -335,10 +423,18 @@ pub fn batch_loss(
     let x = x * known.clone();
     let keep = hole.clone().neg() + 1.0;
     let z0 = codec.encode(x.clone()).detach();
-    let masked = codec.encode(x * keep).detach();
+    // The guidance: the image with its hole blanked, or an enhancer's corrupted image whole.
+    let masked = match &batch.guide {
+        Some(g) => {
+            let g = Tensor::<1>::from_floats(g.as_slice(), device).reshape([n, 3, s, s]);
+            codec.encode(g * 2.0 - 1.0).detach()
+        }
+        None => codec.encode(x * keep).detach(),
+    };
     let mask_z = codec.mask(hole);
     let valid = codec.mask(known.neg() + 1.0).neg() + 1.0;
-    let t: Vec<usize> = (0..n).map(|_| rng.below(schedule.len())).collect();
+    let t_max = ((schedule.len() as f64 * max_strength).ceil() as usize).clamp(1, schedule.len());
+    let t: Vec<usize> = (0..n).map(|_| rng.below(t_max)).collect();
     let noise = seeded_noise(z0.dims(), rng.next_u64(), device);
     let zt = schedule.add_noise(z0.clone(), noise.clone(), &t);
     let target = schedule.target(z0, noise, &t);
@@ -399,10 +495,11 @@ pub fn train(
         || !(s.lr.is_finite() && s.lr > 0.0)
         || !(s.token_lr.is_finite() && s.token_lr >= 0.0)
         || !(0.0..1.0).contains(&s.cond_dropout)
+        || !(s.max_strength > 0.0 && s.max_strength <= 1.0)
     {
         return Err(DiffusionError::Input(format!(
-            "steps {} and batch {} must be > 0, lr {} > 0, token lr {} >= 0 and conditioning dropout {} in [0, 1)",
-            s.steps, s.batch, s.lr, s.token_lr, s.cond_dropout
+            "steps {} and batch {} must be > 0, lr {} > 0, token lr {} >= 0, conditioning dropout {} in [0, 1) and the largest strength {} in (0, 1]",
+            s.steps, s.batch, s.lr, s.token_lr, s.cond_dropout, s.max_strength
         )));
     }
     let adam = || {
@@ -465,12 +562,13 @@ pub fn train(
     let start = std::time::Instant::now();
     for step in first..=s.steps {
         let batch = draw_batch(images, aug, s.batch, &mut rng)?;
-        let loss = batch_loss(
+        let loss = batch_loss_upto(
             &model,
             codec,
             schedule,
             &batch,
             s.cond_dropout,
+            s.max_strength,
             &mut rng,
             device,
         );

@@ -114,6 +114,15 @@ pub fn images_hash(images: &[TrainImage]) -> String {
         {
             eat(&v.to_bits().to_le_bytes());
         }
+        // An enhancer's corrupted versions (absent for an inpainter, whose hash is as before).
+        if !im.guides.is_empty() {
+            eat(&(im.guides.len() as u64).to_le_bytes());
+            for g in &im.guides {
+                for v in g.rgb.iter().chain(&g.mask) {
+                    eat(&v.to_bits().to_le_bytes());
+                }
+            }
+        }
     }
     format!("{h:016x}")
 }

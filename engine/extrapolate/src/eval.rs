@@ -1,5 +1,5 @@
-//! `extranerf eval RUN` on an extrapolate run: the comparison table of the BaseNeRF and every
-//! stage-2 variant on the held-out views, over the whole image, inside the not-visible mask
+//! `extranerf eval RUN` on an extrapolate run: the comparison table of the BaseNeRF, every
+//! stage-2 variant and every stage-3 field on the held-out views, over the whole image, inside the not-visible mask
 //! (from the visibility stage) and over the visible rest.
 //!
 //! Inside the mask: PSNR over the masked pixels; SSIM and LPIPS on the mask's bounding box
@@ -128,7 +128,10 @@ pub fn compare(dir: &Path, lpips: Option<&Lpips>) -> anyhow::Result<Table> {
     let st = SafeTensors::read(&maps_path)?;
     let mut variants = vec![("base".to_string(), dir.join("visibility"), "_base")];
     for s in &manifest.stages {
-        if s.done && s.name.starts_with("stage2-") {
+        let stage3 = s.name.starts_with("stage3-")
+            && s.name != crate::stage3::DATA_STAGE
+            && s.name != crate::stage3::ENHANCER_STAGE;
+        if s.done && (s.name.starts_with("stage2-") || stage3) {
             variants.push((s.name.clone(), dir.join(&s.name), ""));
         }
     }

@@ -12,7 +12,7 @@
 //!
 //! - [`anim`]: looping GIFs of rendered frames (the fly-through).
 //!
-//! Not built yet: stage 3 (enhancement).
+//! - [`stage3`]: stage 3, the enhancer's training data, the enhancer and the enhancement loop.
 //!
 //! Nothing here prints: progress and notes go to a [`driver::Reporter`] that the caller
 //! supplies (the command line draws them as progress bars or log lines).
@@ -27,4 +27,5 @@ pub mod eval;
 pub mod inpaint;
 pub mod manifest;
 pub mod pipeline;
+pub mod stage3;
 pub mod visibility;

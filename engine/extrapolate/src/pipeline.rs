@@ -9,7 +9,11 @@
 //! - [`FlythroughStage`]: frames along the virtual trajectory and a looping GIF, for the
 //!   BaseNeRF and each variant (`RUN/flythrough`).
 //!
-//! Stage 3 (enhancement) will be one more [`Stage`]. Each stage records its resolved
+//! - stage 3 ([`crate::stage3`]): the enhancer's training data (`RUN/stage3-data`), the
+//!   enhancer (`RUN/stage3-enhancer`), and per stage-2 variant the enhancement loop
+//!   (`RUN/stage3-NAME`).
+//!
+//! Each stage records its resolved
 //! configuration in `extrapolate.json` ([`Manifest`]); a resumed run skips the stages done,
 //! refuses one asked for with other settings, and continues an unfinished stage 2 from its
 //! last finished round.
@@ -40,6 +44,7 @@ use crate::driver::{fit_budget, train_loop, Progress, Reporter, TrainRun, Unit};
 use crate::inpaint::{Fill, InpainterKind, Source, Target};
 use crate::manifest::{Manifest, StageRecord};
 use crate::visibility::{FieldVisibility, VisSettings};
+use extranerf_nerf::trainer::StepStats;
 
 /// Where the BaseNeRF comes from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -189,6 +194,8 @@ pub struct Options {
     pub inpainters: Vec<InpainterKind>,
     /// The diffusion inpainter's model (needed when `inpainters` holds it).
     pub diffusion: Option<DiffusionSpec>,
+    /// Stage 3 (None: stop after stage 2).
+    pub stage3: Option<crate::stage3::Stage3Spec>,
     /// The fly-through of the BaseNeRF and each variant.
     pub flythrough: FlythroughSpec,
     /// Continue a run folder that holds a manifest.
@@ -655,11 +662,149 @@ pub fn reproject(
         .collect()
 }
 
-/// The stage-2 state between rounds (`round.json`).
+/// The stage-2 and stage-3 state between rounds (`round.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct RoundState {
-    rounds_done: u32,
-    seconds: f64,
+pub(crate) struct RoundState {
+    pub rounds_done: u32,
+    pub seconds: f64,
+}
+
+/// The file of [`RoundState`].
+const ROUND_FILE: &str = "round.json";
+
+/// The last finished round of a round-based stage in `out`, with its checkpoint.
+pub(crate) fn load_round(out: &Path) -> anyhow::Result<Option<(RoundState, Checkpoint)>> {
+    let state_path = out.join(ROUND_FILE);
+    if !(state_path.exists() && out.join(extranerf_nerf::run::CHECKPOINT_FILE).exists()) {
+        return Ok(None);
+    }
+    let s: RoundState = serde_json::from_str(
+        &std::fs::read_to_string(&state_path)
+            .with_context(|| format!("reading {}", state_path.display()))?,
+    )
+    .with_context(|| format!("{}: malformed", state_path.display()))?;
+    Ok(Some((s, load_checkpoint(out)?)))
+}
+
+/// A finished round: the checkpoint, then the state that points at it (a crash between the
+/// two redoes the round).
+pub(crate) fn save_round(
+    out: &Path,
+    cfg: &RunConfig,
+    tcfg: &TrainConfig,
+    trainer: &Trainer,
+    state: &RoundState,
+) -> anyhow::Result<()> {
+    save_checkpoint(
+        out,
+        &Checkpoint {
+            config: RunConfig {
+                train: tcfg.clone(),
+                ..cfg.clone()
+            },
+            step: trainer.step(),
+            params: trainer.nerf().params().read()?,
+            moments: Some(trainer.moments()?),
+        },
+    )?;
+    extranerf_nerf::safetensors::write_atomic(
+        &out.join(ROUND_FILE),
+        serde_json::to_string(state)?.as_bytes(),
+    )?;
+    Ok(())
+}
+
+/// Trains `steps` steps on `data` with progress; a non-finite loss is an error that says the
+/// last finished round in `out` is intact. Returns the last window's statistics.
+#[allow(clippy::too_many_arguments)] // each is a distinct input of the loop
+pub(crate) fn train_steps(
+    ctx: &Context,
+    trainer: &mut Trainer,
+    prims: &Prims,
+    data: &TrainData,
+    steps: u32,
+    what: &str,
+    out: &Path,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<Option<StepStats>> {
+    let tt = Instant::now();
+    let mut left = steps;
+    let mut last = None;
+    while left > 0 {
+        let n = left.min(25);
+        let stats = trainer.run_steps(ctx, prims, data, n)?;
+        if !(stats.loss.is_finite() && stats.mse.is_finite()) {
+            bail!(
+                "{what}: the loss became {}; the last finished round in {} is intact",
+                stats.loss,
+                out.display()
+            );
+        }
+        left -= n;
+        let done = steps - left;
+        let secs = tt.elapsed().as_secs_f64();
+        rep.progress(&Progress {
+            unit: Unit::Steps,
+            step: done,
+            total: steps,
+            loss: stats.loss,
+            psnr: stats.psnr(),
+            samples_per_s: done as f64 * trainer.samples_per_step() as f64 / secs,
+            secs,
+            eta: secs / done as f64 * left as f64,
+        });
+        last = Some(stats);
+    }
+    Ok(last)
+}
+
+/// The inpainter of `kind` (the diffusion one loaded from `diffusion`).
+pub(crate) fn build_inpainter(
+    ctx: &Context,
+    kind: InpainterKind,
+    diffusion: Option<&DiffusionSpec>,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<Box<dyn crate::inpaint::Inpainter>> {
+    if let Some(i) = kind.build() {
+        return Ok(i);
+    }
+    let Some(d) = diffusion else {
+        bail!("--inpainter diffusion needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
+    };
+    let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, d.backend)?;
+    let inp = crate::inpaint::diffusion::DiffusionInpainter::load(
+        &d.model,
+        d.lora.as_deref(),
+        device,
+        d.steps,
+    )?;
+    rep.note(&format!(
+        "diffusion inpainter on {}: {}",
+        b.name(),
+        inp.notes.join("; ")
+    ));
+    Ok(Box::new(inp))
+}
+
+/// The held-out views rendered from `nerf` into `out/test_NNN.png` (what `eval` scores).
+pub(crate) fn write_test_renders(
+    ctx: &Context,
+    nerf: &Nerf,
+    loaded: &extranerf_nerf::run::LoadedScene,
+    samples: u32,
+    out: &Path,
+) -> anyhow::Result<()> {
+    for &i in &loaded.split.test {
+        let cam = &loaded.scene.cameras[i];
+        let (rgb, _, _) = render(ctx, nerf, cam, samples)?;
+        write_png(
+            &out.join(format!("test_{i:03}.png")),
+            cam.width,
+            cam.height,
+            &rgb,
+        )?;
+    }
+    Ok(())
 }
 
 impl Stage for InpaintStage {
@@ -710,24 +855,17 @@ impl Stage for InpaintStage {
             source_imgs.push((cam, img, depth));
         }
         // Resume from the last finished round.
-        let state_path = out.join("round.json");
-        let (start_round, mut seconds, params, moments) =
-            if state_path.exists() && out.join(extranerf_nerf::run::CHECKPOINT_FILE).exists() {
-                let s: RoundState = serde_json::from_str(
-                    &std::fs::read_to_string(&state_path)
-                        .with_context(|| format!("reading {}", state_path.display()))?,
-                )
-                .with_context(|| format!("{}: malformed", state_path.display()))?;
-                let ck = load_checkpoint(&out)?;
+        let (start_round, mut seconds, params, moments) = match load_round(&out)? {
+            Some((st, ck)) => {
                 rep.note(&format!(
                     "{}: resuming after round {}",
                     self.name(),
-                    s.rounds_done
+                    st.rounds_done
                 ));
-                (s.rounds_done, s.seconds, ck.params, ck.moments)
-            } else {
-                (0, 0.0, base.ck.params.clone(), base.ck.moments.clone())
-            };
+                (st.rounds_done, st.seconds, ck.params, ck.moments)
+            }
+            None => (0, 0.0, base.ck.params.clone(), base.ck.moments.clone()),
+        };
         let total_steps = self.spec.rounds * self.spec.steps_per_round;
         let mut tcfg = cfg.train.clone();
         tcfg.steps = total_steps;
@@ -744,27 +882,7 @@ impl Stage for InpaintStage {
             moments,
         )?;
         let prims = Prims::new(ctx)?;
-        let mut inpainter: Box<dyn crate::inpaint::Inpainter> = match self.kind.build() {
-            Some(i) => i,
-            None => {
-                let Some(d) = &self.diffusion else {
-                    bail!("--inpainter diffusion needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
-                };
-                let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, d.backend)?;
-                let inp = crate::inpaint::diffusion::DiffusionInpainter::load(
-                    &d.model,
-                    d.lora.as_deref(),
-                    device,
-                    d.steps,
-                )?;
-                rep.note(&format!(
-                    "diffusion inpainter on {}: {}",
-                    b.name(),
-                    inp.notes.join("; ")
-                ));
-                Box::new(inp)
-            }
-        };
+        let mut inpainter = build_inpainter(ctx, self.kind, self.diffusion.as_ref(), rep)?;
         let mut rounds = Vec::new();
         for round in start_round..self.spec.rounds {
             let t0 = Instant::now();
@@ -890,56 +1008,27 @@ impl Stage for InpaintStage {
                 ViewSampling::VirtualFraction(self.spec.virtual_fraction),
             )?;
             let tt = Instant::now();
-            let mut left = self.spec.steps_per_round;
-            let mut last = None;
-            while left > 0 {
-                let n = left.min(25);
-                let stats = trainer.run_steps(ctx, &prims, &data, n)?;
-                if !(stats.loss.is_finite() && stats.mse.is_finite()) {
-                    bail!(
-                        "{}: the loss became {} in round {round}; the last finished round in {} is intact",
-                        self.name(),
-                        stats.loss,
-                        out.display()
-                    );
-                }
-                left -= n;
-                let done = self.spec.steps_per_round - left;
-                let secs = tt.elapsed().as_secs_f64();
-                rep.progress(&Progress {
-                    unit: Unit::Steps,
-                    step: done,
-                    total: self.spec.steps_per_round,
-                    loss: stats.loss,
-                    psnr: stats.psnr(),
-                    samples_per_s: done as f64 * trainer.samples_per_step() as f64 / secs,
-                    secs,
-                    eta: secs / done as f64 * left as f64,
-                });
-                last = Some(stats);
-            }
-            let train_s = tt.elapsed().as_secs_f64();
-            // The round is done: checkpoint, then the state that points at it.
-            save_checkpoint(
+            let last = train_steps(
+                ctx,
+                &mut trainer,
+                &prims,
+                &data,
+                self.spec.steps_per_round,
+                &format!("{} round {round}", self.name()),
                 &out,
-                &Checkpoint {
-                    config: RunConfig {
-                        train: tcfg.clone(),
-                        ..cfg.clone()
-                    },
-                    step: trainer.step(),
-                    params: trainer.nerf().params().read()?,
-                    moments: Some(trainer.moments()?),
-                },
+                rep,
             )?;
+            let train_s = tt.elapsed().as_secs_f64();
             seconds += t0.elapsed().as_secs_f64();
-            extranerf_nerf::safetensors::write_atomic(
-                &state_path,
-                serde_json::to_string(&RoundState {
+            save_round(
+                &out,
+                &cfg,
+                &tcfg,
+                &trainer,
+                &RoundState {
                     rounds_done: round + 1,
                     seconds,
-                })?
-                .as_bytes(),
+                },
             )?;
             let row = json!({
                 "round": round,
@@ -960,37 +1049,44 @@ impl Stage for InpaintStage {
             rounds.push(row);
         }
         // The held-out views' renders, for `eval`.
-        for &i in &base.loaded.split.test {
-            let cam = &base.loaded.scene.cameras[i];
-            let (rgb, _, _) = render(ctx, trainer.nerf(), cam, samples)?;
-            write_png(
-                &out.join(format!("test_{i:03}.png")),
-                cam.width,
-                cam.height,
-                &rgb,
-            )?;
-        }
+        write_test_renders(ctx, trainer.nerf(), &base.loaded, samples, &out)?;
         Ok(json!({"rounds": rounds, "seconds": seconds}))
+    }
+}
+
+/// A field the pipeline made: the BaseNeRF, a stage-2 variant, or that variant after stage 3.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FieldRef {
+    Base,
+    Stage2(InpainterKind),
+    Stage3(InpainterKind),
+}
+
+impl FieldRef {
+    /// Its stage's name (and folder, for the variants).
+    pub fn name(self) -> String {
+        match self {
+            FieldRef::Base => "base".into(),
+            FieldRef::Stage2(k) => format!("stage2-{}", k.name()),
+            FieldRef::Stage3(k) => format!("stage3-{}", k.name()),
+        }
     }
 }
 
 /// The fly-through of one field: `frames` cameras along the virtual trajectory (the path the
 /// virtual views sample, sampled densely), rendered into `RUN/flythrough/NAME/frame_NNN.png`
-/// and `RUN/flythrough/NAME.gif`. NAME is `base` or a stage-2 variant's folder name.
+/// and `RUN/flythrough/NAME.gif`. NAME is `base` or a variant's folder name.
 #[derive(Clone, Debug)]
 pub struct FlythroughStage {
-    /// The stage-2 variant rendered (None: the BaseNeRF).
-    pub variant: Option<InpainterKind>,
+    /// The field rendered.
+    pub field: FieldRef,
     pub virt: VirtualSpec,
     pub spec: FlythroughSpec,
 }
 
 impl FlythroughStage {
     fn field_name(&self) -> String {
-        match self.variant {
-            Some(k) => format!("stage2-{}", k.name()),
-            None => "base".into(),
-        }
+        self.field.name()
     }
 }
 
@@ -1014,17 +1110,18 @@ impl Stage for FlythroughStage {
         }
         let base = BaseField::load(ctx, &dir.base)?;
         let samples = base.ck.config.train.samples;
-        let (nerf, step) = match self.variant {
-            Some(k) => {
-                let ck = load_checkpoint(&dir.stage2(k))
-                    .with_context(|| format!("the {} variant's field", k.name()))?;
+        let (nerf, step) = match self.field {
+            FieldRef::Stage2(_) | FieldRef::Stage3(_) => {
+                let name = self.field.name();
+                let ck = load_checkpoint(&dir.root.join(&name))
+                    .with_context(|| format!("the {name} variant's field"))?;
                 let cfg = &ck.config;
                 (
                     Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?,
                     ck.step,
                 )
             }
-            None => (base.nerf, base.ck.step),
+            FieldRef::Base => (base.nerf, base.ck.step),
         };
         let train: Vec<Camera> = base
             .loaded
@@ -1113,8 +1210,9 @@ pub fn downscale_image(img: &Image, w: u32, h: u32) -> Image {
     }
 }
 
-/// Runs the pipeline: the base, the visibility stage, then one stage-2 variant per
-/// inpainter, skipping the stages a resumed run has done.
+/// Runs the pipeline: the base, the visibility stage, one stage-2 variant per inpainter, then
+/// stage 3 (its data from the first inpainter's supervision, the enhancer, and one stage-3
+/// field per variant) and the fly-throughs, skipping the stages a resumed run has done.
 pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow::Result<Manifest> {
     if o.inpainters.is_empty() {
         bail!("give at least one --inpainter");
@@ -1176,11 +1274,35 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
             vis: o.vis.clone(),
         }));
     }
+    if let Some(s3) = &o.stage3 {
+        s3.validate()?;
+        stages.push(Box::new(crate::stage3::EnhancerDataStage {
+            spec: s3.clone(),
+            inpainter: o.inpainters[0],
+            diffusion: o.diffusion.clone(),
+            stage2: o.stage2.clone(),
+            virt: o.virt.clone(),
+            vis: o.vis.clone(),
+        }));
+        stages.push(Box::new(crate::stage3::EnhancerStage { spec: s3.clone() }));
+        for &kind in &o.inpainters {
+            stages.push(Box::new(crate::stage3::EnhanceStage {
+                kind,
+                spec: s3.clone(),
+                virt: o.virt.clone(),
+                vis: o.vis.clone(),
+            }));
+        }
+    }
     if o.flythrough.frames > 0 {
-        let variants = std::iter::once(None).chain(o.inpainters.iter().map(|&k| Some(k)));
-        for variant in variants {
+        let mut fields = vec![FieldRef::Base];
+        fields.extend(o.inpainters.iter().map(|&k| FieldRef::Stage2(k)));
+        if o.stage3.is_some() {
+            fields.extend(o.inpainters.iter().map(|&k| FieldRef::Stage3(k)));
+        }
+        for field in fields {
             stages.push(Box::new(FlythroughStage {
-                variant,
+                field,
                 virt: o.virt.clone(),
                 spec: o.flythrough.clone(),
             }));

@@ -1,0 +1,277 @@
+//! ExtraNeRF's enhancer (stage 3): the inpainting architecture trained to turn a corrupted
+//! NeRF render back into the photograph of its view, with the render shown whole as guidance
+//! and the mask channel marking where an earlier stage filled it in ([`Task::Enhance`]).
+//!
+//! Trained on (corrupted render, mask, photo) triplets ([`TrainImage`] with
+//! [`crate::train::Guide`]s): LoRA adapters on a user's Stable Diffusion inpainting folder
+//! when one is given, otherwise a pixel-space U-Net from scratch on the scene (no pretrained
+//! weights exist on these machines). A folder this module writes loads with [`load`].
+
+use std::path::{Path, PathBuf};
+
+use burn::module::Module;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::config::UNetConfig;
+use crate::inpaint::{Codec, InpaintModel, PixelCodec, Task};
+use crate::lora::{self, LoraConfig};
+use crate::pipeline::{save_task, Pipeline};
+use crate::scheduler::{Prediction, SchedulerConfig};
+use crate::train::{self, Augment, Progress, TrainImage, TrainSettings, Trainable};
+use crate::train_state::{self, Checkpointing};
+use crate::{DiffusionError, Result};
+
+/// The file in an enhancer folder that says what it holds.
+pub const ENHANCER_FILE: &str = "enhancer.json";
+
+/// How the enhancer is made.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnhancerSpec {
+    /// A Stable Diffusion inpainting folder (diffusers layout) to adapt with LoRA; None:
+    /// train a pixel-space U-Net from scratch.
+    pub base_model: Option<PathBuf>,
+    /// Channels per level of the from-scratch U-Net.
+    pub channels: Vec<usize>,
+    /// LoRA rank (with `base_model`).
+    pub rank: usize,
+    /// Optimiser steps.
+    pub steps: usize,
+    /// Crops per step.
+    pub batch: usize,
+    /// Crop side (a multiple of the model's size step).
+    pub crop: usize,
+    /// AdamW learning rate.
+    pub lr: f64,
+    /// Colour jitter (applied alike to render and photo).
+    pub jitter: f64,
+    /// The largest noise strength it is trained for (a fraction of the schedule's
+    /// timesteps): stage 3 enhances from a moderate one and never needs the rest.
+    pub max_strength: f64,
+    /// Seed of the initialisation, crops, timesteps and noise.
+    pub seed: u64,
+}
+
+impl Default for EnhancerSpec {
+    fn default() -> Self {
+        EnhancerSpec {
+            base_model: None,
+            channels: vec![32, 64, 96],
+            rank: 4,
+            steps: 600,
+            batch: 8,
+            crop: 48,
+            lr: 2e-3,
+            jitter: 0.1,
+            max_strength: 0.6,
+            seed: 0,
+        }
+    }
+}
+
+/// What [`ENHANCER_FILE`] records.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnhancerRecord {
+    /// The settings it was trained with.
+    pub spec: EnhancerSpec,
+    /// U-Net parameters (from scratch) or adapter tensors (LoRA).
+    pub params: usize,
+    /// Loss reports (step, mean loss).
+    pub curve: Vec<(usize, f64)>,
+    /// Training seconds.
+    pub seconds: f64,
+}
+
+/// The folder of the full model (from scratch) inside an enhancer folder.
+pub fn model_dir(dir: &Path) -> PathBuf {
+    dir.join("model")
+}
+
+/// The folder of the adapters (LoRA) inside an enhancer folder.
+pub fn lora_dir(dir: &Path) -> PathBuf {
+    dir.join("lora")
+}
+
+/// Trains an enhancer on `images` (each with its corrupted versions) into `out`, resuming a
+/// killed training there (`out/train_state`). `device` is a plain device; training runs on
+/// its autodiff twin.
+pub fn train_enhancer(
+    images: &[TrainImage],
+    spec: &EnhancerSpec,
+    out: &Path,
+    device: &Device,
+    on_progress: &mut dyn FnMut(&Progress),
+) -> Result<EnhancerRecord> {
+    if images.is_empty() || images.iter().any(|im| im.guides.is_empty()) {
+        return Err(DiffusionError::Input(
+            "an enhancer needs training images, each with at least one corrupted version".into(),
+        ));
+    }
+    if spec.base_model.is_some() && spec.rank == 0 {
+        return Err(DiffusionError::Input(
+            "the enhancer's LoRA rank must be at least 1".into(),
+        ));
+    }
+    let identity = serde_json::to_value(spec).map_err(|e| DiffusionError::Input(e.to_string()))?;
+    let state_dir = out.join("train_state");
+    // A state from other triplets or settings is this folder's stale work (its data were
+    // collected again): it is dropped. The same training resumes.
+    let resume = match train_state::peek(&state_dir)? {
+        Some(st) if st.images == train_state::images_hash(images) && st.identity == identity => {
+            true
+        }
+        Some(_) => {
+            std::fs::remove_dir_all(&state_dir).map_err(|e| DiffusionError::io(&state_dir, e))?;
+            false
+        }
+        None => false,
+    };
+    let ck = Checkpointing {
+        dir: state_dir,
+        every: 50.min(spec.steps.max(1)),
+        resume,
+        identity,
+    };
+    let ad = device.clone().autodiff();
+    ad.seed(spec.seed);
+    let settings = TrainSettings {
+        steps: spec.steps,
+        batch: spec.batch,
+        lr: spec.lr,
+        token_lr: spec.lr,
+        seed: spec.seed,
+        log_every: 25.min(spec.steps.max(1)),
+        cond_dropout: 0.0,
+        max_strength: spec.max_strength,
+        ..TrainSettings::default()
+    };
+    let aug = Augment {
+        crop: spec.crop,
+        flip: true,
+        jitter: spec.jitter,
+        ..Augment::default()
+    };
+    let t = std::time::Instant::now();
+    let (params, curve) = match &spec.base_model {
+        None => {
+            let cfg = UNetConfig::pixel_space(&spec.channels, 64)
+                .map_err(|e| DiffusionError::InvalidConfig(format!("enhancer channels: {e}")))?;
+            let sched = SchedulerConfig::pixel_space(Prediction::V);
+            let pipe = Pipeline::new(cfg.clone(), None, sched.clone(), 4, &ad)?;
+            let params = pipe.model.unet.num_params();
+            let schedule = pipe.model.schedule.clone();
+            let (model, curve) = train::train(
+                Trainable {
+                    unet: pipe.model.unet,
+                    tokens: pipe.model.tokens,
+                },
+                &pipe.model.codec,
+                &schedule,
+                images,
+                &aug,
+                &settings,
+                &ad,
+                Some(&ck),
+                on_progress,
+            )?;
+            let model = model.valid();
+            Pipeline {
+                model: InpaintModel {
+                    unet: model.unet,
+                    tokens: model.tokens,
+                    codec: Codec::Pixels(PixelCodec),
+                    schedule,
+                    task: Task::Enhance,
+                },
+                unet_config: cfg,
+                vae_config: None,
+                scheduler_config: sched,
+                notes: Vec::new(),
+            }
+            .save(&model_dir(out))?;
+            (params, curve)
+        }
+        Some(base) => {
+            let pipe = Pipeline::load(base, &ad, "")?;
+            let cfg = LoraConfig::attention(spec.rank, spec.rank as f64);
+            let unet = lora::apply(pipe.model.unet, &cfg, &ad)?;
+            let params = lora::count_lora(&unet);
+            let schedule = pipe.model.schedule.clone();
+            let codec = pipe.model.codec.no_grad();
+            let (model, curve) = train::train(
+                Trainable {
+                    unet,
+                    tokens: pipe.model.tokens,
+                },
+                &codec,
+                &schedule,
+                images,
+                &aug,
+                &settings,
+                &ad,
+                Some(&ck),
+                on_progress,
+            )?;
+            let dir = lora_dir(out);
+            lora::save(&dir, &model.unet, &cfg)?;
+            model.tokens.save(&dir.join("text_encoder"))?;
+            save_task(&dir, Task::Enhance)?;
+            (params, curve)
+        }
+    };
+    let rec = EnhancerRecord {
+        spec: spec.clone(),
+        params,
+        curve,
+        seconds: t.elapsed().as_secs_f64(),
+    };
+    crate::config::write_json(&out.join(ENHANCER_FILE), &rec)?;
+    Ok(rec)
+}
+
+/// Loads an enhancer folder written by [`train_enhancer`] (its base model, for LoRA, from
+/// where the record says).
+pub fn load(dir: &Path, device: &Device) -> Result<Pipeline> {
+    let path = dir.join(ENHANCER_FILE);
+    let rec: EnhancerRecord = crate::config::read_json(&path)?;
+    let pipe = match &rec.spec.base_model {
+        None => Pipeline::load(&model_dir(dir), device, "")?,
+        Some(base) => Pipeline::load(base, device, "")?.with_lora(&lora_dir(dir), device)?,
+    };
+    if pipe.model.task != Task::Enhance {
+        return Err(DiffusionError::Config {
+            path,
+            problem: "the folder's model is not an enhancer".into(),
+        });
+    }
+    Ok(pipe)
+}
+
+/// Loads a model folder for enhancement: an enhancer folder ([`ENHANCER_FILE`]), or a
+/// pipeline folder whose model (with `lora`) was trained to enhance.
+pub fn load_any(dir: &Path, lora: Option<&Path>, device: &Device) -> Result<Pipeline> {
+    if dir.join(ENHANCER_FILE).is_file() {
+        if lora.is_some() {
+            return Err(DiffusionError::Input(format!(
+                "{} is an enhancer folder with its own adapters; give no --lora",
+                dir.display()
+            )));
+        }
+        return load(dir, device);
+    }
+    let mut pipe = Pipeline::load(dir, device, "")?;
+    if let Some(l) = lora {
+        pipe = pipe.with_lora(l, device)?;
+    }
+    if pipe.model.task != Task::Enhance {
+        return Err(DiffusionError::Input(format!(
+            "{}{} holds an inpainting model, not an enhancer (stage 3 of `extranerf extrapolate` trains one into RUN/stage3-enhancer)",
+            dir.display(),
+            lora.map(|l| format!(" with {}", l.display()))
+                .unwrap_or_default()
+        )));
+    }
+    Ok(pipe)
+}

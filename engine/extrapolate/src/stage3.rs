@@ -1,0 +1,914 @@
+//! ExtraNeRF's stage 3: an enhancer trained on the scene's own corrupted renders sharpens the
+//! renders of the virtual views, and the field is supervised by the result.
+//!
+//! - [`EnhancerDataStage`] (`RUN/stage3-data`): (corrupted render, mask, photo) triplets of
+//!   the training views. A field whose supervision inside each training view's
+//!   pseudo-disocclusion mask (the view against the other training cameras) comes from the
+//!   stage-2 inpainter instead of the photo is optimised from the BaseNeRF, and the training
+//!   views are rendered after each of its rounds; renders of an under-fitted field (a fresh
+//!   field trained with the BaseNeRF's settings, at a few step counts) and of the BaseNeRF
+//!   itself are added.
+//! - [`EnhancerStage`] (`RUN/stage3-enhancer`): the enhancer trained on them
+//!   ([`extranerf_diffusion::enhancer`]).
+//! - [`EnhanceStage`] (`RUN/stage3-NAME`, one per stage-2 variant): rounds of rendering the
+//!   virtual views, enhancing them from a moderate noise level in a few DDIM steps, and
+//!   training on them (w(t)-weighted L1 of the colours, the depth loss on the rendered depth)
+//!   mixed with the captured views.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use extranerf_diffusion::device::Backend;
+use extranerf_diffusion::enhancer::{self, EnhancerSpec};
+use extranerf_diffusion::inpaint::SampleSettings;
+use extranerf_diffusion::train::{Guide, TrainImage};
+use extranerf_gpu::Context;
+use extranerf_nerf::data::{Camera, Image};
+use extranerf_nerf::render::visibility::mask_all_but;
+use extranerf_nerf::renderer::Nerf;
+use extranerf_nerf::run::{load_checkpoint, training_views, write_png, RunConfig};
+use extranerf_nerf::safetensors::{SafeTensors, Tensor};
+use extranerf_nerf::trainer::Trainer;
+use extranerf_nerf::views::{TrainData, View, ViewKind, ViewSampling};
+use extranerf_prims::Prims;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use crate::base::BaseField;
+use crate::driver::{Progress, Reporter, Unit};
+use crate::inpaint::{Fill, InpainterKind, Source, Target};
+use crate::pipeline::{
+    build_inpainter, downscale_image, load_map, load_round, make_virtual, render, save_round,
+    train_steps, write_test_renders, DiffusionSpec, RoundState, RunDir, Stage, Stage2Spec,
+    VirtualSpec, MAPS_FILE,
+};
+use crate::visibility::{FieldVisibility, VisSettings};
+
+/// Stage 3's settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Stage3Spec {
+    /// Rounds of the inpainting-supervised field that makes training data (each: render the
+    /// training views, inpaint their masks, train, render them again as triplets).
+    pub data_rounds: u32,
+    /// Training steps per data round.
+    pub data_steps_per_round: u32,
+    /// Step counts of a fresh field at which the training views are rendered as triplets
+    /// (the blur of an under-fitted field); empty: none.
+    pub base_checkpoints: Vec<u32>,
+    /// The enhancer's training.
+    pub enhancer: EnhancerSpec,
+    /// Rounds over the virtual views (each: render, enhance, train).
+    pub rounds: u32,
+    /// Training steps per round (the paper: 500 iterations in all).
+    pub steps_per_round: u32,
+    /// Noise strength t the renders are enhanced from (a fraction of the schedule's timesteps,
+    /// as stage 2's t); the loss weight is w(t) = sqrt(1 - t^2), as in stage 2.
+    pub t: f32,
+    /// DDIM steps per enhancement.
+    pub ddim_steps: usize,
+    /// Fraction of each batch's rays drawn from the virtual views.
+    pub virtual_fraction: f32,
+    /// Learning rate (constant) of the stage's steps.
+    pub lr: f32,
+    /// Seed of the enhancement noise.
+    pub seed: u64,
+    /// Where the enhancer runs.
+    pub backend: Backend,
+}
+
+impl Default for Stage3Spec {
+    fn default() -> Self {
+        Stage3Spec {
+            data_rounds: 3,
+            data_steps_per_round: 100,
+            base_checkpoints: vec![100, 400],
+            enhancer: EnhancerSpec::default(),
+            rounds: 2,
+            steps_per_round: 250,
+            t: 0.3,
+            ddim_steps: 10,
+            virtual_fraction: 0.3,
+            lr: 3e-3,
+            seed: 0,
+            backend: Backend::Auto,
+        }
+    }
+}
+
+impl Stage3Spec {
+    /// Checks the settings.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        if self.rounds == 0 || self.steps_per_round == 0 {
+            bail!("stage 3 needs at least one round of at least one step");
+        }
+        if self.data_rounds == 0 || self.data_steps_per_round == 0 {
+            bail!("stage 3's data collection needs at least one round of at least one step");
+        }
+        if !(self.t > 0.0 && self.t < 1.0) {
+            bail!("--stage3-t {}: use a noise level in (0, 1)", self.t);
+        }
+        if self.ddim_steps == 0 {
+            bail!("--stage3-ddim-steps must be at least 1");
+        }
+        if !(0.0..=1.0).contains(&self.virtual_fraction) {
+            bail!(
+                "--stage3-virtual-fraction {}: use a value in [0, 1]",
+                self.virtual_fraction
+            );
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0) {
+            bail!("--stage3-lr {}: use a positive learning rate", self.lr);
+        }
+        let e = &self.enhancer;
+        if e.steps == 0 || e.batch == 0 || e.crop == 0 || !(e.lr.is_finite() && e.lr > 0.0) {
+            bail!(
+                "the enhancer needs steps ({}), batch ({}) and crop ({}) of at least 1 and a positive learning rate ({})",
+                e.steps,
+                e.batch,
+                e.crop,
+                e.lr
+            );
+        }
+        Ok(())
+    }
+
+    /// The loss weight w(t) = sqrt(1 - t^2).
+    pub fn weight(&self) -> f32 {
+        (1.0 - self.t * self.t).max(0.0).sqrt()
+    }
+}
+
+/// The data stage's name and folder.
+pub const DATA_STAGE: &str = "stage3-data";
+/// The enhancer stage's name and folder.
+pub const ENHANCER_STAGE: &str = "stage3-enhancer";
+/// The triplets' tensors.
+pub const TRIPLETS_FILE: &str = "triplets.safetensors";
+/// Where each triplet came from.
+pub const TRIPLETS_INDEX: &str = "triplets.json";
+
+/// One entry of [`TRIPLETS_INDEX`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TripletEntry {
+    /// Key of its tensors (`KEY.render`, `KEY.mask`).
+    pub key: String,
+    /// The training view (its slot in the split's training list).
+    pub slot: usize,
+    /// What rendered it: `fresh@STEPS`, `base` or `inpainted@ROUND`.
+    pub source: String,
+}
+
+/// The training data of the enhancer: per training view its photo and pseudo mask at the
+/// virtual views' scale, and the corrupted renders.
+#[derive(Clone, Debug)]
+pub struct Triplets {
+    pub width: usize,
+    pub height: usize,
+    /// `[h, w, 3]` per training view.
+    pub photos: Vec<Vec<f32>>,
+    /// `[h, w]` per training view: 1 where no other training camera saw it.
+    pub masks: Vec<Vec<f32>>,
+    pub entries: Vec<TripletEntry>,
+    /// `[h, w, 3]` render and `[h, w]` mask (where the inpainter supervised it) per entry.
+    pub renders: Vec<(Vec<f32>, Vec<f32>)>,
+}
+
+impl Triplets {
+    /// Writes `dir/triplets.safetensors` and `dir/triplets.json`.
+    pub fn save(&self, dir: &Path) -> anyhow::Result<()> {
+        let (w, h) = (self.width, self.height);
+        let mut st = SafeTensors::default();
+        let mut put = |name: String, shape: Vec<usize>, data: &[f32]| {
+            st.tensors.insert(
+                name,
+                Tensor {
+                    shape,
+                    data: data.to_vec(),
+                },
+            );
+        };
+        for (i, (p, m)) in self.photos.iter().zip(&self.masks).enumerate() {
+            put(format!("photo_{i:03}"), vec![h, w, 3], p);
+            put(format!("pseudo_mask_{i:03}"), vec![h, w], m);
+        }
+        for (e, (r, m)) in self.entries.iter().zip(&self.renders) {
+            put(format!("{}.render", e.key), vec![h, w, 3], r);
+            put(format!("{}.mask", e.key), vec![h, w], m);
+        }
+        st.write(&dir.join(TRIPLETS_FILE))?;
+        extranerf_nerf::safetensors::write_atomic(
+            &dir.join(TRIPLETS_INDEX),
+            serde_json::to_string_pretty(&self.entries)?.as_bytes(),
+        )?;
+        Ok(())
+    }
+
+    /// Reads what [`Triplets::save`] wrote.
+    pub fn load(dir: &Path) -> anyhow::Result<Triplets> {
+        let path = dir.join(TRIPLETS_FILE);
+        let index = dir.join(TRIPLETS_INDEX);
+        let st = SafeTensors::read(&path)?;
+        let entries: Vec<TripletEntry> = serde_json::from_str(
+            &std::fs::read_to_string(&index)
+                .with_context(|| format!("reading {}", index.display()))?,
+        )
+        .with_context(|| format!("{}: malformed", index.display()))?;
+        let get = |name: &str, want: &[usize]| -> anyhow::Result<Vec<f32>> {
+            let t = st
+                .tensors
+                .get(name)
+                .with_context(|| format!("{}: no tensor {name}", path.display()))?;
+            if t.shape != want {
+                bail!(
+                    "{}: {name} has shape {:?}, not {want:?}",
+                    path.display(),
+                    t.shape
+                );
+            }
+            Ok(t.data.clone())
+        };
+        let first = st
+            .tensors
+            .get("photo_000")
+            .with_context(|| format!("{}: no photos", path.display()))?;
+        let [h, w, 3] = first.shape[..] else {
+            bail!("{}: photo_000 is not [h, w, 3]", path.display());
+        };
+        let mut photos = Vec::new();
+        let mut masks = Vec::new();
+        while st
+            .tensors
+            .contains_key(&format!("photo_{:03}", photos.len()))
+        {
+            let i = photos.len();
+            photos.push(get(&format!("photo_{i:03}"), &[h, w, 3])?);
+            masks.push(get(&format!("pseudo_mask_{i:03}"), &[h, w])?);
+        }
+        let mut renders = Vec::new();
+        for e in &entries {
+            if e.slot >= photos.len() {
+                bail!(
+                    "{}: triplet {} names training view {} of {}",
+                    index.display(),
+                    e.key,
+                    e.slot,
+                    photos.len()
+                );
+            }
+            renders.push((
+                get(&format!("{}.render", e.key), &[h, w, 3])?,
+                get(&format!("{}.mask", e.key), &[h, w])?,
+            ));
+        }
+        Ok(Triplets {
+            width: w,
+            height: h,
+            photos,
+            masks,
+            entries,
+            renders,
+        })
+    }
+
+    /// The enhancer's training images: each photo with its corrupted renders.
+    pub fn train_images(&self) -> Vec<TrainImage> {
+        self.photos
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let mut im = TrainImage::new(self.width, self.height, p.clone());
+                im.guides = self
+                    .entries
+                    .iter()
+                    .zip(&self.renders)
+                    .filter(|(e, _)| e.slot == i)
+                    .map(|(_, (r, m))| Guide {
+                        rgb: r.clone(),
+                        mask: m.clone(),
+                    })
+                    .collect();
+                im
+            })
+            .collect()
+    }
+}
+
+/// A `sw x sh` mask resized to `w x h` by nearest neighbour (>= 0.5: 1).
+pub fn resize_mask(mask: &[f32], sw: usize, sh: usize, w: usize, h: usize) -> Vec<f32> {
+    (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let (sx, sy) = ((x * sw / w).min(sw - 1), (y * sh / h).min(sh - 1));
+            f32::from(mask[sy * sw + sx] >= 0.5)
+        })
+        .collect()
+}
+
+/// The supervision of one training view in the data collector: the captured view with its
+/// photo's weight 0 inside the pseudo mask (`mask_full`, the view's resolution), and a
+/// virtual view at the same camera (`cam`, the mask's scale `mask`) that carries the
+/// inpainter's fill with weight `weight` inside the mask and nothing outside it.
+pub fn collector_views(
+    captured: &View,
+    mask_full: &[f32],
+    cam: &Camera,
+    fill: &Fill,
+    mask: &[f32],
+    weight: f32,
+) -> (View, View) {
+    let mut photo = captured.clone();
+    let old = photo.weight.take();
+    photo.weight = Some(
+        mask_full
+            .iter()
+            .enumerate()
+            .map(|(i, &m)| {
+                let w = old.as_ref().map_or(1.0, |o| o[i]);
+                if m >= 0.5 {
+                    0.0
+                } else {
+                    w
+                }
+            })
+            .collect(),
+    );
+    let inside = |m: f32| if m >= 0.5 { 1.0 } else { 0.0 };
+    let virt = View {
+        camera: cam.clone(),
+        image: Image::opaque(cam.width, cam.height, fill.rgb.clone()),
+        depth: Some(
+            fill.depth
+                .iter()
+                .zip(mask)
+                .map(|(&d, &m)| [d, inside(m)])
+                .collect(),
+        ),
+        weight: Some(mask.iter().map(|&m| weight * inside(m)).collect()),
+        kind: ViewKind::Virtual,
+    };
+    (photo, virt)
+}
+
+/// The enhancer's training data.
+#[derive(Clone, Debug)]
+pub struct EnhancerDataStage {
+    pub spec: Stage3Spec,
+    /// The inpainter whose supervision corrupts the masked regions.
+    pub inpainter: InpainterKind,
+    pub diffusion: Option<DiffusionSpec>,
+    /// The stage-2 loop (its noise levels and learning rate serve the data rounds).
+    pub stage2: Stage2Spec,
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+}
+
+fn progress_views(rep: &mut dyn Reporter, step: usize, total: usize, t: &Instant) {
+    rep.progress(&Progress {
+        unit: Unit::Views,
+        step: step as u32,
+        total: total as u32,
+        loss: 0.0,
+        psnr: 0.0,
+        samples_per_s: 0.0,
+        secs: t.elapsed().as_secs_f64(),
+        eta: 0.0,
+    });
+}
+
+impl Stage for EnhancerDataStage {
+    fn name(&self) -> String {
+        DATA_STAGE.into()
+    }
+
+    fn config(&self) -> Value {
+        let s = &self.spec;
+        let mut c = json!({
+            "inpainter": self.inpainter,
+            "data_rounds": s.data_rounds,
+            "data_steps_per_round": s.data_steps_per_round,
+            "base_checkpoints": s.base_checkpoints,
+            "lr": self.stage2.lr,
+            "t_start": self.stage2.t_start,
+            "t_end": self.stage2.t_end,
+            "seed": self.stage2.seed,
+            "downscale": self.virt.downscale,
+            "visibility": self.vis,
+        });
+        if self.inpainter == InpainterKind::Diffusion {
+            c["diffusion"] = json!(self.diffusion);
+        }
+        c
+    }
+
+    fn inputs(&self) -> Vec<String> {
+        vec!["base".into()]
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        self.spec.validate()?;
+        let out = dir.root.join(DATA_STAGE);
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let base = BaseField::load(ctx, &dir.base)?;
+        let cfg = base.ck.config.clone();
+        let samples = cfg.train.samples;
+        let train = base.train_cameras();
+        let captured = training_views(&cfg.scene, &base.loaded, &cfg.model)?;
+        let cams: Vec<Camera> = train
+            .iter()
+            .map(|c| c.downscaled(self.virt.downscale))
+            .collect();
+        let (w, h) = (cams[0].width as usize, cams[0].height as usize);
+        if cams
+            .iter()
+            .any(|c| (c.width as usize, c.height as usize) != (w, h))
+        {
+            bail!("stage 3 needs training views of one size");
+        }
+        // Pseudo-disocclusion masks: each view against the other training cameras.
+        let t = Instant::now();
+        let vcfg = self.vis.config(self.vis.rank, samples)?;
+        let fv = FieldVisibility::new(ctx, &base.nerf, &train, &self.vis)?;
+        let mut masks = Vec::new();
+        let mut photos = Vec::new();
+        for (i, cam) in cams.iter().enumerate() {
+            let m = fv.map(
+                ctx,
+                &base.nerf,
+                cam,
+                mask_all_but(train.len(), Some(i)),
+                &vcfg,
+                self.vis.chunk,
+            )?;
+            let mask = self.vis.mask(&m);
+            write_png(
+                &out.join(format!("pseudo_mask_{i:03}.png")),
+                cam.width,
+                cam.height,
+                &mask.iter().flat_map(|&v| [v, v, v]).collect::<Vec<_>>(),
+            )?;
+            masks.push(mask);
+            photos.push(downscale_image(&captured[i].image, cam.width, cam.height).rgb);
+            progress_views(rep, i + 1, cams.len(), &t);
+        }
+        let masked: f64 = masks.iter().flatten().map(|&v| v as f64).sum::<f64>()
+            / (masks.len() * w * h).max(1) as f64;
+        rep.note(&format!(
+            "{DATA_STAGE}: pseudo-disocclusion masks of {} training views, {:.1}% of their pixels",
+            cams.len(),
+            100.0 * masked
+        ));
+        let mut entries = Vec::new();
+        let mut renders = Vec::new();
+        let mut add = |source: String,
+                       nerf: &Nerf,
+                       fills: Option<&[Vec<f32>]>,
+                       entries: &mut Vec<TripletEntry>|
+         -> anyhow::Result<()> {
+            for (i, cam) in cams.iter().enumerate() {
+                let (rgb, _, _) = render(ctx, nerf, cam, samples)?;
+                let key = format!("t{:03}", entries.len());
+                write_png(
+                    &out.join(format!("{key}_view{i:03}_{}.png", source.replace('@', "_"))),
+                    cam.width,
+                    cam.height,
+                    &rgb,
+                )?;
+                let mask = fills.map_or_else(|| vec![0.0; w * h], |f| f[i].clone());
+                renders.push((rgb, mask));
+                entries.push(TripletEntry {
+                    key,
+                    slot: i,
+                    source: source.clone(),
+                });
+            }
+            Ok(())
+        };
+        // An under-fitted field: a fresh one trained with the BaseNeRF's settings.
+        let mut fresh_s = 0.0;
+        if !self.spec.base_checkpoints.is_empty() {
+            let tf = Instant::now();
+            let (mut trainer, data) = crate::driver::fresh_trainer(ctx, &cfg, &base.loaded)?;
+            let prims = Prims::new(ctx)?;
+            let mut checkpoints = self.spec.base_checkpoints.clone();
+            checkpoints.sort_unstable();
+            checkpoints.dedup();
+            for &c in &checkpoints {
+                let left = c.saturating_sub(trainer.step());
+                if left > 0 {
+                    train_steps(
+                        ctx,
+                        &mut trainer,
+                        &prims,
+                        &data,
+                        left,
+                        &format!("{DATA_STAGE}: a fresh field"),
+                        &out,
+                        rep,
+                    )?;
+                }
+                add(format!("fresh@{c}"), trainer.nerf(), None, &mut entries)?;
+            }
+            fresh_s = tf.elapsed().as_secs_f64();
+        }
+        add("base".into(), &base.nerf, None, &mut entries)?;
+        // The inpainting-supervised field.
+        let ti = Instant::now();
+        let mut tcfg = cfg.train.clone();
+        let total = self.spec.data_rounds * self.spec.data_steps_per_round;
+        tcfg.steps = total;
+        tcfg.decay_steps = total;
+        tcfg.lr_start = self.stage2.lr;
+        tcfg.lr_end = self.stage2.lr;
+        let moments = base
+            .ck
+            .moments
+            .as_ref()
+            .map(|(m, v)| (m.as_slice(), v.as_slice()));
+        let nerf = Nerf::new(
+            ctx,
+            cfg.model.clone(),
+            &base.ck.params,
+            cfg.train.background,
+        )?;
+        let mut trainer = Trainer::new(ctx, nerf, tcfg, 0, moments)?;
+        let prims = Prims::new(ctx)?;
+        let mut inpainter = build_inpainter(ctx, self.inpainter, self.diffusion.as_ref(), rep)?;
+        let loop2 = Stage2Spec {
+            rounds: self.spec.data_rounds,
+            ..self.stage2.clone()
+        };
+        let masks_full: Vec<Vec<f32>> = captured
+            .iter()
+            .zip(&masks)
+            .map(|(v, m)| resize_mask(m, w, h, v.camera.width as usize, v.camera.height as usize))
+            .collect();
+        let mut inpaint_s = 0.0;
+        for round in 0..self.spec.data_rounds {
+            let (t, weight) = (loop2.t(round), loop2.weight(round));
+            let mut views = Vec::new();
+            for (i, cam) in cams.iter().enumerate() {
+                let (rgb, depth, _) = render(ctx, trainer.nerf(), cam, samples)?;
+                // Sources: the other training photos (never the view's own).
+                let sources: Vec<Source<'_>> = photos
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, p)| Source {
+                        width: w,
+                        height: h,
+                        rgb: p,
+                        depth: None,
+                    })
+                    .collect();
+                let ts = Instant::now();
+                let fill = if masks[i].iter().all(|&m| m < 0.5) {
+                    Fill {
+                        rgb: rgb.clone(),
+                        depth: depth.clone(),
+                    }
+                } else {
+                    let target = Target::new(w, h, &rgb, &depth, &masks[i], t);
+                    let seed = self.stage2.seed ^ 0x5_7a9e_3000 ^ ((round as u64) << 32) ^ i as u64;
+                    inpainter
+                        .inpaint(&target, &sources, seed)
+                        .with_context(|| format!("training view {i}, data round {round}"))?
+                };
+                inpaint_s += ts.elapsed().as_secs_f64();
+                let (photo, virt) =
+                    collector_views(&captured[i], &masks_full[i], cam, &fill, &masks[i], weight);
+                views.push(photo);
+                views.push(virt);
+            }
+            let data = TrainData::with_sampling(
+                ctx,
+                &views,
+                ViewSampling::VirtualFraction(self.stage2.virtual_fraction),
+            )?;
+            train_steps(
+                ctx,
+                &mut trainer,
+                &prims,
+                &data,
+                self.spec.data_steps_per_round,
+                &format!("{DATA_STAGE} round {round}"),
+                &out,
+                rep,
+            )?;
+            add(
+                format!("inpainted@{round}"),
+                trainer.nerf(),
+                Some(&masks),
+                &mut entries,
+            )?;
+            rep.note(&format!(
+                "{DATA_STAGE} round {}/{}: t {t:.2}, {} triplets so far",
+                round + 1,
+                self.spec.data_rounds,
+                entries.len()
+            ));
+        }
+        let triplets = Triplets {
+            width: w,
+            height: h,
+            photos,
+            masks,
+            entries,
+            renders,
+        };
+        triplets.save(&out)?;
+        Ok(json!({
+            "triplets": triplets.entries.len(),
+            "views": cams.len(),
+            "width": w,
+            "height": h,
+            "masked_fraction": masked,
+            "fresh_field_seconds": fresh_s,
+            "inpainted_field_seconds": ti.elapsed().as_secs_f64(),
+            "inpaint_seconds": inpaint_s,
+        }))
+    }
+}
+
+/// The enhancer, trained on the data stage's triplets.
+#[derive(Clone, Debug)]
+pub struct EnhancerStage {
+    pub spec: Stage3Spec,
+}
+
+impl EnhancerStage {
+    /// Its folder.
+    pub fn dir(dir: &RunDir) -> PathBuf {
+        dir.root.join(ENHANCER_STAGE)
+    }
+}
+
+impl Stage for EnhancerStage {
+    fn name(&self) -> String {
+        ENHANCER_STAGE.into()
+    }
+
+    fn config(&self) -> Value {
+        json!({"enhancer": self.spec.enhancer, "backend": self.spec.backend})
+    }
+
+    fn inputs(&self) -> Vec<String> {
+        vec![DATA_STAGE.into()]
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        let triplets = Triplets::load(&dir.root.join(DATA_STAGE))?;
+        let e = &self.spec.enhancer;
+        if e.crop > triplets.width.min(triplets.height) {
+            bail!(
+                "--enhancer-crop {} is larger than the {}x{} training views at the virtual views' scale",
+                e.crop,
+                triplets.width,
+                triplets.height
+            );
+        }
+        let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
+        rep.note(&format!(
+            "{ENHANCER_STAGE}: {} on {} triplets of {} views, on {}",
+            match &e.base_model {
+                Some(m) => format!("LoRA rank {} on {}", e.rank, m.display()),
+                None => format!(
+                    "a pixel-space U-Net {:?} from scratch (no pretrained weights)",
+                    e.channels
+                ),
+            },
+            triplets.entries.len(),
+            triplets.photos.len(),
+            b.name()
+        ));
+        let out = Self::dir(dir);
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let t = Instant::now();
+        let rec = enhancer::train_enhancer(&triplets.train_images(), e, &out, &device, &mut |p| {
+            let secs = t.elapsed().as_secs_f64();
+            rep.progress(&Progress {
+                unit: Unit::Steps,
+                step: p.step as u32,
+                total: p.steps as u32,
+                loss: p.loss,
+                psnr: 0.0,
+                samples_per_s: 0.0,
+                secs,
+                eta: 0.0,
+            });
+        })?;
+        Ok(json!({
+            "params": rec.params,
+            "final_loss": rec.curve.last().map(|c| c.1),
+            "train_seconds": rec.seconds,
+            "backend": b.name(),
+        }))
+    }
+}
+
+/// Stage 3 of one stage-2 variant.
+#[derive(Clone, Debug)]
+pub struct EnhanceStage {
+    /// The stage-2 variant it continues.
+    pub kind: InpainterKind,
+    pub spec: Stage3Spec,
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+}
+
+impl EnhanceStage {
+    fn stage2_name(&self) -> String {
+        format!("stage2-{}", self.kind.name())
+    }
+}
+
+impl Stage for EnhanceStage {
+    fn name(&self) -> String {
+        format!("stage3-{}", self.kind.name())
+    }
+
+    fn config(&self) -> Value {
+        let s = &self.spec;
+        json!({
+            "rounds": s.rounds,
+            "steps_per_round": s.steps_per_round,
+            "t": s.t,
+            "ddim_steps": s.ddim_steps,
+            "virtual_fraction": s.virtual_fraction,
+            "lr": s.lr,
+            "seed": s.seed,
+        })
+    }
+
+    fn inputs(&self) -> Vec<String> {
+        vec![self.stage2_name(), ENHANCER_STAGE.into()]
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        self.spec.validate()?;
+        let out = dir.root.join(self.name());
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let base = BaseField::load(ctx, &dir.base)?;
+        let from = load_checkpoint(&dir.root.join(self.stage2_name()))
+            .with_context(|| format!("the {} field", self.stage2_name()))?;
+        let cfg: RunConfig = from.config.clone();
+        let samples = cfg.train.samples;
+        let virt = make_virtual(&self.virt, &base.train_cameras())?;
+        let maps_path = dir.visibility().join(MAPS_FILE);
+        let st = SafeTensors::read(&maps_path)?;
+        let masks: Vec<Vec<f32>> = (0..virt.len())
+            .map(|i| {
+                Ok(self
+                    .vis
+                    .mask(&load_map(&st, &maps_path, &format!("virtual_{i:03}"))?))
+            })
+            .collect::<anyhow::Result<_>>()?;
+        let captured = training_views(&cfg.scene, &base.loaded, &cfg.model)?;
+        let (start_round, mut seconds, params, moments) = match load_round(&out)? {
+            Some((s, ck)) => {
+                rep.note(&format!(
+                    "{}: resuming after round {}",
+                    self.name(),
+                    s.rounds_done
+                ));
+                (s.rounds_done, s.seconds, ck.params, ck.moments)
+            }
+            None => (0, 0.0, from.params.clone(), from.moments.clone()),
+        };
+        let mut tcfg = cfg.train.clone();
+        let total = self.spec.rounds * self.spec.steps_per_round;
+        tcfg.steps = from.step + total;
+        tcfg.decay_steps = tcfg.steps;
+        tcfg.lr_start = self.spec.lr;
+        tcfg.lr_end = self.spec.lr;
+        let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
+        let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
+        let mut trainer = Trainer::new(
+            ctx,
+            nerf,
+            tcfg.clone(),
+            from.step + start_round * self.spec.steps_per_round,
+            moments,
+        )?;
+        let prims = Prims::new(ctx)?;
+        let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
+        let pipe = enhancer::load(&EnhancerStage::dir(dir), &device)?;
+        rep.note(&format!(
+            "{}: enhancer on {}, from t = {} in {} DDIM steps, loss weight {:.3}",
+            self.name(),
+            b.name(),
+            self.spec.t,
+            self.spec.ddim_steps,
+            self.spec.weight()
+        ));
+        let weight = self.spec.weight();
+        let mut rounds = Vec::new();
+        for round in start_round..self.spec.rounds {
+            let t0 = Instant::now();
+            let round_dir = out.join(format!("round_{round:02}"));
+            std::fs::create_dir_all(&round_dir)
+                .with_context(|| format!("creating {}", round_dir.display()))?;
+            let mut views = captured.clone();
+            let (mut render_s, mut enhance_s, mut change) = (0.0, 0.0, 0.0);
+            for (k, cam) in virt.iter().enumerate() {
+                let tr = Instant::now();
+                let (rgb, depth, _) = render(ctx, trainer.nerf(), cam, samples)?;
+                render_s += tr.elapsed().as_secs_f64();
+                let te = Instant::now();
+                let (w, h) = (cam.width as usize, cam.height as usize);
+                let seed = self.spec.seed ^ 0xe7_4a9c_e000 ^ ((round as u64) << 32) ^ k as u64;
+                let enhanced = pipe
+                    .model
+                    .enhance_image(
+                        &rgb,
+                        Some(&masks[k]),
+                        w,
+                        h,
+                        seed,
+                        &SampleSettings {
+                            strength: f64::from(self.spec.t),
+                            steps: self.spec.ddim_steps,
+                            guidance: 1.0,
+                            keep_known: false,
+                        },
+                        &device,
+                    )
+                    .with_context(|| format!("enhancing virtual view {k}, round {round}"))?;
+                enhance_s += te.elapsed().as_secs_f64();
+                change += rgb
+                    .iter()
+                    .zip(&enhanced.rgb)
+                    .map(|(a, b)| (a - b).abs() as f64)
+                    .sum::<f64>()
+                    / rgb.len() as f64;
+                write_png(
+                    &round_dir.join(format!("virtual_{k:03}_render.png")),
+                    cam.width,
+                    cam.height,
+                    &rgb,
+                )?;
+                write_png(
+                    &round_dir.join(format!("virtual_{k:03}.png")),
+                    cam.width,
+                    cam.height,
+                    &enhanced.rgb,
+                )?;
+                // The enhanced colours everywhere with w(t); the depth loss on the field's own
+                // (stage-2 completed) depth keeps the geometry while the colours change.
+                views.push(View {
+                    camera: cam.clone(),
+                    image: Image::opaque(cam.width, cam.height, enhanced.rgb),
+                    depth: Some(depth.iter().map(|&d| [d, 1.0]).collect()),
+                    weight: Some(vec![weight; w * h]),
+                    kind: ViewKind::Virtual,
+                });
+            }
+            let data = TrainData::with_sampling(
+                ctx,
+                &views,
+                ViewSampling::VirtualFraction(self.spec.virtual_fraction),
+            )?;
+            let tt = Instant::now();
+            let last = train_steps(
+                ctx,
+                &mut trainer,
+                &prims,
+                &data,
+                self.spec.steps_per_round,
+                &format!("{} round {round}", self.name()),
+                &out,
+                rep,
+            )?;
+            let train_s = tt.elapsed().as_secs_f64();
+            seconds += t0.elapsed().as_secs_f64();
+            save_round(
+                &out,
+                &cfg,
+                &tcfg,
+                &trainer,
+                &RoundState {
+                    rounds_done: round + 1,
+                    seconds,
+                },
+            )?;
+            let mean_change = change / virt.len().max(1) as f64;
+            rep.note(&format!(
+                "{} round {}/{}: render {render_s:.1} s, enhance {enhance_s:.1} s, train {train_s:.1} s; enhancement changed the renders by {mean_change:.4} (mean absolute)",
+                self.name(),
+                round + 1,
+                self.spec.rounds
+            ));
+            rounds.push(json!({
+                "round": round,
+                "render_seconds": render_s,
+                "enhance_seconds": enhance_s,
+                "train_seconds": train_s,
+                "mean_abs_change": mean_change,
+                "batch_psnr": last.map(|s| s.psnr()),
+            }));
+        }
+        write_test_renders(ctx, trainer.nerf(), &base.loaded, samples, &out)?;
+        Ok(json!({"rounds": rounds, "seconds": seconds}))
+    }
+}
