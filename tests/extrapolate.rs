@@ -705,6 +705,25 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
     let t = extranerf_extrapolate::eval::compare(&a, None).unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic", "stage3-harmonic"]);
+
+    // The report: self-contained (every image inlined, nothing fetched), the stages, the table,
+    // five images per held-out view and the three fly-throughs.
+    let page = extranerf_extrapolate::report::write_report(&a, Some(&t)).unwrap();
+    let html = std::fs::read_to_string(&page).unwrap();
+    for want in [
+        "stage3-enhancer",
+        "<td>stage3-harmonic</td>",
+        "LPIPS-alex",
+        "Fly-throughs",
+    ] {
+        assert!(html.contains(want), "{want} missing from the report");
+    }
+    assert!(!html.contains("http:") && !html.contains("https:") && !html.contains("file:"));
+    assert!(!html.contains("missing</div>"), "an image is missing");
+    let images = html.matches("<img ").count();
+    let inlined = html.matches("src=\"data:image/").count();
+    assert_eq!(images, inlined);
+    assert_eq!(images, 5 * loaded.split.test.len() + 3);
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);
 }

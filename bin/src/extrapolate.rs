@@ -328,7 +328,12 @@ pub fn eval_run(run: &Path, lpips: Option<&Path>) -> anyhow::Result<()> {
     crate::bench::write_json(&run.join("eval.json"), &serde_json::to_value(&t)?)?;
     std::fs::write(run.join("eval.md"), &md)
         .with_context(|| format!("writing {}", run.join("eval.md").display()))?;
+    let report = extranerf_extrapolate::report::write_report(run, Some(&t))?;
     println!("held-out views {:?}\n\n{md}", t.views);
-    eprintln!("wrote {} and eval.md", run.join("eval.json").display());
+    eprintln!(
+        "wrote {}, eval.md and {}",
+        run.join("eval.json").display(),
+        report.display()
+    );
     Ok(())
 }

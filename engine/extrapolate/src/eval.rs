@@ -204,26 +204,43 @@ pub fn compare(dir: &Path, lpips: Option<&Lpips>) -> anyhow::Result<Table> {
     Ok(Table { views, rows })
 }
 
+/// The table's column headers.
+pub const COLUMNS: [&str; 9] = [
+    "variant",
+    "PSNR",
+    "SSIM",
+    "LPIPS-alex",
+    "PSNR masked",
+    "SSIM masked",
+    "LPIPS masked",
+    "PSNR visible",
+    "masked",
+];
+
+impl Row {
+    /// The row's cells as the tables print them (`-` where a value is missing).
+    pub fn cells(&self) -> [String; 9] {
+        let f = |v: Option<f64>, d: usize| v.map_or("-".into(), |x| format!("{x:.d$}"));
+        [
+            self.variant.clone(),
+            format!("{:.2}", self.psnr),
+            format!("{:.3}", self.ssim),
+            f(self.lpips, 3),
+            f(self.psnr_masked, 2),
+            f(self.ssim_masked, 3),
+            f(self.lpips_masked, 3),
+            f(self.psnr_visible, 2),
+            format!("{:.1}%", 100.0 * self.masked_fraction),
+        ]
+    }
+}
+
 impl Table {
     /// The table in Markdown.
     pub fn markdown(&self) -> String {
-        let f = |v: Option<f64>, d: usize| v.map_or("-".into(), |x| format!("{x:.d$}"));
-        let mut s = String::from(
-            "| variant | PSNR | SSIM | LPIPS-alex | PSNR masked | SSIM masked | LPIPS masked | PSNR visible | masked |\n|---|---|---|---|---|---|---|---|---|\n",
-        );
+        let mut s = format!("| {} |\n|{}\n", COLUMNS.join(" | "), "---|".repeat(9));
         for r in &self.rows {
-            s += &format!(
-                "| {} | {:.2} | {:.3} | {} | {} | {} | {} | {} | {:.1}% |\n",
-                r.variant,
-                r.psnr,
-                r.ssim,
-                f(r.lpips, 3),
-                f(r.psnr_masked, 2),
-                f(r.ssim_masked, 3),
-                f(r.lpips_masked, 3),
-                f(r.psnr_visible, 2),
-                100.0 * r.masked_fraction
-            );
+            s += &format!("| {} |\n", r.cells().join(" | "));
         }
         s
     }

@@ -8,7 +8,8 @@
 //! - [`inpaint`]: the inpainters (depth-aware harmonic, exemplar PatchMatch, hybrid);
 //! - [`visibility`]: visibility settings, maps, masks and depth completion over a trained field
 //!   (what `extranerf visibility` runs);
-//! - [`eval`]: the comparison table of an extrapolate run.
+//! - [`eval`]: the comparison table of an extrapolate run; [`report`]: its self-contained HTML
+//!   page.
 //!
 //! - [`anim`]: looping GIFs of rendered frames (the fly-through).
 //!
@@ -27,5 +28,6 @@ pub mod eval;
 pub mod inpaint;
 pub mod manifest;
 pub mod pipeline;
+pub mod report;
 pub mod stage3;
 pub mod visibility;
