@@ -695,7 +695,7 @@ impl Stage for EnhancerStage {
                 psnr: 0.0,
                 samples_per_s: 0.0,
                 secs,
-                eta: 0.0,
+                eta: secs / p.step.max(1) as f64 * p.steps.saturating_sub(p.step) as f64,
             });
         })?;
         Ok(json!({
