@@ -1029,6 +1029,11 @@ fn the_diffusion_inpainter_fills_only_the_mask_at_any_size() {
     use extranerf_extrapolate::inpaint::{rect_mask, Inpainter, Target};
     let dir = sd_folder("sd-inpainter");
     let mut inp = DiffusionInpainter::load(&dir, None, cpu(), 2).unwrap();
+    // Without adapters it is the un-fine-tuned model (the `diffusion-base` row).
+    assert_eq!(
+        inp.kind(),
+        extranerf_extrapolate::inpaint::InpainterKind::DiffusionBase
+    );
     // 13x10: not a multiple of the latent factor, so the view is padded and cropped back.
     let (w, h) = (13usize, 10usize);
     let rgb: Vec<f32> = (0..w * h * 3).map(|i| (i % 11) as f32 / 11.0).collect();

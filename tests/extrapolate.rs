@@ -386,7 +386,7 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     assert!(e4.contains("visibility.settings.threshold"), "{e4}");
 
     // `eval` on the run: a row per variant.
-    let t = extranerf_extrapolate::eval::compare(&a, None).unwrap();
+    let t = extranerf_extrapolate::eval::compare(&a, None, None, &mut Record::default()).unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic"]);
     assert!(t
@@ -701,10 +701,40 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         "{err}"
     );
 
-    // `eval`: stage 3's field is a row of its own.
-    let t = extranerf_extrapolate::eval::compare(&a, None).unwrap();
+    // `eval`: stage 3's field is a row of its own, with both KID protocols (small crops: the
+    // demo views are small).
+    let net = extranerf_extrapolate::inception::Inception::load(
+        &extranerf_tests::inception_weights(),
+        &burn::tensor::Device::flex(),
+    )
+    .unwrap();
+    let spec = extranerf_extrapolate::eval::KidSpec {
+        crops: 8,
+        crop_size: 8,
+        min_fraction: 0.25,
+        subsets: 20,
+        subset_size: 4,
+        ..Default::default()
+    };
+    let kid = extranerf_extrapolate::eval::KidEval { net: &net, spec };
+    let t =
+        extranerf_extrapolate::eval::compare(&a, None, Some(&kid), &mut Record::default()).unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic", "stage3-harmonic"]);
+    let report = t.kid.as_ref().unwrap();
+    assert_eq!(report.crops_per_view.iter().sum::<usize>(), 8);
+    assert_eq!(report.patch_subset_size, Some(4));
+    for r in &t.rows {
+        let (k, p) = (r.kid.unwrap(), r.kid_patch.unwrap());
+        eprintln!(
+            "{}: KID {k:.5} +- {:.5}, patch KID {p:.5} +- {:.5}",
+            r.variant,
+            r.kid_std.unwrap(),
+            r.kid_patch_std.unwrap()
+        );
+        assert!(k.is_finite() && p.is_finite());
+    }
+    assert!(t.markdown().contains("patch KID"));
 
     // The report: self-contained (every image inlined, nothing fetched), the stages, the table,
     // five images per held-out view and the three fly-throughs.
@@ -714,6 +744,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         "stage3-enhancer",
         "<td>stage3-harmonic</td>",
         "LPIPS-alex",
+        "patch KID",
         "Fly-throughs",
     ] {
         assert!(html.contains(want), "{want} missing from the report");

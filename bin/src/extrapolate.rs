@@ -6,7 +6,8 @@ use anyhow::Context as _;
 use extranerf_diffusion::device::Backend;
 use extranerf_diffusion::enhancer::EnhancerSpec;
 use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
-use extranerf_extrapolate::eval::compare;
+use extranerf_extrapolate::eval::{compare, KidEval, KidSpec};
+use extranerf_extrapolate::inception::{default_weights as default_inception, Inception};
 use extranerf_extrapolate::inpaint::InpainterKind;
 use extranerf_extrapolate::pipeline::{
     extrapolate as run_pipeline, BaseSpec, DiffusionSpec, FlythroughSpec, Options, Stage2Spec,
@@ -63,7 +64,8 @@ pub struct ExtrapolateArgs {
     #[arg(long, default_value_t = 900.0, value_name = "SECONDS")]
     base_budget: f64,
     /// Inpainters, one stage-2 variant each (comma-separated): harmonic, exemplar, hybrid,
-    /// diffusion (needs --diffusion-model).
+    /// diffusion (needs --diffusion-model; with --diffusion-lora's adapters when given),
+    /// diffusion-base (the same model without the adapters: the un-fine-tuned ablation row).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "harmonic")]
     inpainter: Vec<InpainterKind>,
     /// The diffusion inpainter's model: a diffusers inpainting folder (Stable Diffusion
@@ -196,7 +198,7 @@ pub struct ExtrapolateArgs {
 impl ExtrapolateArgs {
     /// Whether burn may run on the engine's own device (the context must then be shareable).
     pub fn needs_wgpu(&self) -> bool {
-        (self.inpainter.contains(&InpainterKind::Diffusion) || !self.no_stage3)
+        (self.inpainter.iter().any(|k| k.uses_diffusion()) || !self.no_stage3)
             && self.diffusion_backend != Backend::Cpu
     }
 }
@@ -313,8 +315,97 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `extranerf eval` on an extrapolate run: writes RUN/eval.json and RUN/eval.md.
-pub fn eval_run(run: &Path, lpips: Option<&Path>) -> anyhow::Result<()> {
+/// `extranerf eval`'s KID flags (extrapolate runs).
+#[derive(clap::Args, Debug, Clone)]
+pub struct KidArgs {
+    /// Leave KID out (it runs Inception-v3 on every held-out view and crop of every variant:
+    /// about 0.6 s an image on two cores).
+    #[arg(long)]
+    no_kid: bool,
+    /// Inception-v3 weights (default: $EXTRANERF_INCEPTION, else
+    /// $EXTRANERF_MODELS/inception/inception_fid.safetensors, else
+    /// ../shared/models/inception/inception_fid.safetensors; tools/fetch_inception.sh makes it).
+    #[arg(long)]
+    inception: Option<PathBuf>,
+    /// Patch KID: crops in all, spread evenly over the held-out views.
+    #[arg(long, default_value_t = KidSpec::default().crops)]
+    kid_crops: usize,
+    /// Patch KID: the crops' side in pixels (at most the views' smaller side).
+    #[arg(long, default_value_t = KidSpec::default().crop_size)]
+    kid_crop_size: u32,
+    /// Patch KID: share of each crop that the not-visible mask must cover.
+    #[arg(long, default_value_t = KidSpec::default().min_fraction)]
+    kid_min_fraction: f64,
+    /// Subsets averaged (both protocols).
+    #[arg(long, default_value_t = KidSpec::default().subsets)]
+    kid_subsets: usize,
+    /// Patch KID: crops per subset.
+    #[arg(long, default_value_t = KidSpec::default().subset_size)]
+    kid_subset_size: usize,
+    /// Seed of the crops and subsets.
+    #[arg(long, default_value_t = KidSpec::default().seed)]
+    kid_seed: u64,
+    /// burn backend of the Inception network: auto (the engine's device, or burn's CPU backend
+    /// on a CPU Vulkan driver such as lavapipe), device or cpu.
+    #[arg(long, value_enum, default_value_t = Backend::Auto)]
+    kid_backend: Backend,
+}
+
+impl Default for KidArgs {
+    fn default() -> Self {
+        let d = KidSpec::default();
+        KidArgs {
+            no_kid: false,
+            inception: None,
+            kid_crops: d.crops,
+            kid_crop_size: d.crop_size,
+            kid_min_fraction: d.min_fraction,
+            kid_subsets: d.subsets,
+            kid_subset_size: d.subset_size,
+            kid_seed: d.seed,
+            kid_backend: Backend::Auto,
+        }
+    }
+}
+
+impl KidArgs {
+    /// Whether the network may run on the engine's device (the context must then be shared).
+    pub fn on_device(&self) -> bool {
+        !self.no_kid && self.kid_backend != Backend::Cpu
+    }
+
+    fn spec(&self) -> anyhow::Result<KidSpec> {
+        if !(0.0..=1.0).contains(&self.kid_min_fraction) {
+            anyhow::bail!(
+                "--kid-min-fraction {} is not a share in [0, 1]",
+                self.kid_min_fraction
+            );
+        }
+        if self.kid_crop_size == 0 || self.kid_subsets == 0 || self.kid_subset_size < 2 {
+            anyhow::bail!(
+                "--kid-crop-size and --kid-subsets must be positive and --kid-subset-size at least 2"
+            );
+        }
+        Ok(KidSpec {
+            crops: self.kid_crops,
+            crop_size: self.kid_crop_size,
+            min_fraction: self.kid_min_fraction,
+            subsets: self.kid_subsets,
+            subset_size: self.kid_subset_size,
+            seed: self.kid_seed,
+            ..KidSpec::default()
+        })
+    }
+}
+
+/// `extranerf eval` on an extrapolate run: writes RUN/eval.json, RUN/eval.md and
+/// RUN/report.html.
+pub fn eval_run(
+    ctx: &Context,
+    run: &Path,
+    lpips: Option<&Path>,
+    k: &KidArgs,
+) -> anyhow::Result<()> {
     let dir = lpips.map(PathBuf::from).unwrap_or_else(default_lpips_dir);
     let lp = match Lpips::load(&dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex) {
         Ok(l) => Some(l),
@@ -323,7 +414,30 @@ pub fn eval_run(run: &Path, lpips: Option<&Path>) -> anyhow::Result<()> {
             None
         }
     };
-    let t = compare(run, lp.as_ref())?;
+    let spec = k.spec()?;
+    let net = if k.no_kid {
+        None
+    } else {
+        let (backend, dev) = extranerf_diffusion::device::diffusion_device(ctx, k.kid_backend)?;
+        let path = k.inception.clone().unwrap_or_else(default_inception);
+        match Inception::load(&path, &dev) {
+            Ok(n) => {
+                eprintln!(
+                    "KID: Inception-v3 from {} on {}",
+                    path.display(),
+                    backend.name()
+                );
+                Some(n)
+            }
+            Err(e) => {
+                eprintln!("no KID in the table ({e:#})");
+                None
+            }
+        }
+    };
+    let kid = net.as_ref().map(|net| KidEval { net, spec });
+    let mut rep = Console::new();
+    let t = compare(run, lp.as_ref(), kid.as_ref(), &mut rep)?;
     let md = t.markdown();
     crate::bench::write_json(&run.join("eval.json"), &serde_json::to_value(&t)?)?;
     std::fs::write(run.join("eval.md"), &md)

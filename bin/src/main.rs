@@ -182,7 +182,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         }
         Command::Train(a) => nerf::train(&context(cli)?, a),
         Command::Render(a) => nerf::render(&context(cli)?, a),
-        Command::Eval(a) => nerf::eval(&context(cli)?, a),
+        Command::Eval(a) => nerf::eval(&context_with(cli, a.needs_wgpu())?, a),
         Command::Extrapolate(a) => extrapolate::extrapolate(&context_with(cli, a.needs_wgpu())?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),

@@ -641,8 +641,8 @@ pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
     /// Run folder written by `extranerf train`, or by `extranerf extrapolate` (then the
-    /// comparison table of the BaseNeRF and each stage-2 variant goes to RUN/eval.json and
-    /// RUN/eval.md; the other flags but --lpips do not apply).
+    /// comparison table of the BaseNeRF and each stage-2 and stage-3 variant, with KID, goes to
+    /// RUN/eval.json, RUN/eval.md and RUN/report.html; only --lpips and the --kid flags apply).
     run: PathBuf,
     /// Metrics file (default RUN/metrics.json).
     #[arg(long)]
@@ -669,13 +669,23 @@ pub struct EvalArgs {
     lpips_nets: Vec<String>,
     #[command(flatten)]
     march: MarchArgs,
+    #[command(flatten)]
+    pub kid: crate::extrapolate::KidArgs,
+}
+
+impl EvalArgs {
+    /// Whether the Vulkan context must be one that burn's wgpu runtime can adopt (KID's
+    /// network on the device).
+    pub fn needs_wgpu(&self) -> bool {
+        extranerf_extrapolate::manifest::Manifest::path(&self.run).exists() && self.kid.on_device()
+    }
 }
 
 /// `extranerf eval`: PSNR, SSIM, LPIPS (AlexNet and VGG) on the held-out views, PSNR on the
 /// training views.
 pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
     if extranerf_extrapolate::manifest::Manifest::path(&a.run).exists() {
-        return crate::extrapolate::eval_run(&a.run, a.lpips.as_deref());
+        return crate::extrapolate::eval_run(ctx, &a.run, a.lpips.as_deref(), &a.kid);
     }
     let dir = a.lpips.clone().unwrap_or_else(default_lpips_dir);
     let mut nets = Vec::new();
@@ -1133,6 +1143,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             views: ViewSet::All,
             lpips_nets: nets,
             march: MarchArgs::default(),
+            kid: Default::default(),
         },
     )?;
     eprintln!(

@@ -6,15 +6,26 @@
 //! (grown to LPIPS's smallest input) of an image that is the render inside the mask and the
 //! photo outside, against the photo, so only the masked pixels differ. Visible: PSNR over the
 //! pixels outside the mask. Each is the mean over the views that have such pixels.
+//!
+//! KID (Bińkowski et al. 2018) on [`crate::inception`]'s features, two protocols:
+//! - full frame: the held-out views' renders against their photos, subsets of (at most) 8;
+//!   with 8 views every subset is the whole set, so it is one noisy estimate, comparable only
+//!   roughly with the paper's;
+//! - patch: a fixed-seed set of square crops (default 500 of 128x128) that cover the
+//!   not-visible mask by at least half, spread evenly over the views that have such crops, cut
+//!   at the same places from render and photo; 100 subsets of 100. It ranks the variants.
 
 use std::path::Path;
 
 use anyhow::{bail, Context as _};
 use extranerf_nerf::data::load_image;
+use extranerf_nerf::metrics::kid::{kid, masked_crops, max_coverage, KidConfig};
 use extranerf_nerf::metrics::{psnr, ssim, Lpips};
 use extranerf_nerf::safetensors::SafeTensors;
 use serde::Serialize;
 
+use crate::driver::Reporter;
+use crate::inception::{ImageRef, Inception, FEATURES};
 use crate::manifest::Manifest;
 use crate::pipeline::{load_map, MAPS_FILE};
 use crate::visibility::VisSettings;
@@ -30,6 +41,12 @@ pub struct Row {
     pub ssim_masked: Option<f64>,
     pub lpips_masked: Option<f64>,
     pub psnr_visible: Option<f64>,
+    /// Full-frame KID (mean and standard deviation over subsets).
+    pub kid: Option<f64>,
+    pub kid_std: Option<f64>,
+    /// Patch KID on crops over the not-visible mask.
+    pub kid_patch: Option<f64>,
+    pub kid_patch_std: Option<f64>,
     /// Mean share of each view's pixels in the mask.
     pub masked_fraction: f64,
 }
@@ -39,6 +56,150 @@ pub struct Row {
 pub struct Table {
     pub views: Vec<usize>,
     pub rows: Vec<Row>,
+    /// How KID was measured (absent when it was not).
+    pub kid: Option<KidReport>,
+}
+
+/// KID's protocols (`extranerf eval --kid-*`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct KidSpec {
+    /// Patch crops in all (spread over the views).
+    pub crops: usize,
+    /// Their side in pixels.
+    pub crop_size: u32,
+    /// Share of each crop's pixels that the not-visible mask must cover.
+    pub min_fraction: f64,
+    /// Subsets of the patch protocol and rows per subset.
+    pub subsets: usize,
+    pub subset_size: usize,
+    /// Rows per subset of the full-frame protocol (capped at the number of views).
+    pub frame_subset_size: usize,
+    /// Seed of the crops and the subsets.
+    pub seed: u64,
+    /// Images per Inception batch.
+    pub batch: usize,
+}
+
+impl Default for KidSpec {
+    fn default() -> Self {
+        KidSpec {
+            crops: 500,
+            crop_size: 128,
+            min_fraction: 0.5,
+            subsets: 100,
+            subset_size: 100,
+            frame_subset_size: 8,
+            seed: 0,
+            batch: 8,
+        }
+    }
+}
+
+/// What the table's KID columns were measured with.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct KidReport {
+    pub spec: KidSpec,
+    /// Crops taken per view (views without a crop that covers the mask enough get none).
+    pub crops_per_view: Vec<usize>,
+    /// Subset sizes used: full frame, patch (capped at the rows available).
+    pub frame_subset_size: usize,
+    pub patch_subset_size: Option<usize>,
+    /// The largest share of a crop that the mask covers, over every view and position (what
+    /// `min_fraction` can ask).
+    pub max_coverage: f64,
+}
+
+impl KidReport {
+    /// One line on how KID was measured.
+    pub fn describe(&self) -> String {
+        let crops: usize = self.crops_per_view.iter().sum();
+        format!(
+            "KID (TF-FID Inception-v3 pool features, cubic kernel, unbiased): full frame over \
+             the {} held-out views, {} subsets of {}; patch: {crops} crops of {s}x{s} covering \
+             the not-visible mask by at least {:.0}% (per view {:?}; the best crop covers \
+             {:.0}%), {}.",
+            self.crops_per_view.len(),
+            self.spec.subsets,
+            self.frame_subset_size,
+            100.0 * self.spec.min_fraction,
+            self.crops_per_view,
+            100.0 * self.max_coverage,
+            match self.patch_subset_size {
+                Some(m) => format!("{} subsets of {m}", self.spec.subsets),
+                None => "too few crops for a patch KID".into(),
+            },
+            s = self.spec.crop_size,
+        )
+    }
+}
+
+/// The crops of every view: `(view slot, x, y)`, spread evenly over the views that have a crop
+/// covering the mask by `min_fraction`.
+fn patch_places(
+    masks: &[(Vec<bool>, u32, u32)],
+    spec: &KidSpec,
+) -> anyhow::Result<Vec<(usize, u32, u32)>> {
+    let ok: Vec<usize> = (0..masks.len())
+        .filter(|&v| {
+            let (m, w, h) = &masks[v];
+            masked_crops(m, *w, *h, spec.crop_size, 1, spec.min_fraction, 0).is_ok()
+        })
+        .collect();
+    let mut out = Vec::new();
+    for (k, &v) in ok.iter().enumerate() {
+        // Even shares; the first views take the remainder.
+        let n = spec.crops / ok.len() + usize::from(k < spec.crops % ok.len());
+        let (m, w, h) = &masks[v];
+        let seed = spec.seed.wrapping_mul(0x9E37_79B9).wrapping_add(v as u64);
+        for (x, y) in masked_crops(m, *w, *h, spec.crop_size, n, spec.min_fraction, seed)? {
+            out.push((v, x, y));
+        }
+    }
+    Ok(out)
+}
+
+fn cut(img: &[f32], w: usize, x: u32, y: u32, s: u32) -> Vec<f32> {
+    let (x, y, s) = (x as usize, y as usize, s as usize);
+    crop(img, w, (x, x + s, y, y + s))
+}
+
+/// The KID evaluator: the network and the protocols.
+#[derive(Debug)]
+pub struct KidEval<'a> {
+    pub net: &'a Inception,
+    pub spec: KidSpec,
+}
+
+impl KidEval<'_> {
+    /// Features of full frames and of the crops at `places`.
+    fn features(
+        &self,
+        imgs: &[&[f32]],
+        sizes: &[(usize, usize)],
+        places: &[(usize, u32, u32)],
+    ) -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
+        let frames: Vec<ImageRef> = imgs
+            .iter()
+            .zip(sizes)
+            .map(|(rgb, &(width, height))| ImageRef { rgb, width, height })
+            .collect();
+        let full = self.net.features(&frames, self.spec.batch)?;
+        let s = self.spec.crop_size;
+        let crops: Vec<Vec<f32>> = places
+            .iter()
+            .map(|&(v, x, y)| cut(imgs[v], sizes[v].0, x, y, s))
+            .collect();
+        let refs: Vec<ImageRef> = crops
+            .iter()
+            .map(|c| ImageRef {
+                rgb: c,
+                width: s as usize,
+                height: s as usize,
+            })
+            .collect();
+        let patches = self.net.features(&refs, self.spec.batch)?;
+        Ok((full, patches))
+    }
 }
 
 fn mse_where(a: &[f32], b: &[f32], mask: &[bool], inside: bool) -> Option<f64> {
@@ -111,8 +272,14 @@ fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
-/// Scores the BaseNeRF and each finished stage-2 variant of the run in `dir`.
-pub fn compare(dir: &Path, lpips: Option<&Lpips>) -> anyhow::Result<Table> {
+/// Scores the BaseNeRF and each finished stage-2 and stage-3 variant of the run in `dir`; KID
+/// too when `kid` is given (progress goes to `rep`).
+pub fn compare(
+    dir: &Path,
+    lpips: Option<&Lpips>,
+    kid_eval: Option<&KidEval<'_>>,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<Table> {
     let Some(manifest) = Manifest::load(dir)? else {
         bail!("{}: no extrapolate manifest", dir.display());
     };
@@ -150,10 +317,45 @@ pub fn compare(dir: &Path, lpips: Option<&Lpips>) -> anyhow::Result<Table> {
         );
         truths.push((i, cam.clone(), img, mask));
     }
+    let sizes: Vec<(usize, usize)> = truths
+        .iter()
+        .map(|(_, c, _, _)| (c.width as usize, c.height as usize))
+        .collect();
+    // KID's ground-truth features, once for all variants.
+    let kid_ref = match kid_eval {
+        None => None,
+        Some(k) => {
+            let masks: Vec<(Vec<bool>, u32, u32)> = truths
+                .iter()
+                .map(|(_, c, _, m)| (m.clone(), c.width, c.height))
+                .collect();
+            let places = patch_places(&masks, &k.spec)?;
+            let best = masks
+                .iter()
+                .map(|(m, w, h)| max_coverage(m, *w, *h, k.spec.crop_size))
+                .fold(0.0, f64::max);
+            let mut per_view = vec![0; truths.len()];
+            for p in &places {
+                per_view[p.0] += 1;
+            }
+            let t0 = std::time::Instant::now();
+            let imgs: Vec<&[f32]> = truths.iter().map(|t| t.2.rgb.as_slice()).collect();
+            let (full, patches) = k.features(&imgs, &sizes, &places)?;
+            rep.note(&format!(
+                "KID: Inception features of {} photos and {} crops in {:.0} s",
+                imgs.len(),
+                places.len(),
+                t0.elapsed().as_secs_f64()
+            ));
+            Some((places, per_view, full, patches, best))
+        }
+    };
+    let mut kid_report = None;
     let mut rows = Vec::new();
     for (name, folder, suffix) in variants {
         let (mut p, mut s, mut l) = (vec![], vec![], vec![]);
         let (mut pm, mut sm, mut lm, mut pv, mut frac) = (vec![], vec![], vec![], vec![], vec![]);
+        let mut renders = Vec::new();
         for (i, cam, truth, mask) in &truths {
             let path = folder.join(format!("test_{i:03}{suffix}.png"));
             let r = load_image(&path).with_context(|| format!("variant {name}"))?;
@@ -188,6 +390,37 @@ pub fn compare(dir: &Path, lpips: Option<&Lpips>) -> anyhow::Result<Table> {
                     }
                 }
             }
+            renders.push(r.rgb);
+        }
+        let (mut kid_frame, mut kid_patch) = (None, None);
+        if let (Some(k), Some((places, per_view, full_t, patch_t, best))) = (kid_eval, &kid_ref) {
+            let t0 = std::time::Instant::now();
+            let imgs: Vec<&[f32]> = renders.iter().map(Vec::as_slice).collect();
+            let (full, patches) = k.features(&imgs, &sizes, places)?;
+            let m = k.spec.frame_subset_size.min(imgs.len());
+            let cfg = |subsets, subset_size| KidConfig {
+                subsets,
+                subset_size,
+                seed: k.spec.seed,
+            };
+            kid_frame = Some(kid(full_t, &full, FEATURES, &cfg(k.spec.subsets, m))?);
+            let pm = k.spec.subset_size.min(places.len());
+            if pm >= 2 {
+                kid_patch = Some(kid(patch_t, &patches, FEATURES, &cfg(k.spec.subsets, pm))?);
+            }
+            rep.note(&format!(
+                "KID of {name}: {} frames and {} crops in {:.0} s",
+                imgs.len(),
+                places.len(),
+                t0.elapsed().as_secs_f64()
+            ));
+            kid_report = Some(KidReport {
+                spec: k.spec.clone(),
+                crops_per_view: per_view.clone(),
+                frame_subset_size: m,
+                patch_subset_size: (pm >= 2).then_some(pm),
+                max_coverage: *best,
+            });
         }
         rows.push(Row {
             variant: name,
@@ -198,14 +431,22 @@ pub fn compare(dir: &Path, lpips: Option<&Lpips>) -> anyhow::Result<Table> {
             ssim_masked: mean(&sm),
             lpips_masked: mean(&lm),
             psnr_visible: mean(&pv),
+            kid: kid_frame.map(|k| k.mean),
+            kid_std: kid_frame.map(|k| k.std),
+            kid_patch: kid_patch.map(|k| k.mean),
+            kid_patch_std: kid_patch.map(|k| k.std),
             masked_fraction: mean(&frac).unwrap_or(0.0),
         });
     }
-    Ok(Table { views, rows })
+    Ok(Table {
+        views,
+        rows,
+        kid: kid_report,
+    })
 }
 
 /// The table's column headers.
-pub const COLUMNS: [&str; 9] = [
+pub const COLUMNS: [&str; 11] = [
     "variant",
     "PSNR",
     "SSIM",
@@ -214,12 +455,14 @@ pub const COLUMNS: [&str; 9] = [
     "SSIM masked",
     "LPIPS masked",
     "PSNR visible",
+    "KID",
+    "patch KID",
     "masked",
 ];
 
 impl Row {
     /// The row's cells as the tables print them (`-` where a value is missing).
-    pub fn cells(&self) -> [String; 9] {
+    pub fn cells(&self) -> [String; 11] {
         let f = |v: Option<f64>, d: usize| v.map_or("-".into(), |x| format!("{x:.d$}"));
         [
             self.variant.clone(),
@@ -230,6 +473,8 @@ impl Row {
             f(self.ssim_masked, 3),
             f(self.lpips_masked, 3),
             f(self.psnr_visible, 2),
+            f(self.kid, 4),
+            f(self.kid_patch, 4),
             format!("{:.1}%", 100.0 * self.masked_fraction),
         ]
     }
@@ -238,9 +483,16 @@ impl Row {
 impl Table {
     /// The table in Markdown.
     pub fn markdown(&self) -> String {
-        let mut s = format!("| {} |\n|{}\n", COLUMNS.join(" | "), "---|".repeat(9));
+        let mut s = format!(
+            "| {} |\n|{}\n",
+            COLUMNS.join(" | "),
+            "---|".repeat(COLUMNS.len())
+        );
         for r in &self.rows {
             s += &format!("| {} |\n", r.cells().join(" | "));
+        }
+        if let Some(k) = &self.kid {
+            s += &format!("\n{}\n", k.describe());
         }
         s
     }
@@ -249,6 +501,50 @@ impl Table {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn patch_crops_spread_over_the_views_that_have_them() {
+        let (w, h) = (40usize, 30usize);
+        // View 0: a 20x20 block; view 1: nothing; view 2: a 12x12 block.
+        let block = |x0: usize, y0: usize, s: usize| -> Vec<bool> {
+            (0..w * h)
+                .map(|i| (x0..x0 + s).contains(&(i % w)) && (y0..y0 + s).contains(&(i / w)))
+                .collect()
+        };
+        let masks = vec![
+            (block(5, 5, 20), w as u32, h as u32),
+            (vec![false; w * h], w as u32, h as u32),
+            (block(20, 10, 12), w as u32, h as u32),
+        ];
+        let spec = KidSpec {
+            crops: 11,
+            crop_size: 16,
+            ..KidSpec::default()
+        };
+        let p = patch_places(&masks, &spec).unwrap();
+        let count = |v| p.iter().filter(|c| c.0 == v).count();
+        assert_eq!((count(0), count(1), count(2)), (6, 0, 5));
+        for &(v, x, y) in &p {
+            let (m, _, _) = &masks[v];
+            let (x, y) = (x as usize, y as usize);
+            let inside = (0..16 * 16)
+                .filter(|k| m[(y + k / 16) * w + x + k % 16])
+                .count();
+            assert!(
+                inside * 2 >= 256,
+                "crop ({x}, {y}) of view {v} covers {inside}"
+            );
+        }
+        assert_eq!(p, patch_places(&masks, &spec).unwrap());
+        let other = KidSpec {
+            seed: 1,
+            ..spec.clone()
+        };
+        assert_ne!(p, patch_places(&masks, &other).unwrap());
+        // No view with such a crop: no crops, no error.
+        let none = vec![(vec![false; w * h], w as u32, h as u32)];
+        assert!(patch_places(&none, &spec).unwrap().is_empty());
+    }
 
     #[test]
     fn boxes_grow_to_the_smallest_input_inside_the_image() {

@@ -8,8 +8,8 @@
 //! - [`inpaint`]: the inpainters (depth-aware harmonic, exemplar PatchMatch, hybrid);
 //! - [`visibility`]: visibility settings, maps, masks and depth completion over a trained field
 //!   (what `extranerf visibility` runs);
-//! - [`eval`]: the comparison table of an extrapolate run; [`report`]: its self-contained HTML
-//!   page.
+//! - [`eval`]: the comparison table of an extrapolate run, with KID on [`inception`]'s
+//!   features; [`report`]: its self-contained HTML page.
 //!
 //! - [`anim`]: looping GIFs of rendered frames (the fly-through).
 //!
@@ -25,6 +25,7 @@ pub mod anim;
 pub mod base;
 pub mod driver;
 pub mod eval;
+pub mod inception;
 pub mod inpaint;
 pub mod manifest;
 pub mod pipeline;

@@ -602,6 +602,20 @@ pub struct DiffusionSpec {
     pub backend: extranerf_diffusion::device::Backend,
 }
 
+impl DiffusionSpec {
+    /// What the inpainter `kind` uses of it: `diffusion-base` leaves the adapters out.
+    pub fn for_kind(&self, kind: InpainterKind) -> DiffusionSpec {
+        DiffusionSpec {
+            lora: if kind == InpainterKind::DiffusionBase {
+                None
+            } else {
+                self.lora.clone()
+            },
+            ..self.clone()
+        }
+    }
+}
+
 /// One stage-2 variant.
 #[derive(Clone, Debug)]
 pub struct InpaintStage {
@@ -768,8 +782,8 @@ pub(crate) fn build_inpainter(
     if let Some(i) = kind.build() {
         return Ok(i);
     }
-    let Some(d) = diffusion else {
-        bail!("--inpainter diffusion needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
+    let Some(d) = diffusion.map(|d| d.for_kind(kind)) else {
+        bail!("--inpainter {kind} needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
     };
     let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, d.backend)?;
     let inp = crate::inpaint::diffusion::DiffusionInpainter::load(
@@ -779,7 +793,7 @@ pub(crate) fn build_inpainter(
         d.steps,
     )?;
     rep.note(&format!(
-        "diffusion inpainter on {}: {}",
+        "{kind} inpainter on {}: {}",
         b.name(),
         inp.notes.join("; ")
     ));
@@ -814,8 +828,8 @@ impl Stage for InpaintStage {
 
     fn config(&self) -> Value {
         let mut c = json!({"inpainter": self.kind, "loop": self.spec});
-        if self.kind == InpainterKind::Diffusion {
-            c["diffusion"] = json!(self.diffusion);
+        if self.kind.uses_diffusion() {
+            c["diffusion"] = json!(self.diffusion.as_ref().map(|d| d.for_kind(self.kind)));
         }
         c
     }

@@ -141,6 +141,9 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> anyhow::Result<PathBuf
                 let _ = writeln!(h, "<tr><td>{}</td></tr>", cells.join("</td><td>"));
             }
             h += "</table>\n";
+            if let Some(k) = &t.kid {
+                let _ = writeln!(h, "<p>{}</p>", escape(&k.describe()));
+            }
         }
         None => h += "<p>No evaluation table (run <code>extranerf eval RUN</code>).</p>\n",
     }

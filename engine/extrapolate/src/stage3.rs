@@ -396,8 +396,8 @@ impl Stage for EnhancerDataStage {
             "downscale": self.virt.downscale,
             "visibility": self.vis,
         });
-        if self.inpainter == InpainterKind::Diffusion {
-            c["diffusion"] = json!(self.diffusion);
+        if self.inpainter.uses_diffusion() {
+            c["diffusion"] = json!(self.diffusion.as_ref().map(|d| d.for_kind(self.inpainter)));
         }
         c
     }

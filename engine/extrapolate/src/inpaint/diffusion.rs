@@ -22,6 +22,8 @@ pub struct DiffusionInpainter {
     pub steps: usize,
     /// Where the weights came from (for logs).
     pub notes: Vec<String>,
+    /// `Diffusion` with adapters, `DiffusionBase` without.
+    kind: InpainterKind,
 }
 
 impl std::fmt::Debug for DiffusionInpainter {
@@ -34,7 +36,8 @@ impl std::fmt::Debug for DiffusionInpainter {
 }
 
 impl DiffusionInpainter {
-    /// Loads the model folder `dir` (and LoRA adapters from `lora`) onto `device`.
+    /// Loads the model folder `dir` (and LoRA adapters from `lora`) onto `device`. It is the
+    /// `diffusion` inpainter with adapters and `diffusion-base` (the model as it is) without.
     pub fn load(
         dir: &Path,
         lora: Option<&Path>,
@@ -45,8 +48,10 @@ impl DiffusionInpainter {
             anyhow::bail!("the diffusion inpainter needs at least one DDIM step");
         }
         let mut pipe = Pipeline::load(dir, &device, "")?;
+        let mut kind = InpainterKind::DiffusionBase;
         if let Some(l) = lora {
             pipe = pipe.with_lora(l, &device)?;
+            kind = InpainterKind::Diffusion;
         }
         let notes = pipe.notes.clone();
         Ok(DiffusionInpainter {
@@ -54,13 +59,14 @@ impl DiffusionInpainter {
             device,
             steps,
             notes,
+            kind,
         })
     }
 }
 
 impl Inpainter for DiffusionInpainter {
     fn kind(&self) -> InpainterKind {
-        InpainterKind::Diffusion
+        self.kind
     }
 
     fn inpaint(&mut self, target: &Target<'_>, sources: &[Source<'_>], seed: u64) -> Result<Fill> {

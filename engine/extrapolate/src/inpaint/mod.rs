@@ -113,9 +113,14 @@ pub enum InpainterKind {
     Exemplar,
     /// The harmonic fill's low frequencies with the exemplar fill's high frequencies.
     Hybrid,
-    /// An inpainting diffusion model (`--diffusion-model`), from the render noised to the
-    /// round's t; depth from the depth-aware harmonic fill.
+    /// An inpainting diffusion model (`--diffusion-model`, with its `--diffusion-lora`
+    /// adapters when given), from the render noised to the round's t; depth from the
+    /// depth-aware harmonic fill.
     Diffusion,
+    /// The same diffusion model without the `--diffusion-lora` adapters: the paper's
+    /// "un-fine-tuned" ablation row beside `diffusion`'s fine-tuned one.
+    #[serde(rename = "diffusion-base")]
+    DiffusionBase,
 }
 
 impl InpainterKind {
@@ -126,17 +131,26 @@ impl InpainterKind {
             InpainterKind::Exemplar => "exemplar",
             InpainterKind::Hybrid => "hybrid",
             InpainterKind::Diffusion => "diffusion",
+            InpainterKind::DiffusionBase => "diffusion-base",
         }
     }
 
-    /// The inpainter with its default settings; None for `diffusion`, which needs a model
-    /// ([`diffusion::DiffusionInpainter::load`]).
+    /// Whether this inpainter is a diffusion model (loaded from `--diffusion-model`).
+    pub fn uses_diffusion(self) -> bool {
+        matches!(
+            self,
+            InpainterKind::Diffusion | InpainterKind::DiffusionBase
+        )
+    }
+
+    /// The inpainter with its default settings; None for `diffusion` and `diffusion-base`,
+    /// which need a model ([`diffusion::DiffusionInpainter::load`]).
     pub fn build(self) -> Option<Box<dyn Inpainter>> {
         match self {
             InpainterKind::Harmonic => Some(Box::new(harmonic::Harmonic::default())),
             InpainterKind::Exemplar => Some(Box::new(exemplar::Exemplar::default())),
             InpainterKind::Hybrid => Some(Box::new(Hybrid::default())),
-            InpainterKind::Diffusion => None,
+            InpainterKind::Diffusion | InpainterKind::DiffusionBase => None,
         }
     }
 }
@@ -297,6 +311,31 @@ impl Inpainter for Hybrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_un_fine_tuned_diffusion_row_has_its_own_name_everywhere() {
+        use clap::ValueEnum as _;
+        let k = InpainterKind::DiffusionBase;
+        assert_eq!(k.name(), "diffusion-base");
+        assert_eq!(k.to_string(), "diffusion-base");
+        assert_eq!(
+            serde_json::to_string(&k).unwrap_or_default(),
+            "\"diffusion-base\""
+        );
+        assert_eq!(InpainterKind::from_str("diffusion-base", false), Ok(k));
+        assert!(k.uses_diffusion() && InpainterKind::Diffusion.uses_diffusion());
+        assert!(!InpainterKind::Hybrid.uses_diffusion());
+        assert!(k.build().is_none());
+        // The adapters are left out of its model, kept for `diffusion`.
+        let d = crate::pipeline::DiffusionSpec {
+            model: "m".into(),
+            lora: Some("l".into()),
+            steps: 10,
+            backend: extranerf_diffusion::device::Backend::Cpu,
+        };
+        assert_eq!(d.for_kind(k).lora, None);
+        assert_eq!(d.for_kind(InpainterKind::Diffusion), d);
+    }
 
     #[test]
     fn mis_sized_and_non_finite_inputs_are_refused() {

@@ -154,6 +154,41 @@ pub fn kid(real: &[f32], fake: &[f32], dim: usize, cfg: &KidConfig) -> Result<Ki
     })
 }
 
+/// Pixels of the mask inside the `s x s` crop at (x, y), in O(1) per crop after an O(w h)
+/// summed-area table.
+fn coverage(mask: &[bool], w: usize, h: usize, s: usize) -> impl Fn(usize, usize) -> u32 {
+    let mut sat = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        for x in 0..w {
+            sat[(y + 1) * (w + 1) + x + 1] =
+                u32::from(mask[y * w + x]) + sat[y * (w + 1) + x + 1] + sat[(y + 1) * (w + 1) + x]
+                    - sat[y * (w + 1) + x];
+        }
+    }
+    move |x: usize, y: usize| {
+        sat[(y + s) * (w + 1) + x + s] + sat[y * (w + 1) + x]
+            - sat[y * (w + 1) + x + s]
+            - sat[(y + s) * (w + 1) + x]
+    }
+}
+
+/// The largest share of a `size` x `size` crop's pixels that the mask covers, over every crop
+/// position of the `width` x `height` image (0 when the crop does not fit or sizes disagree):
+/// what `min_fraction` [`masked_crops`] can ask of this mask.
+pub fn max_coverage(mask: &[bool], width: u32, height: u32, size: u32) -> f64 {
+    let (w, h, s) = (width as usize, height as usize, size as usize);
+    if mask.len() != w * h || s == 0 || s > w || s > h {
+        return 0.0;
+    }
+    let covered = coverage(mask, w, h, s);
+    let best = (0..=h - s)
+        .flat_map(|y| (0..=w - s).map(move |x| (x, y)))
+        .map(|(x, y)| covered(x, y))
+        .max()
+        .unwrap_or(0);
+    f64::from(best) / (s * s) as f64
+}
+
 /// Top-left corners of `count` square `size` x `size` crops of a `width` x `height` image,
 /// each covering at least `min_fraction` of its pixels with the mask (`mask[y * width + x]`
 /// true: the region the crops study, such as what no training camera saw), drawn uniformly
@@ -185,20 +220,7 @@ pub fn masked_crops(
             metric: "patch crops",
         });
     }
-    // Summed-area table of the mask: each crop's coverage in O(1).
-    let mut sat = vec![0u32; (w + 1) * (h + 1)];
-    for y in 0..h {
-        for x in 0..w {
-            sat[(y + 1) * (w + 1) + x + 1] =
-                u32::from(mask[y * w + x]) + sat[y * (w + 1) + x + 1] + sat[(y + 1) * (w + 1) + x]
-                    - sat[y * (w + 1) + x];
-        }
-    }
-    let covered = |x: usize, y: usize| {
-        sat[(y + s) * (w + 1) + x + s] + sat[y * (w + 1) + x]
-            - sat[y * (w + 1) + x + s]
-            - sat[(y + s) * (w + 1) + x]
-    };
+    let covered = coverage(mask, w, h, s);
     let need = (min_fraction * (s * s) as f64).ceil() as u32;
     let valid: Vec<(u32, u32)> = (0..=h - s)
         .flat_map(|y| (0..=w - s).map(move |x| (x, y)))
@@ -392,5 +414,23 @@ mod tests {
         assert!(e.contains("covers 99%"), "{e}");
         assert!(masked_crops(&mask, w, h, 41, 10, 0.5, 7).is_err());
         assert!(masked_crops(&mask[1..], w, h, s, 10, 0.5, 7).is_err());
+        // The best coverage, against a direct count over every position; crops can ask for
+        // exactly that much and no more.
+        let direct = (0..=h - s)
+            .flat_map(|y| (0..=w - s).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                (y..y + s)
+                    .flat_map(|yy| (x..x + s).map(move |xx| (xx, yy)))
+                    .filter(|&(xx, yy)| mask[(yy * w + xx) as usize])
+                    .count()
+            })
+            .max()
+            .unwrap();
+        let best = max_coverage(&mask, w, h, s);
+        assert_eq!(best, direct as f64 / (s * s) as f64);
+        assert!(best < 1.0);
+        assert!(masked_crops(&mask, w, h, s, 1, best, 7).is_ok());
+        assert!(masked_crops(&mask, w, h, s, 1, best + 1e-6, 7).is_err());
+        assert_eq!(max_coverage(&mask, w, h, 41), 0.0);
     }
 }
