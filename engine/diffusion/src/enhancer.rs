@@ -17,7 +17,7 @@ use crate::config::UNetConfig;
 use crate::inpaint::{Codec, InpaintModel, PixelCodec, Task};
 use crate::lora::{self, LoraConfig};
 use crate::pipeline::{save_task, Pipeline};
-use crate::scheduler::{Prediction, SchedulerConfig};
+use crate::scheduler::{Prediction, Schedule, SchedulerConfig};
 use crate::train::{self, Augment, Progress, TrainImage, TrainSettings, Trainable};
 use crate::train_state::{self, Checkpointing};
 use crate::{DiffusionError, Result};
@@ -154,6 +154,20 @@ pub fn train_enhancer(
         ..Augment::default()
     };
     let t = std::time::Instant::now();
+    // The one training call of both branches (from scratch, LoRA).
+    let mut run = |model: Trainable, codec: &Codec, schedule: &Schedule| {
+        train::train(
+            model,
+            codec,
+            schedule,
+            images,
+            &aug,
+            &settings,
+            &ad,
+            Some(&ck),
+            on_progress,
+        )
+    };
     let (params, curve) = match &spec.base_model {
         None => {
             let cfg = UNetConfig::pixel_space(&spec.channels, 64)
@@ -162,19 +176,13 @@ pub fn train_enhancer(
             let pipe = Pipeline::new(cfg.clone(), None, sched.clone(), 4, &ad)?;
             let params = pipe.model.unet.num_params();
             let schedule = pipe.model.schedule.clone();
-            let (model, curve) = train::train(
+            let (model, curve) = run(
                 Trainable {
                     unet: pipe.model.unet,
                     tokens: pipe.model.tokens,
                 },
                 &pipe.model.codec,
                 &schedule,
-                images,
-                &aug,
-                &settings,
-                &ad,
-                Some(&ck),
-                on_progress,
             )?;
             let model = model.valid();
             Pipeline {
@@ -200,19 +208,13 @@ pub fn train_enhancer(
             let params = lora::count_lora(&unet);
             let schedule = pipe.model.schedule.clone();
             let codec = pipe.model.codec.no_grad();
-            let (model, curve) = train::train(
+            let (model, curve) = run(
                 Trainable {
                     unet,
                     tokens: pipe.model.tokens,
                 },
                 &codec,
                 &schedule,
-                images,
-                &aug,
-                &settings,
-                &ad,
-                Some(&ck),
-                on_progress,
             )?;
             let dir = lora_dir(out);
             lora::save(&dir, &model.unet, &cfg)?;

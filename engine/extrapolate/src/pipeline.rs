@@ -728,6 +728,50 @@ pub(crate) fn save_round(
     Ok(())
 }
 
+/// Where a stage-2 or stage-3 variant saves its rounds: its folder and the run configuration
+/// its checkpoints carry.
+pub(crate) struct RoundSink<'a> {
+    pub out: &'a Path,
+    pub cfg: &'a RunConfig,
+    pub tcfg: &'a TrainConfig,
+}
+
+/// The end of a stage-2 or stage-3 round: trains `steps` steps on `views` (virtual views
+/// drawn at `virtual_fraction`), then saves the round as done (`round + 1` rounds; `seconds`,
+/// the stage's time before this round, grows by the round's time since `t0`). Returns the last
+/// window's statistics and the training seconds.
+#[allow(clippy::too_many_arguments)] // each is a distinct input of the loop
+pub(crate) fn train_round(
+    ctx: &Context,
+    trainer: &mut Trainer,
+    prims: &Prims,
+    views: &[View],
+    virtual_fraction: f32,
+    steps: u32,
+    what: &str,
+    sink: &RoundSink<'_>,
+    (round, t0, seconds): (u32, Instant, &mut f64),
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<(Option<StepStats>, f64)> {
+    let data =
+        TrainData::with_sampling(ctx, views, ViewSampling::VirtualFraction(virtual_fraction))?;
+    let tt = Instant::now();
+    let last = train_steps(ctx, trainer, prims, &data, steps, what, sink.out, rep)?;
+    let train_s = tt.elapsed().as_secs_f64();
+    *seconds += t0.elapsed().as_secs_f64();
+    save_round(
+        sink.out,
+        sink.cfg,
+        sink.tcfg,
+        trainer,
+        &RoundState {
+            rounds_done: round + 1,
+            seconds: *seconds,
+        },
+    )?;
+    Ok((last, train_s))
+}
+
 /// Trains `steps` steps on `data` with progress; a non-finite loss is an error that says the
 /// last finished round in `out` is intact. Returns the last window's statistics.
 #[allow(clippy::too_many_arguments)] // each is a distinct input of the loop
@@ -897,6 +941,11 @@ impl Stage for InpaintStage {
         )?;
         let prims = Prims::new(ctx)?;
         let mut inpainter = build_inpainter(ctx, self.kind, self.diffusion.as_ref(), rep)?;
+        let sink = RoundSink {
+            out: &out,
+            cfg: &cfg,
+            tcfg: &tcfg,
+        };
         let mut rounds = Vec::new();
         for round in start_round..self.spec.rounds {
             let t0 = Instant::now();
@@ -1016,33 +1065,17 @@ impl Stage for InpaintStage {
                     kind: ViewKind::Virtual,
                 });
             }
-            let data = TrainData::with_sampling(
-                ctx,
-                &views,
-                ViewSampling::VirtualFraction(self.spec.virtual_fraction),
-            )?;
-            let tt = Instant::now();
-            let last = train_steps(
+            let (last, train_s) = train_round(
                 ctx,
                 &mut trainer,
                 &prims,
-                &data,
+                &views,
+                self.spec.virtual_fraction,
                 self.spec.steps_per_round,
                 &format!("{} round {round}", self.name()),
-                &out,
+                &sink,
+                (round, t0, &mut seconds),
                 rep,
-            )?;
-            let train_s = tt.elapsed().as_secs_f64();
-            seconds += t0.elapsed().as_secs_f64();
-            save_round(
-                &out,
-                &cfg,
-                &tcfg,
-                &trainer,
-                &RoundState {
-                    rounds_done: round + 1,
-                    seconds,
-                },
             )?;
             let row = json!({
                 "round": round,

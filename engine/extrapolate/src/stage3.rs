@@ -39,8 +39,8 @@ use crate::base::BaseField;
 use crate::driver::{Progress, Reporter, Unit};
 use crate::inpaint::{Fill, InpainterKind, Source, Target};
 use crate::pipeline::{
-    build_inpainter, downscale_image, load_map, load_round, make_virtual, render, save_round,
-    train_steps, write_test_renders, DiffusionSpec, RoundState, RunDir, Stage, Stage2Spec,
+    build_inpainter, downscale_image, load_map, load_round, make_virtual, render, train_round,
+    train_steps, write_test_renders, DiffusionSpec, RoundSink, RunDir, Stage, Stage2Spec,
     VirtualSpec, MAPS_FILE,
 };
 use crate::visibility::{FieldVisibility, VisSettings};
@@ -864,33 +864,21 @@ impl Stage for EnhanceStage {
                     kind: ViewKind::Virtual,
                 });
             }
-            let data = TrainData::with_sampling(
-                ctx,
-                &views,
-                ViewSampling::VirtualFraction(self.spec.virtual_fraction),
-            )?;
-            let tt = Instant::now();
-            let last = train_steps(
+            let (last, train_s) = train_round(
                 ctx,
                 &mut trainer,
                 &prims,
-                &data,
+                &views,
+                self.spec.virtual_fraction,
                 self.spec.steps_per_round,
                 &format!("{} round {round}", self.name()),
-                &out,
-                rep,
-            )?;
-            let train_s = tt.elapsed().as_secs_f64();
-            seconds += t0.elapsed().as_secs_f64();
-            save_round(
-                &out,
-                &cfg,
-                &tcfg,
-                &trainer,
-                &RoundState {
-                    rounds_done: round + 1,
-                    seconds,
+                &RoundSink {
+                    out: &out,
+                    cfg: &cfg,
+                    tcfg: &tcfg,
                 },
+                (round, t0, &mut seconds),
+                rep,
             )?;
             let mean_change = change / virt.len().max(1) as f64;
             rep.note(&format!(
