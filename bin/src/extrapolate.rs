@@ -319,7 +319,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
 #[derive(clap::Args, Debug, Clone)]
 pub struct KidArgs {
     /// Leave KID out (it runs Inception-v3 on every held-out view and crop of every variant:
-    /// about 0.6 s an image on two cores).
+    /// about 0.5 s an image on two cores).
     #[arg(long)]
     no_kid: bool,
     /// Inception-v3 weights (default: $EXTRANERF_INCEPTION, else
