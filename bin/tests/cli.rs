@@ -113,6 +113,17 @@ fn bad_arguments_are_clear_errors() {
             &["auto", "device", "cpu"],
         ),
         (
+            ["extrapolate", "--out", run, "--inpainter"],
+            "sd",
+            &[
+                "harmonic",
+                "exemplar",
+                "hybrid",
+                "diffusion",
+                "diffusion-base",
+            ],
+        ),
+        (
             ["render", run, "--chunk=64", "--march"],
             "fast",
             &["fused", "standalone"],
@@ -164,6 +175,25 @@ fn bad_arguments_are_clear_errors() {
     assert!(!ok && err.contains("checkpoint.safetensors"), "{err}");
     let (ok, _, err) = extranerf(&["train", "--resume", "--out", out.to_str().unwrap()]);
     assert!(!ok && err.contains("checkpoint.safetensors"), "{err}");
+    // KID's protocol flags on an extrapolate run are checked before any work.
+    let xrun = dir.join("xrun");
+    std::fs::create_dir_all(&xrun).unwrap();
+    std::fs::write(xrun.join("extrapolate.json"), "{}").unwrap();
+    for (flag, value, says) in [
+        ("--kid-min-fraction", "1.5", "not a share in [0, 1]"),
+        ("--kid-subset-size", "1", "at least 2"),
+        ("--kid-subsets", "0", "must be positive"),
+    ] {
+        let (ok, _, err) = extranerf(&[
+            "eval",
+            xrun.to_str().unwrap(),
+            "--kid-backend",
+            "cpu",
+            flag,
+            value,
+        ]);
+        assert!(!ok && err.contains(says), "{flag} {value}: {err}");
+    }
     let _ = std::fs::remove_dir_all(dir);
 }
 
