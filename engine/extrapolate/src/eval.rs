@@ -330,14 +330,21 @@ pub fn compare(
                 .map(|(_, c, _, m)| (m.clone(), c.width, c.height))
                 .collect();
             let places = patch_places(&masks, &k.spec)?;
-            let best = masks
-                .iter()
-                .map(|(m, w, h)| max_coverage(m, *w, *h, k.spec.crop_size))
-                .fold(0.0, f64::max);
-            let mut per_view = vec![0; truths.len()];
+            let mut crops_per_view = vec![0; truths.len()];
             for p in &places {
-                per_view[p.0] += 1;
+                crops_per_view[p.0] += 1;
             }
+            let pm = k.spec.subset_size.min(places.len());
+            let report = KidReport {
+                spec: k.spec.clone(),
+                crops_per_view,
+                frame_subset_size: k.spec.frame_subset_size.min(truths.len()),
+                patch_subset_size: (pm >= 2).then_some(pm),
+                max_coverage: masks
+                    .iter()
+                    .map(|(m, w, h)| max_coverage(m, *w, *h, k.spec.crop_size))
+                    .fold(0.0, f64::max),
+            };
             let t0 = std::time::Instant::now();
             let imgs: Vec<&[f32]> = truths.iter().map(|t| t.2.rgb.as_slice()).collect();
             let (full, patches) = k.features(&imgs, &sizes, &places)?;
@@ -347,10 +354,9 @@ pub fn compare(
                 places.len(),
                 t0.elapsed().as_secs_f64()
             ));
-            Some((places, per_view, full, patches, best))
+            Some((report, places, full, patches))
         }
     };
-    let mut kid_report = None;
     let mut rows = Vec::new();
     for (name, folder, suffix) in variants {
         let (mut p, mut s, mut l) = (vec![], vec![], vec![]);
@@ -393,20 +399,19 @@ pub fn compare(
             renders.push(r.rgb);
         }
         let (mut kid_frame, mut kid_patch) = (None, None);
-        if let (Some(k), Some((places, per_view, full_t, patch_t, best))) = (kid_eval, &kid_ref) {
+        if let (Some(k), Some((report, places, full_t, patch_t))) = (kid_eval, &kid_ref) {
             let t0 = std::time::Instant::now();
             let imgs: Vec<&[f32]> = renders.iter().map(Vec::as_slice).collect();
             let (full, patches) = k.features(&imgs, &sizes, places)?;
-            let m = k.spec.frame_subset_size.min(imgs.len());
-            let cfg = |subsets, subset_size| KidConfig {
-                subsets,
+            let cfg = |subset_size| KidConfig {
+                subsets: k.spec.subsets,
                 subset_size,
                 seed: k.spec.seed,
             };
-            kid_frame = Some(kid(full_t, &full, FEATURES, &cfg(k.spec.subsets, m))?);
-            let pm = k.spec.subset_size.min(places.len());
-            if pm >= 2 {
-                kid_patch = Some(kid(patch_t, &patches, FEATURES, &cfg(k.spec.subsets, pm))?);
+            let m = report.frame_subset_size;
+            kid_frame = Some(kid(full_t, &full, FEATURES, &cfg(m))?);
+            if let Some(pm) = report.patch_subset_size {
+                kid_patch = Some(kid(patch_t, &patches, FEATURES, &cfg(pm))?);
             }
             rep.note(&format!(
                 "KID of {name}: {} frames and {} crops in {:.0} s",
@@ -414,13 +419,6 @@ pub fn compare(
                 places.len(),
                 t0.elapsed().as_secs_f64()
             ));
-            kid_report = Some(KidReport {
-                spec: k.spec.clone(),
-                crops_per_view: per_view.clone(),
-                frame_subset_size: m,
-                patch_subset_size: (pm >= 2).then_some(pm),
-                max_coverage: *best,
-            });
         }
         rows.push(Row {
             variant: name,
@@ -441,7 +439,7 @@ pub fn compare(
     Ok(Table {
         views,
         rows,
-        kid: kid_report,
+        kid: kid_ref.map(|r| r.0),
     })
 }
 

@@ -57,13 +57,13 @@ struct ConvBn {
 /// convolutions are unpadded.
 const VALID: [&str; 2] = ["layers.conv_1", "layers.conv_4"];
 /// The stride-2 convolutions.
-const STRIDE2: [&str; 4] = [
+const STRIDE2: [&str; 5] = [
     "layers.conv",
     "layers.mixed_3.conv",
     "layers.mixed_3.tower.conv_2",
     "layers.mixed_8.tower.conv_1",
+    "layers.mixed_8.tower_1.conv_3",
 ];
-const STRIDE2_B: &str = "layers.mixed_8.tower_1.conv_3";
 
 /// The network.
 #[derive(Debug)]
@@ -72,12 +72,7 @@ pub struct Inception {
     device: Device,
 }
 
-fn fold(
-    st: &SafeTensors,
-    path: &Path,
-    name: &str,
-    device: &Device,
-) -> anyhow::Result<(ConvBn, usize)> {
+fn fold(st: &SafeTensors, path: &Path, name: &str, device: &Device) -> anyhow::Result<ConvBn> {
     let t = |suffix: &str| -> anyhow::Result<&extranerf_nerf::safetensors::Tensor> {
         let key = format!("net.{name}.{suffix}");
         st.tensors
@@ -120,23 +115,18 @@ fn fold(
         }
         bf[c] = (f64::from(beta.data[c]) - f64::from(mean.data[c]) * s) as f32;
     }
-    let stride = if STRIDE2.contains(&name) || name == STRIDE2_B {
-        2
-    } else {
-        1
-    };
+    let stride = if STRIDE2.contains(&name) { 2 } else { 1 };
     let padding = if stride == 2 || VALID.contains(&name) {
         [0, 0]
     } else {
         [kh / 2, kw / 2]
     };
-    let conv = ConvBn {
+    Ok(ConvBn {
         weight: Tensor::from_data(TensorData::new(wf, w.shape.clone()), device),
         bias: Tensor::from_data(TensorData::new(bf, [o]), device),
         stride,
         padding,
-    };
-    Ok((conv, o))
+    })
 }
 
 fn max3(x: Tensor<4>, stride: usize) -> Tensor<4> {
@@ -178,7 +168,7 @@ impl Inception {
             .map(str::to_string)
             .collect();
         for name in names {
-            let (c, _) = fold(&st, path, &name, device)?;
+            let c = fold(&st, path, &name, device)?;
             convs.insert(name, c);
         }
         let net = Inception {
