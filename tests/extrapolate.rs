@@ -103,6 +103,7 @@ fn options(out: &Path, base: &Path) -> Options {
         },
         stage3: None,
         resume: false,
+        redo: Vec::new(),
     }
 }
 
@@ -284,23 +285,31 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         "the masked region ({pm:.2} dB) should change more than the visible"
     );
 
-    // Resume at the stage-2 boundary: the same result.
+    // Stage 2 redone (`--redo`) on a copy of the finished run: its old rounds are discarded,
+    // not resumed, the fly-through that reads it runs again, and the result is the same.
     let b = dir.join("b");
     copy_dir(&a, &b);
-    let mut man = Manifest::load(&b).unwrap().unwrap();
-    man.stages.retain(|s| s.name != "stage2-harmonic");
-    man.save(&b).unwrap();
-    std::fs::remove_dir_all(b.join("stage2-harmonic")).unwrap();
     let o = Options {
         resume: true,
+        redo: vec!["stage2-harmonic".into()],
         ..options(&b, &base)
     };
     let mut rec = Record::default();
     extrapolate(ctx, &o, &mut rec).unwrap();
-    assert!(rec
-        .notes
-        .iter()
-        .any(|n| n.contains("visibility: done, skipped")));
+    let has = |s: &str| rec.notes.iter().any(|n| n.contains(s));
+    assert!(has("visibility: done, skipped"), "{:?}", rec.notes);
+    assert!(
+        has("stage stage2-harmonic: redone (--redo)"),
+        "{:?}",
+        rec.notes
+    );
+    assert!(
+        has("stage flythrough-stage2-harmonic: runs again after stage2-harmonic"),
+        "{:?}",
+        rec.notes
+    );
+    assert!(!has("resuming after round"), "{:?}", rec.notes);
+    assert!(has("flythrough-base: done, skipped"), "{:?}", rec.notes);
     let same = agreement(&a, &b, &loaded.split.test);
     eprintln!("resumed at the boundary: {same:.2} dB from the uninterrupted run");
     assert!(
@@ -700,6 +709,24 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         err.contains("stage3-enhancer.enhancer.steps: 60 -> 61"),
         "{err}"
     );
+    // So are the loop's colour anchoring and seen-pixel weight, which a run records only when
+    // they are not the defaults; an out-of-range weight is refused before anything runs.
+    for (anchor, visible, want) in [
+        (3, 1.0, "anchor_radius"),
+        (0, 0.0, "visible_weight"),
+        (0, 1.5, "--stage3-visible-weight 1.5: use a value in [0, 1]"),
+    ] {
+        let mut o = opts(&a);
+        o.resume = true;
+        let s3 = o.stage3.as_mut().unwrap();
+        s3.anchor_radius = anchor;
+        s3.visible_weight = visible;
+        let err = format!(
+            "{:#}",
+            extrapolate(ctx, &o, &mut Record::default()).unwrap_err()
+        );
+        assert!(err.contains(want), "{err}");
+    }
 
     // `eval`: stage 3's field is a row of its own, with both KID protocols (small crops: the
     // demo views are small).

@@ -179,6 +179,15 @@ pub struct ExtrapolateArgs {
     /// sqrt(1 - t^2)).
     #[arg(long, default_value_t = Stage3Spec::default().t)]
     stage3_t: f32,
+    /// Stage 3: colour anchoring, a box-blur radius in pixels (0: off). The enhanced views
+    /// keep only their detail above that blur, on the render's own blurred colours, which
+    /// removes an enhancer's colour drift.
+    #[arg(long, default_value_t = Stage3Spec::default().anchor_radius)]
+    stage3_anchor: usize,
+    /// Stage 3: weight of the virtual views' seen pixels relative to the not-visible ones (1:
+    /// the whole enhanced view, as the paper; 0: only where no input camera saw).
+    #[arg(long, default_value_t = Stage3Spec::default().visible_weight)]
+    stage3_visible_weight: f32,
     /// Stage 3: DDIM steps per enhancement.
     #[arg(long, default_value_t = Stage3Spec::default().ddim_steps)]
     stage3_ddim_steps: usize,
@@ -193,6 +202,11 @@ pub struct ExtrapolateArgs {
     /// be those it was started with.
     #[arg(long)]
     resume: bool,
+    /// With --resume: stages to run again from nothing, comma-separated (e.g.
+    /// `stage3-harmonic`); their settings may differ from the recorded ones, and the stages
+    /// that read them run again too.
+    #[arg(long, value_delimiter = ',', value_name = "STAGE", requires = "resume")]
+    redo: Vec<String>,
 }
 
 impl ExtrapolateArgs {
@@ -285,6 +299,8 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             rounds: a.stage3_rounds,
             steps_per_round: a.stage3_steps_per_round,
             t: a.stage3_t,
+            anchor_radius: a.stage3_anchor,
+            visible_weight: a.stage3_visible_weight,
             ddim_steps: a.stage3_ddim_steps,
             virtual_fraction: a.stage3_virtual_fraction,
             lr: a.stage3_lr,
@@ -292,6 +308,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             backend: a.diffusion_backend,
         }),
         resume: a.resume,
+        redo: a.redo.clone(),
     };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let log = a.out.join("extrapolate.log");

@@ -152,6 +152,14 @@ fn context_with(cli: &Cli, share_with_wgpu: bool) -> anyhow::Result<Context> {
 }
 
 fn main() {
+    // burn-optim 0.22.1 restores an optimiser's moments (resuming `diffusion prior`,
+    // `diffusion finetune` or the enhancer) on burn's `Device::default()`, which is a new wgpu
+    // device of its own, not the engine's, unless BURN_DEVICE names another. On the CPU the
+    // moments move to the parameters' device at the next step, so nothing else changes. Set
+    // here, before any thread exists.
+    if std::env::var_os("BURN_DEVICE").is_none() {
+        std::env::set_var("BURN_DEVICE", "flex");
+    }
     let cli = Cli::parse();
     if let Err(e) = run(&cli) {
         eprintln!("error: {e:#}");

@@ -200,6 +200,9 @@ pub struct Options {
     pub flythrough: FlythroughSpec,
     /// Continue a run folder that holds a manifest.
     pub resume: bool,
+    /// Stages to run again from nothing (with `resume`), whatever their record says; their
+    /// settings may differ from the recorded ones. The stages that read them run again too.
+    pub redo: Vec<String>,
 }
 
 /// The run folder's layout.
@@ -236,6 +239,16 @@ pub trait Stage {
     /// the manifest says it is done.
     fn inputs(&self) -> Vec<String> {
         Vec::new()
+    }
+    /// Discards what an earlier run of it left, before it runs again from nothing (because it
+    /// was asked to be redone, or a stage it reads ran again): by default its folder
+    /// `RUN/NAME`, which holds its resumable state.
+    fn reset(&self, dir: &RunDir) -> anyhow::Result<()> {
+        let d = dir.root.join(self.name());
+        if d.exists() {
+            std::fs::remove_dir_all(&d).with_context(|| format!("removing {}", d.display()))?;
+        }
+        Ok(())
     }
 }
 
@@ -1355,15 +1368,24 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
             }));
         }
     }
-    // Every stage's settings are checked before anything runs.
+    let names: Vec<String> = stages.iter().map(|s| s.name()).collect();
+    check_redo(&o.redo, &names, o.base.from.is_some())?;
+    // Every stage's settings are checked before anything runs (a stage to redo may differ).
     for s in &stages {
-        manifest.stage(&o.out, &s.name(), &s.config())?;
+        if !o.redo.contains(&s.name()) {
+            manifest.stage(&o.out, &s.name(), &s.config())?;
+        }
     }
     let mut ran: Vec<String> = Vec::new();
     for s in &stages {
         let name = s.name();
         let config = s.config();
-        let prior = manifest.stage(&o.out, &name, &config)?.cloned();
+        let redo = o.redo.contains(&name);
+        let prior = if redo {
+            None
+        } else {
+            manifest.stage(&o.out, &name, &config)?.cloned()
+        };
         let stale = s.inputs().iter().any(|i| ran.contains(i));
         if prior.as_ref().is_some_and(|r| r.done) && !stale {
             rep.note(&format!("stage {name}: done, skipped"));
@@ -1371,6 +1393,29 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
         }
         ran.push(name.clone());
         rep.stage(&name);
+        // Its state from an earlier run was made from other inputs or settings: start over.
+        let prior = if redo || stale {
+            rep.note(&format!(
+                "stage {name}: {}, its earlier output discarded",
+                if redo {
+                    "redone (--redo)".to_string()
+                } else {
+                    format!(
+                        "runs again after {}",
+                        s.inputs()
+                            .iter()
+                            .filter(|i| ran.contains(i))
+                            .cloned()
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
+                }
+            ));
+            s.reset(&dir)?;
+            None
+        } else {
+            prior
+        };
         let before = prior.as_ref().map_or(0.0, |r| r.seconds);
         manifest.record(StageRecord {
             name: name.clone(),
@@ -1398,6 +1443,22 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
     Ok(manifest)
 }
 
+/// Refuses `--redo` names that are not stages of this run, or the BaseNeRF of another run.
+pub fn check_redo(redo: &[String], stages: &[String], base_reused: bool) -> anyhow::Result<()> {
+    for r in redo {
+        if !stages.contains(r) {
+            bail!(
+                "--redo {r}: this run has no such stage (its stages: {})",
+                stages.join(", ")
+            );
+        }
+        if r == "base" && base_reused {
+            bail!("--redo base: the BaseNeRF is --base's run, not this one's; retrain it there");
+        }
+    }
+    Ok(())
+}
+
 /// Loads `path` as an image the size of `cam` (for evaluations).
 pub fn load_view_image(cam: &Camera) -> anyhow::Result<Image> {
     let img = load_image(&cam.image)?;
@@ -1412,4 +1473,34 @@ pub fn load_view_image(cam: &Camera) -> anyhow::Result<Image> {
         );
     }
     Ok(img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_redo;
+
+    #[test]
+    fn redo_names_a_stage_of_the_run_and_not_a_reused_base() {
+        let stages: Vec<String> = ["base", "visibility", "stage2-harmonic"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        assert!(check_redo(&["stage2-harmonic".into()], &stages, true).is_ok());
+        assert!(check_redo(&["base".into()], &stages, false).is_ok());
+        let e = check_redo(&["stage3-harmonic".into()], &stages, false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--redo stage3-harmonic: this run has no such stage"),
+            "{e}"
+        );
+        assert!(e.contains("base, visibility, stage2-harmonic"), "{e}");
+        let e = check_redo(&["base".into()], &stages, true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--redo base: the BaseNeRF is --base's run"),
+            "{e}"
+        );
+    }
 }

@@ -68,6 +68,12 @@ pub struct Stage3Spec {
     pub t: f32,
     /// DDIM steps per enhancement.
     pub ddim_steps: usize,
+    /// Colour anchoring (0: off): the enhanced view keeps only its detail above a box blur of
+    /// this radius (applied twice), on the render's own blur; see [`anchor_colours`].
+    pub anchor_radius: usize,
+    /// Weight of a virtual view's seen pixels relative to its not-visible ones (1: the whole
+    /// enhanced view, as the paper; 0: only where no input camera saw).
+    pub visible_weight: f32,
     /// Fraction of each batch's rays drawn from the virtual views.
     pub virtual_fraction: f32,
     /// Learning rate (constant) of the stage's steps.
@@ -89,6 +95,8 @@ impl Default for Stage3Spec {
             steps_per_round: 250,
             t: 0.3,
             ddim_steps: 10,
+            anchor_radius: 0,
+            visible_weight: 1.0,
             virtual_fraction: 0.3,
             lr: 3e-3,
             seed: 0,
@@ -121,6 +129,12 @@ impl Stage3Spec {
         if !(self.lr.is_finite() && self.lr > 0.0) {
             bail!("--stage3-lr {}: use a positive learning rate", self.lr);
         }
+        if !(0.0..=1.0).contains(&self.visible_weight) {
+            bail!(
+                "--stage3-visible-weight {}: use a value in [0, 1]",
+                self.visible_weight
+            );
+        }
         let e = &self.enhancer;
         if e.steps == 0 || e.batch == 0 || e.crop == 0 || !(e.lr.is_finite() && e.lr > 0.0) {
             bail!(
@@ -138,6 +152,34 @@ impl Stage3Spec {
     pub fn weight(&self) -> f32 {
         (1.0 - self.t * self.t).max(0.0).sqrt()
     }
+}
+
+/// Colour anchoring of an enhanced view: its detail (itself minus its box blur of radius `r`,
+/// applied twice) on the render's blur, clamped to [0, 1]. A small enhancer trained from
+/// scratch drifts in colour; this keeps the render's colours and takes only the sharpening
+/// (a constant colour shift of the whole view is removed exactly). `[h, w, 3]` images.
+pub fn anchor_colours(render: &[f32], enhanced: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let low = crate::inpaint::blur(render, w, h, 3, r);
+    let own = crate::inpaint::blur(enhanced, w, h, 3, r);
+    enhanced
+        .iter()
+        .zip(own.iter().zip(&low))
+        .map(|(&e, (&eb, &rb))| (e - eb + rb).clamp(0.0, 1.0))
+        .collect()
+}
+
+/// A virtual view's per-pixel loss weights in stage 3: `weight` (w(t)) where `mask` is a hole
+/// (not visible), `weight * visible` elsewhere.
+pub fn virtual_weights(mask: &[f32], weight: f32, visible: f32) -> Vec<f32> {
+    (0..mask.len())
+        .map(|i| {
+            if crate::inpaint::is_hole(mask, i) {
+                weight
+            } else {
+                weight * visible
+            }
+        })
+        .collect()
 }
 
 /// The data stage's name and folder.
@@ -730,7 +772,7 @@ impl Stage for EnhanceStage {
 
     fn config(&self) -> Value {
         let s = &self.spec;
-        json!({
+        let mut c = json!({
             "rounds": s.rounds,
             "steps_per_round": s.steps_per_round,
             "t": s.t,
@@ -738,7 +780,15 @@ impl Stage for EnhanceStage {
             "virtual_fraction": s.virtual_fraction,
             "lr": s.lr,
             "seed": s.seed,
-        })
+        });
+        // Recorded only when on, so that runs made before the setting existed still resume.
+        if s.anchor_radius > 0 {
+            c["anchor_radius"] = json!(s.anchor_radius);
+        }
+        if s.visible_weight != 1.0 {
+            c["visible_weight"] = json!(s.visible_weight);
+        }
+        c
     }
 
     fn inputs(&self) -> Vec<String> {
@@ -836,6 +886,11 @@ impl Stage for EnhanceStage {
                     )
                     .with_context(|| format!("enhancing virtual view {k}, round {round}"))?;
                 enhance_s += te.elapsed().as_secs_f64();
+                let mut enhanced = enhanced;
+                if self.spec.anchor_radius > 0 {
+                    enhanced.rgb =
+                        anchor_colours(&rgb, &enhanced.rgb, w, h, self.spec.anchor_radius);
+                }
                 change += rgb
                     .iter()
                     .zip(&enhanced.rgb)
@@ -854,13 +909,14 @@ impl Stage for EnhanceStage {
                     cam.height,
                     &enhanced.rgb,
                 )?;
-                // The enhanced colours everywhere with w(t); the depth loss on the field's own
-                // (stage-2 completed) depth keeps the geometry while the colours change.
+                // The enhanced colours with w(t) (times --stage3-visible-weight where seen);
+                // the depth loss on the field's own (stage-2 completed) depth keeps the
+                // geometry while the colours change.
                 views.push(View {
                     camera: cam.clone(),
                     image: Image::opaque(cam.width, cam.height, enhanced.rgb),
                     depth: Some(depth.iter().map(|&d| [d, 1.0]).collect()),
-                    weight: Some(vec![weight; w * h]),
+                    weight: Some(virtual_weights(&masks[k], weight, self.spec.visible_weight)),
                     kind: ViewKind::Virtual,
                 });
             }
@@ -898,5 +954,69 @@ impl Stage for EnhanceStage {
         }
         write_test_renders(ctx, trainer.nerf(), &base.loaded, samples, &out)?;
         Ok(json!({"rounds": rounds, "seconds": seconds}))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{anchor_colours, virtual_weights};
+
+    /// A `[h, w, 3]` image from a formula.
+    fn image(w: usize, h: usize, f: impl Fn(usize, usize, usize) -> f32) -> Vec<f32> {
+        (0..h * w * 3)
+            .map(|i| f(i / 3 % w, i / 3 / w, i % 3))
+            .collect()
+    }
+
+    #[test]
+    fn seen_pixels_of_a_virtual_view_carry_the_visible_weight() {
+        let mask = [0.0, 0.49, 0.5, 1.0];
+        assert_eq!(virtual_weights(&mask, 0.9, 1.0), [0.9; 4]);
+        assert_eq!(virtual_weights(&mask, 0.9, 0.0), [0.0, 0.0, 0.9, 0.9]);
+        assert_eq!(virtual_weights(&mask, 0.8, 0.5), [0.4, 0.4, 0.8, 0.8]);
+    }
+
+    #[test]
+    fn anchoring_removes_a_colour_drift_and_keeps_the_detail() {
+        let (w, h) = (24, 18);
+        let render = image(w, h, |x, y, c| {
+            0.2 + 0.01 * x as f32 + 0.01 * y as f32 + 0.05 * c as f32
+        });
+        // A pure colour drift (a constant per channel) is removed exactly.
+        let drift = [0.08f32, -0.05, 0.02];
+        let drifted: Vec<f32> = render
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| v + drift[i % 3])
+            .collect();
+        let out = anchor_colours(&render, &drifted, w, h, 3);
+        let worst = out
+            .iter()
+            .zip(&render)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-5, "a colour drift left {worst}");
+        // Drift plus a fine checkerboard: the drift goes, the checkerboard stays.
+        let detail = |x: usize, y: usize| if (x + y) % 2 == 0 { 0.1f32 } else { -0.1 };
+        let sharpened: Vec<f32> = drifted
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| v + detail(i / 3 % w, i / 3 / w))
+            .collect();
+        let out = anchor_colours(&render, &sharpened, w, h, 3);
+        let n = out.len() as f32;
+        let kept = out
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| (v - render[i]) * detail(i / 3 % w, i / 3 / w).signum())
+            .sum::<f32>()
+            / n;
+        let mean_shift = out.iter().zip(&render).map(|(a, b)| a - b).sum::<f32>() / n;
+        assert!(kept > 0.09, "detail kept {kept} of 0.1");
+        assert!(mean_shift.abs() < 0.01, "mean colour moved by {mean_shift}");
+        // Clamped to [0, 1] at the extremes.
+        let white = vec![1.0f32; w * h * 3];
+        let out = anchor_colours(&white, &sharpened, w, h, 1);
+        assert!(out.iter().all(|v| (0.0..=1.0).contains(v)));
     }
 }
