@@ -16,7 +16,7 @@
 #  4. `extrapolate --resume` on RUN with --inpainter harmonic,diffusion-base,diffusion and the
 #     settings RUN was made with (EXTRA: by default those of results/extrapolate_fern_stage3_lavapipe);
 #  5. tools/kid_fern.sh: eval.md/json (the issue's KID protocol) and eval_kid_quarter.md/json
-#     into OUT (QUARTER=0: only the issue's protocol, about 20 minutes less), plus the run's
+#     into OUT (QUARTER=0: only the issue's protocol, about an hour less with seven rows), plus the run's
 #     manifest, log and the new variants' images.
 #
 # Usage: [RUN=runs/extrapolate_fern_stage3] [OUT=results/extrapolate_fern_stage3_lavapipe]

@@ -997,7 +997,13 @@ mod tests {
             .fold(0f32, f32::max);
         assert!(worst < 1e-5, "a colour drift left {worst}");
         // Drift plus a fine checkerboard: the drift goes, the checkerboard stays.
-        let detail = |x: usize, y: usize| if (x + y) % 2 == 0 { 0.1f32 } else { -0.1 };
+        let detail = |x: usize, y: usize| {
+            if (x + y).is_multiple_of(2) {
+                0.1f32
+            } else {
+                -0.1
+            }
+        };
         let sharpened: Vec<f32> = drifted
             .iter()
             .enumerate()
