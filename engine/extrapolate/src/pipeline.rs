@@ -1386,7 +1386,9 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
         } else {
             manifest.stage(&o.out, &name, &config)?.cloned()
         };
-        let stale = s.inputs().iter().any(|i| ran.contains(i));
+        // The stages it reads that ran in this invocation: its output is stale.
+        let rerun: Vec<String> = s.inputs().into_iter().filter(|i| ran.contains(i)).collect();
+        let stale = !rerun.is_empty();
         if prior.as_ref().is_some_and(|r| r.done) && !stale {
             rep.note(&format!("stage {name}: done, skipped"));
             continue;
@@ -1400,15 +1402,7 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
                 if redo {
                     "redone (--redo)".to_string()
                 } else {
-                    format!(
-                        "runs again after {}",
-                        s.inputs()
-                            .iter()
-                            .filter(|i| ran.contains(i))
-                            .cloned()
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )
+                    format!("runs again after {}", rerun.join(", "))
                 }
             ));
             s.reset(&dir)?;

@@ -69,7 +69,8 @@ pub struct Stage3Spec {
     /// DDIM steps per enhancement.
     pub ddim_steps: usize,
     /// Colour anchoring (0: off): the enhanced view keeps only its detail above a box blur of
-    /// this radius (applied twice), on the render's own blur; see [`anchor_colours`].
+    /// this radius (applied twice), on the render's own blur; see
+    /// [`crate::inpaint::low_plus_detail`].
     pub anchor_radius: usize,
     /// Weight of a virtual view's seen pixels relative to its not-visible ones (1: the whole
     /// enhanced view, as the paper; 0: only where no input camera saw).
@@ -152,20 +153,6 @@ impl Stage3Spec {
     pub fn weight(&self) -> f32 {
         (1.0 - self.t * self.t).max(0.0).sqrt()
     }
-}
-
-/// Colour anchoring of an enhanced view: its detail (itself minus its box blur of radius `r`,
-/// applied twice) on the render's blur, clamped to [0, 1]. A small enhancer trained from
-/// scratch drifts in colour; this keeps the render's colours and takes only the sharpening
-/// (a constant colour shift of the whole view is removed exactly). `[h, w, 3]` images.
-pub fn anchor_colours(render: &[f32], enhanced: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
-    let low = crate::inpaint::blur(render, w, h, 3, r);
-    let own = crate::inpaint::blur(enhanced, w, h, 3, r);
-    enhanced
-        .iter()
-        .zip(own.iter().zip(&low))
-        .map(|(&e, (&eb, &rb))| (e - eb + rb).clamp(0.0, 1.0))
-        .collect()
 }
 
 /// A virtual view's per-pixel loss weights in stage 3: `weight` (w(t)) where `mask` is a hole
@@ -888,8 +875,14 @@ impl Stage for EnhanceStage {
                 enhance_s += te.elapsed().as_secs_f64();
                 let mut enhanced = enhanced;
                 if self.spec.anchor_radius > 0 {
-                    enhanced.rgb =
-                        anchor_colours(&rgb, &enhanced.rgb, w, h, self.spec.anchor_radius);
+                    // Colour anchoring: the render's colours, the enhancer's detail.
+                    enhanced.rgb = crate::inpaint::low_plus_detail(
+                        &rgb,
+                        &enhanced.rgb,
+                        w,
+                        h,
+                        self.spec.anchor_radius,
+                    );
                 }
                 change += rgb
                     .iter()
@@ -959,14 +952,7 @@ impl Stage for EnhanceStage {
 
 #[cfg(test)]
 mod tests {
-    use super::{anchor_colours, virtual_weights};
-
-    /// A `[h, w, 3]` image from a formula.
-    fn image(w: usize, h: usize, f: impl Fn(usize, usize, usize) -> f32) -> Vec<f32> {
-        (0..h * w * 3)
-            .map(|i| f(i / 3 % w, i / 3 / w, i % 3))
-            .collect()
-    }
+    use super::virtual_weights;
 
     #[test]
     fn seen_pixels_of_a_virtual_view_carry_the_visible_weight() {
@@ -974,55 +960,5 @@ mod tests {
         assert_eq!(virtual_weights(&mask, 0.9, 1.0), [0.9; 4]);
         assert_eq!(virtual_weights(&mask, 0.9, 0.0), [0.0, 0.0, 0.9, 0.9]);
         assert_eq!(virtual_weights(&mask, 0.8, 0.5), [0.4, 0.4, 0.8, 0.8]);
-    }
-
-    #[test]
-    fn anchoring_removes_a_colour_drift_and_keeps_the_detail() {
-        let (w, h) = (24, 18);
-        let render = image(w, h, |x, y, c| {
-            0.2 + 0.01 * x as f32 + 0.01 * y as f32 + 0.05 * c as f32
-        });
-        // A pure colour drift (a constant per channel) is removed exactly.
-        let drift = [0.08f32, -0.05, 0.02];
-        let drifted: Vec<f32> = render
-            .iter()
-            .enumerate()
-            .map(|(i, &v)| v + drift[i % 3])
-            .collect();
-        let out = anchor_colours(&render, &drifted, w, h, 3);
-        let worst = out
-            .iter()
-            .zip(&render)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
-        assert!(worst < 1e-5, "a colour drift left {worst}");
-        // Drift plus a fine checkerboard: the drift goes, the checkerboard stays.
-        let detail = |x: usize, y: usize| {
-            if (x + y).is_multiple_of(2) {
-                0.1f32
-            } else {
-                -0.1
-            }
-        };
-        let sharpened: Vec<f32> = drifted
-            .iter()
-            .enumerate()
-            .map(|(i, &v)| v + detail(i / 3 % w, i / 3 / w))
-            .collect();
-        let out = anchor_colours(&render, &sharpened, w, h, 3);
-        let n = out.len() as f32;
-        let kept = out
-            .iter()
-            .enumerate()
-            .map(|(i, &v)| (v - render[i]) * detail(i / 3 % w, i / 3 / w).signum())
-            .sum::<f32>()
-            / n;
-        let mean_shift = out.iter().zip(&render).map(|(a, b)| a - b).sum::<f32>() / n;
-        assert!(kept > 0.09, "detail kept {kept} of 0.1");
-        assert!(mean_shift.abs() < 0.01, "mean colour moved by {mean_shift}");
-        // Clamped to [0, 1] at the extremes.
-        let white = vec![1.0f32; w * h * 3];
-        let out = anchor_colours(&white, &sharpened, w, h, 1);
-        assert!(out.iter().all(|v| (0.0..=1.0).contains(v)));
     }
 }

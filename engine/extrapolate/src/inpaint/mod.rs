@@ -260,6 +260,20 @@ pub fn blur(img: &[f32], w: usize, h: usize, c: usize, r: usize) -> Vec<f32> {
     v
 }
 
+/// `low`'s low frequencies plus `detail`'s high frequencies: the box blur (radius `r`, applied
+/// twice) of `low`, plus `detail` minus its own blur, clamped to [0, 1]; `[h, w, 3]` images. A
+/// constant colour shift between `detail` and `low` cancels exactly. The hybrid inpainter's
+/// fill, and stage 3's colour anchoring (`--stage3-anchor`).
+pub fn low_plus_detail(low: &[f32], detail: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let low_blur = blur(low, w, h, 3, r);
+    let detail_blur = blur(detail, w, h, 3, r);
+    low_blur
+        .iter()
+        .zip(detail.iter().zip(&detail_blur))
+        .map(|(&lb, (&d, &db))| (lb + d - db).clamp(0.0, 1.0))
+        .collect()
+}
+
 /// The hybrid inpainter: the harmonic fill's low frequencies (its colour blurred) plus the
 /// exemplar fill's high frequencies (the exemplar fill minus its blur), depth from the
 /// harmonic fill.
@@ -290,15 +304,11 @@ impl Inpainter for Hybrid {
         let low = self.harmonic.inpaint(target, sources, seed)?;
         let ex = self.exemplar.inpaint(target, sources, seed)?;
         let (w, h) = (target.width, target.height);
-        let ex_blur = blur(&ex.rgb, w, h, 3, self.radius);
-        let low_blur = blur(&low.rgb, w, h, 3, self.radius);
+        let mixed = low_plus_detail(&low.rgb, &ex.rgb, w, h, self.radius);
         let mut rgb = target.rgb.to_vec();
         for i in 0..w * h {
             if is_hole(target.mask, i) {
-                for c in 0..3 {
-                    let k = 3 * i + c;
-                    rgb[k] = (low_blur[k] + ex.rgb[k] - ex_blur[k]).clamp(0.0, 1.0);
-                }
+                rgb[3 * i..3 * i + 3].copy_from_slice(&mixed[3 * i..3 * i + 3]);
             }
         }
         Ok(Fill {
@@ -311,6 +321,63 @@ impl Inpainter for Hybrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A `[h, w, 3]` image from a formula.
+    fn image(w: usize, h: usize, f: impl Fn(usize, usize, usize) -> f32) -> Vec<f32> {
+        (0..h * w * 3)
+            .map(|i| f(i / 3 % w, i / 3 / w, i % 3))
+            .collect()
+    }
+
+    #[test]
+    fn low_plus_detail_removes_a_colour_drift_and_keeps_the_detail() {
+        let (w, h) = (24, 18);
+        let render = image(w, h, |x, y, c| {
+            0.2 + 0.01 * x as f32 + 0.01 * y as f32 + 0.05 * c as f32
+        });
+        // A pure colour drift (a constant per channel) is removed exactly.
+        let drift = [0.08f32, -0.05, 0.02];
+        let drifted: Vec<f32> = render
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| v + drift[i % 3])
+            .collect();
+        let out = low_plus_detail(&render, &drifted, w, h, 3);
+        let worst = out
+            .iter()
+            .zip(&render)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-5, "a colour drift left {worst}");
+        // Drift plus a fine checkerboard: the drift goes, the checkerboard stays.
+        let detail = |x: usize, y: usize| {
+            if (x + y).is_multiple_of(2) {
+                0.1f32
+            } else {
+                -0.1
+            }
+        };
+        let sharpened: Vec<f32> = drifted
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| v + detail(i / 3 % w, i / 3 / w))
+            .collect();
+        let out = low_plus_detail(&render, &sharpened, w, h, 3);
+        let n = out.len() as f32;
+        let kept = out
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| (v - render[i]) * detail(i / 3 % w, i / 3 / w).signum())
+            .sum::<f32>()
+            / n;
+        let mean_shift = out.iter().zip(&render).map(|(a, b)| a - b).sum::<f32>() / n;
+        assert!(kept > 0.09, "detail kept {kept} of 0.1");
+        assert!(mean_shift.abs() < 0.01, "mean colour moved by {mean_shift}");
+        // Clamped to [0, 1] at the extremes.
+        let white = vec![1.0f32; w * h * 3];
+        let out = low_plus_detail(&white, &sharpened, w, h, 1);
+        assert!(out.iter().all(|v| (0.0..=1.0).contains(v)));
+    }
 
     #[test]
     fn the_un_fine_tuned_diffusion_row_has_its_own_name_everywhere() {
