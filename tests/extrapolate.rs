@@ -709,17 +709,42 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         err.contains("stage3-enhancer.enhancer.steps: 60 -> 61"),
         "{err}"
     );
-    // So are the loop's colour anchoring and seen-pixel weight, which a run records only when
-    // they are not the defaults; an out-of-range weight is refused before anything runs.
-    for (anchor, visible, want) in [
-        (3, 1.0, "anchor_radius"),
-        (0, 0.0, "visible_weight"),
-        (0, 1.5, "--stage3-visible-weight 1.5: use a value in [0, 1]"),
+    // So are the loop's colour anchoring, smoothing, L1 core and seen-pixel weight, which a run
+    // records only when they are not the defaults; out-of-range values are refused before
+    // anything runs.
+    for (anchor, smooth, core, visible, want) in [
+        (3, 0, 0.0, 1.0, "anchor_radius"),
+        (0, 2, 0.0, 1.0, "smooth_radius"),
+        (0, 0, 0.1, 1.0, "l1_core"),
+        (0, 0, 0.0, 0.0, "visible_weight"),
+        (
+            0,
+            0,
+            0.0,
+            1.5,
+            "--stage3-visible-weight 1.5: use a value in [0, 1]",
+        ),
+        (
+            0,
+            65,
+            0.0,
+            1.0,
+            "--stage3-smooth 65: use a radius of at most 64 pixels",
+        ),
+        (
+            0,
+            0,
+            -0.1,
+            1.0,
+            "--stage3-l1-core -0.1: use a colour error in [0, 1]",
+        ),
     ] {
         let mut o = opts(&a);
         o.resume = true;
         let s3 = o.stage3.as_mut().unwrap();
         s3.anchor_radius = anchor;
+        s3.smooth_radius = smooth;
+        s3.l1_core = core;
         s3.visible_weight = visible;
         let err = format!(
             "{:#}",

@@ -476,10 +476,18 @@ fn ray_losses_match_reference() {
     let loss = Buffer::<f32>::new(&e.ctx, "loss", n).unwrap();
     let g = Buffer::<f32>::new(&e.ctx, "d_rgba", 4 * n).unwrap();
     let gd = Buffer::<f32>::new(&e.ctx, "d_depth", n).unwrap();
-    for rgb in [RgbLoss::L2, RgbLoss::Huber(0.05)] {
+    // The L1 core (smooth L1 of the negative weights): off, and with cores that the random
+    // errors (up to 1) fall both inside and outside of.
+    for (rgb, l1_core) in [
+        (RgbLoss::L2, 0.0),
+        (RgbLoss::Huber(0.05), 0.0),
+        (RgbLoss::L2, 0.1),
+        (RgbLoss::Huber(0.05), 0.3),
+    ] {
         let cfg = LossConfig {
             rgb,
             depth_lambda: 0.1,
+            l1_core,
         };
         let mut rec = e.ctx.recorder("loss").unwrap();
         let t = Targets {
@@ -507,12 +515,12 @@ fn ray_losses_match_reference() {
             // f32 arithmetic on values of order 1 (depth errors up to 9): 1e-6 relative.
             assert!(
                 (l[i] as f64 - wl * inv).abs() <= 1e-6 * (1.0 + wl) * inv,
-                "{rgb:?} ray {i} loss"
+                "{rgb:?} core {l1_core} ray {i} loss"
             );
             for c in 0..3 {
                 assert!(
                     (gg[4 * i + c] as f64 - wg[c] * inv).abs() <= 1e-6 * inv,
-                    "{rgb:?} ray {i} dL/drgb {c}"
+                    "{rgb:?} core {l1_core} ray {i} dL/drgb {c}"
                 );
             }
             assert!(

@@ -586,7 +586,8 @@ fn all_black_and_all_white_images_train_without_nan() {
 /// cover only occupied probe intervals), with a fixed and a random background; 12 samples per
 /// ray fill three MLP groups, and 10 (the even cases) leave two slots of the last group empty;
 /// cases 1 to 4 weight each pixel's colour (some weights 0) and make every second view virtual
-/// (L1), drawn for a set fraction of the rays in cases 2 and 4. Where the device offers
+/// (L1; smooth L1 with a core in cases 2 and 3), drawn for a set fraction of the rays in cases
+/// 2 and 4. Where the device offers
 /// cooperative matrices, the fused step with both MLPs through them (f16 activations and
 /// scaled f16 gradients, f32 accumulation) gives the same loss and gradient within f16
 /// tolerances.
@@ -686,6 +687,8 @@ fn fused_step_gradient_matches_the_standalone_chain() {
                 samples: if ci % 2 == 0 { 10 } else { 12 },
                 rgb_loss,
                 huber_delta: 0.05,
+                // Cases 2 and 3: the virtual views' L1 with a core (smooth L1).
+                virtual_l1_core: if ci == 2 || ci == 3 { 0.3 } else { 0.0 },
                 depth_lambda: 0.2,
                 distortion_lambda: distortion,
                 grad_scaling,

@@ -184,10 +184,22 @@ pub struct ExtrapolateArgs {
     /// removes an enhancer's colour drift.
     #[arg(long, default_value_t = Stage3Spec::default().anchor_radius)]
     stage3_anchor: usize,
+    /// Stage 3: smoothing of the enhancement, a box-blur radius in pixels (0: off). The
+    /// targets keep only the enhancer's change below that blur, on the render's own detail
+    /// (render + blur(enhanced - render)), which removes pixel noise that an enhancer adds
+    /// differently in every view. Applied after --stage3-anchor.
+    #[arg(long, default_value_t = Stage3Spec::default().smooth_radius)]
+    stage3_smooth: usize,
     /// Stage 3: weight of the virtual views' seen pixels relative to the not-visible ones (1:
     /// the whole enhanced view, as the paper; 0: only where no input camera saw).
     #[arg(long, default_value_t = Stage3Spec::default().visible_weight)]
     stage3_visible_weight: f32,
+    /// Stage 3: core of the virtual views' colour loss (0: the paper's plain L1). Above 0,
+    /// smooth L1: per-channel errors below the core are penalised quadratically, so a seen
+    /// pixel whose target is within noise of the render pulls with a gradient that vanishes
+    /// with the error rather than with the full size of a real error's.
+    #[arg(long, default_value_t = Stage3Spec::default().l1_core)]
+    stage3_l1_core: f32,
     /// Stage 3: DDIM steps per enhancement.
     #[arg(long, default_value_t = Stage3Spec::default().ddim_steps)]
     stage3_ddim_steps: usize,
@@ -300,6 +312,8 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             steps_per_round: a.stage3_steps_per_round,
             t: a.stage3_t,
             anchor_radius: a.stage3_anchor,
+            smooth_radius: a.stage3_smooth,
+            l1_core: a.stage3_l1_core,
             visible_weight: a.stage3_visible_weight,
             ddim_steps: a.stage3_ddim_steps,
             virtual_fraction: a.stage3_virtual_fraction,

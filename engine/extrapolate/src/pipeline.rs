@@ -1397,14 +1397,17 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
         rep.stage(&name);
         // Its state from an earlier run was made from other inputs or settings: start over.
         let prior = if redo || stale {
-            rep.note(&format!(
-                "stage {name}: {}, its earlier output discarded",
-                if redo {
-                    "redone (--redo)".to_string()
-                } else {
-                    format!("runs again after {}", rerun.join(", "))
-                }
-            ));
+            // (A stage that never ran before has nothing to discard, and says nothing.)
+            if redo || prior.is_some() {
+                rep.note(&format!(
+                    "stage {name}: {}, its earlier output discarded",
+                    if redo {
+                        "redone (--redo)".to_string()
+                    } else {
+                        format!("runs again after {}", rerun.join(", "))
+                    }
+                ));
+            }
             s.reset(&dir)?;
             None
         } else {

@@ -72,9 +72,21 @@ pub struct Stage3Spec {
     /// this radius (applied twice), on the render's own blur; see
     /// [`crate::inpaint::low_plus_detail`].
     pub anchor_radius: usize,
+    /// Smoothing of the enhancement (0: off): the enhanced view keeps only its change to the
+    /// render below a box blur of this radius (applied twice), on the render's own detail, i.e.
+    /// `render + blur(enhanced - render)`; applied after the colour anchoring. An enhancer that
+    /// adds pixel-level noise of its own (a different one in every view) gives the field targets
+    /// that disagree between views, which it averages into blur.
+    pub smooth_radius: usize,
     /// Weight of a virtual view's seen pixels relative to its not-visible ones (1: the whole
     /// enhanced view, as the paper; 0: only where no input camera saw).
     pub visible_weight: f32,
+    /// Core of the virtual views' colour loss (0: the paper's plain L1; above 0: smooth L1,
+    /// quadratic for per-channel errors below the core; see
+    /// [`extranerf_nerf::trainer::TrainConfig::virtual_l1_core`]). Plain L1 pulls every seen
+    /// pixel whose target is within noise of the render with a gradient as large as a real
+    /// error's.
+    pub l1_core: f32,
     /// Fraction of each batch's rays drawn from the virtual views.
     pub virtual_fraction: f32,
     /// Learning rate (constant) of the stage's steps.
@@ -97,7 +109,9 @@ impl Default for Stage3Spec {
             t: 0.3,
             ddim_steps: 10,
             anchor_radius: 0,
+            smooth_radius: 0,
             visible_weight: 1.0,
+            l1_core: 0.0,
             virtual_fraction: 0.3,
             lr: 3e-3,
             seed: 0,
@@ -130,6 +144,20 @@ impl Stage3Spec {
         if !(self.lr.is_finite() && self.lr > 0.0) {
             bail!("--stage3-lr {}: use a positive learning rate", self.lr);
         }
+        for (flag, r) in [
+            ("--stage3-anchor", self.anchor_radius),
+            ("--stage3-smooth", self.smooth_radius),
+        ] {
+            if r > MAX_RADIUS {
+                bail!("{flag} {r}: use a radius of at most {MAX_RADIUS} pixels (0: off)");
+            }
+        }
+        if !(self.l1_core.is_finite() && (0.0..=1.0).contains(&self.l1_core)) {
+            bail!(
+                "--stage3-l1-core {}: use a colour error in [0, 1] (0: plain L1)",
+                self.l1_core
+            );
+        }
         if !(0.0..=1.0).contains(&self.visible_weight) {
             bail!(
                 "--stage3-visible-weight {}: use a value in [0, 1]",
@@ -153,6 +181,57 @@ impl Stage3Spec {
     pub fn weight(&self) -> f32 {
         (1.0 - self.t * self.t).max(0.0).sqrt()
     }
+}
+
+/// The largest `--stage3-anchor` and `--stage3-smooth` radius (a blur wider than this is
+/// most of a virtual view).
+pub const MAX_RADIUS: usize = 64;
+
+/// Mean squared discrete Laplacian (4 x centre minus the 4 neighbours) of an `[h, w, 3]` image
+/// over its interior pixels and channels: the energy of its finest detail (and of its pixel
+/// noise). 0 for an image narrower or shorter than 3 pixels.
+pub fn detail_energy(rgb: &[f32], w: usize, h: usize) -> f64 {
+    if w < 3 || h < 3 {
+        return 0.0;
+    }
+    let at = |x: usize, y: usize, c: usize| f64::from(rgb[(y * w + x) * 3 + c]);
+    let mut sum = 0.0;
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            for c in 0..3 {
+                let l = 4.0 * at(x, y, c)
+                    - at(x - 1, y, c)
+                    - at(x + 1, y, c)
+                    - at(x, y - 1, c)
+                    - at(x, y + 1, c);
+                sum += l * l;
+            }
+        }
+    }
+    sum / ((w - 2) * (h - 2) * 3) as f64
+}
+
+/// Stage 3's colour target of a virtual view from its `render` and the enhancer's output
+/// (`[h, w, 3]` each): the enhanced view, colour-anchored when `anchor` > 0 (the render's blur
+/// plus the enhanced view's detail above it), then smoothed when `smooth` > 0 (the render's
+/// detail plus the blur of what the enhancement changed); see
+/// [`crate::inpaint::low_plus_detail`].
+pub fn stage3_target(
+    render: &[f32],
+    enhanced: &[f32],
+    w: usize,
+    h: usize,
+    anchor: usize,
+    smooth: usize,
+) -> Vec<f32> {
+    let mut t = enhanced.to_vec();
+    if anchor > 0 {
+        t = crate::inpaint::low_plus_detail(render, &t, w, h, anchor);
+    }
+    if smooth > 0 {
+        t = crate::inpaint::low_plus_detail(&t, render, w, h, smooth);
+    }
+    t
 }
 
 /// A virtual view's per-pixel loss weights in stage 3: `weight` (w(t)) where `mask` is a hole
@@ -775,6 +854,12 @@ impl Stage for EnhanceStage {
         if s.visible_weight != 1.0 {
             c["visible_weight"] = json!(s.visible_weight);
         }
+        if s.smooth_radius > 0 {
+            c["smooth_radius"] = json!(s.smooth_radius);
+        }
+        if s.l1_core > 0.0 {
+            c["l1_core"] = json!(s.l1_core);
+        }
         c
     }
 
@@ -819,6 +904,7 @@ impl Stage for EnhanceStage {
         tcfg.decay_steps = tcfg.steps;
         tcfg.lr_start = self.spec.lr;
         tcfg.lr_end = self.spec.lr;
+        tcfg.virtual_l1_core = self.spec.l1_core;
         let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
         let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
         let mut trainer = Trainer::new(
@@ -848,6 +934,8 @@ impl Stage for EnhanceStage {
                 .with_context(|| format!("creating {}", round_dir.display()))?;
             let mut views = captured.clone();
             let (mut render_s, mut enhance_s, mut change) = (0.0, 0.0, 0.0);
+            // Detail energy of the renders and of the targets made from them.
+            let (mut detail_render, mut detail_target) = (0.0, 0.0);
             for (k, cam) in virt.iter().enumerate() {
                 let tr = Instant::now();
                 let (rgb, depth, _) = render(ctx, trainer.nerf(), cam, samples)?;
@@ -855,7 +943,7 @@ impl Stage for EnhanceStage {
                 let te = Instant::now();
                 let (w, h) = (cam.width as usize, cam.height as usize);
                 let seed = self.spec.seed ^ 0xe7_4a9c_e000 ^ ((round as u64) << 32) ^ k as u64;
-                let enhanced = pipe
+                let mut enhanced = pipe
                     .model
                     .enhance_image(
                         &rgb,
@@ -873,17 +961,16 @@ impl Stage for EnhanceStage {
                     )
                     .with_context(|| format!("enhancing virtual view {k}, round {round}"))?;
                 enhance_s += te.elapsed().as_secs_f64();
-                let mut enhanced = enhanced;
-                if self.spec.anchor_radius > 0 {
-                    // Colour anchoring: the render's colours, the enhancer's detail.
-                    enhanced.rgb = crate::inpaint::low_plus_detail(
-                        &rgb,
-                        &enhanced.rgb,
-                        w,
-                        h,
-                        self.spec.anchor_radius,
-                    );
-                }
+                enhanced.rgb = stage3_target(
+                    &rgb,
+                    &enhanced.rgb,
+                    w,
+                    h,
+                    self.spec.anchor_radius,
+                    self.spec.smooth_radius,
+                );
+                detail_render += detail_energy(&rgb, w, h);
+                detail_target += detail_energy(&enhanced.rgb, w, h);
                 change += rgb
                     .iter()
                     .zip(&enhanced.rgb)
@@ -930,8 +1017,9 @@ impl Stage for EnhanceStage {
                 rep,
             )?;
             let mean_change = change / virt.len().max(1) as f64;
+            let detail_ratio = detail_target / detail_render.max(1e-12);
             rep.note(&format!(
-                "{} round {}/{}: render {render_s:.1} s, enhance {enhance_s:.1} s, train {train_s:.1} s; enhancement changed the renders by {mean_change:.4} (mean absolute)",
+                "{} round {}/{}: render {render_s:.1} s, enhance {enhance_s:.1} s, train {train_s:.1} s; enhancement changed the renders by {mean_change:.4} (mean absolute), detail energy x{detail_ratio:.2}",
                 self.name(),
                 round + 1,
                 self.spec.rounds
@@ -942,6 +1030,7 @@ impl Stage for EnhanceStage {
                 "enhance_seconds": enhance_s,
                 "train_seconds": train_s,
                 "mean_abs_change": mean_change,
+                "detail_ratio": detail_ratio,
                 "batch_psnr": last.map(|s| s.psnr()),
             }));
         }
@@ -952,7 +1041,73 @@ impl Stage for EnhanceStage {
 
 #[cfg(test)]
 mod tests {
-    use super::virtual_weights;
+    use super::{detail_energy, stage3_target, virtual_weights};
+
+    /// An `[h, w, 3]` image from a per-pixel function of (x, y), the same in every channel.
+    fn image(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Vec<f32> {
+        (0..w * h).flat_map(|i| [f(i % w, i / w); 3]).collect()
+    }
+
+    #[test]
+    fn detail_energy_is_the_mean_squared_laplacian() {
+        assert_eq!(detail_energy(&image(6, 5, |_, _| 0.3), 6, 5), 0.0);
+        // A linear ramp has no Laplacian.
+        let ramp = image(7, 6, |x, y| 0.1 * x as f32 + 0.05 * y as f32);
+        assert!(detail_energy(&ramp, 7, 6) < 1e-12);
+        // A checkerboard of +-a around 0.5: every interior Laplacian is +-8a.
+        let a = 0.1f32;
+        let board = image(
+            8,
+            7,
+            |x, y| if (x + y) % 2 == 0 { 0.5 + a } else { 0.5 - a },
+        );
+        let want = 64.0 * f64::from(a) * f64::from(a);
+        assert!((detail_energy(&board, 8, 7) - want).abs() < 1e-6 * want);
+        // Too small for an interior: 0, not a division by zero.
+        assert_eq!(detail_energy(&image(2, 9, |x, _| x as f32), 2, 9), 0.0);
+    }
+
+    #[test]
+    fn smoothing_keeps_the_enhancements_colour_change_and_drops_its_pixel_noise() {
+        let (w, h) = (40, 30);
+        // The render: a smooth shading with a sharp edge (detail the targets must keep).
+        let render = image(w, h, |x, y| {
+            0.3 + 0.004 * x as f32 + 0.003 * y as f32 + if x >= 20 { 0.2 } else { 0.0 }
+        });
+        // The enhancer: the render brightened by 0.05, plus a +-0.05 checkerboard of noise.
+        let noise = |x: usize, y: usize| {
+            if (x + y).is_multiple_of(2) {
+                0.05
+            } else {
+                -0.05
+            }
+        };
+        let enhanced: Vec<f32> = render
+            .iter()
+            .enumerate()
+            .map(|(i, &r)| r + 0.05 + noise((i / 3) % w, (i / 3) / w))
+            .collect();
+        assert_eq!(stage3_target(&render, &enhanced, w, h, 0, 0), enhanced);
+        let t = stage3_target(&render, &enhanced, w, h, 0, 2);
+        // Away from the borders (where the box blur's window is cut) the target is the render
+        // plus the change of colour: the noise is gone, the edge is kept.
+        for y in 5..h - 5 {
+            for x in 5..w - 5 {
+                let i = (y * w + x) * 3;
+                let d = t[i] - render[i] - 0.05;
+                assert!(d.abs() < 2e-3, "({x}, {y}): {d}");
+            }
+        }
+        assert!(detail_energy(&t, w, h) < 1.2 * detail_energy(&render, w, h));
+        assert!(detail_energy(&enhanced, w, h) > 10.0 * detail_energy(&render, w, h));
+        // Colour anchoring alone does the opposite: it keeps the noise and drops the colour
+        // change; the two together keep neither.
+        let a = stage3_target(&render, &enhanced, w, h, 2, 0);
+        let both = stage3_target(&render, &enhanced, w, h, 2, 2);
+        let i = (15 * w + 10) * 3;
+        assert!((a[i] - render[i] - noise(10, 15)).abs() < 2e-3);
+        assert!((both[i] - render[i]).abs() < 2e-3);
+    }
 
     #[test]
     fn seen_pixels_of_a_virtual_view_carry_the_visible_weight() {

@@ -563,7 +563,7 @@ pub fn ndc_ray(
 
 /// Per-ray loss (before the 1/n of the batch mean) and its gradients (d_rgb, d_depth), in f64.
 /// `target[3]` is the signed colour weight (common/ray_loss.wgsl): w >= 0 scales the configured
-/// loss, w < 0 means L1 scaled by -w.
+/// loss, w < 0 means L1 scaled by -w (smooth L1 with `cfg.l1_core` > 0).
 pub fn ray_loss(
     rendered: [f32; 4],
     depth: f32,
@@ -574,7 +574,24 @@ pub fn ray_loss(
     use crate::render::loss::RgbLoss;
     let e = [0, 1, 2].map(|c| rendered[c] as f64 - target[c] as f64);
     let w = (target[3] as f64).abs();
-    let (l, g) = if target[3] < 0.0 {
+    let core = cfg.l1_core as f64;
+    let (l, g) = if target[3] < 0.0 && core > 0.0 {
+        let l = e
+            .iter()
+            .map(|v| {
+                if v.abs() <= core {
+                    0.5 * v * v / core
+                } else {
+                    v.abs() - 0.5 * core
+                }
+            })
+            .sum::<f64>()
+            / 3.0;
+        (
+            l,
+            e.map(|v| if v.abs() <= core { v / core } else { v.signum() } / 3.0),
+        )
+    } else if target[3] < 0.0 {
         (
             e.iter().map(|v| v.abs()).sum::<f64>() / 3.0,
             e.map(|v| if v == 0.0 { 0.0 } else { v.signum() } / 3.0),
@@ -1636,20 +1653,25 @@ mod tests {
     #[test]
     fn loss_gradients_match_finite_differences() {
         use crate::render::loss::{LossConfig, RgbLoss};
-        // Colour weights: the configured loss at full and partial weight, L1 (negative) and
-        // none (zero, which must leave no colour gradient).
-        for (rgb, w) in [
-            (RgbLoss::L2, 1.0f32),
-            (RgbLoss::L2, 0.4),
-            (RgbLoss::Huber(0.1), 1.0),
-            (RgbLoss::Huber(0.1), 0.4),
-            (RgbLoss::L2, -0.7),
-            (RgbLoss::Huber(0.1), -1.0),
-            (RgbLoss::L2, 0.0),
+        // Colour weights: the configured loss at full and partial weight, L1 (negative; plain,
+        // and smooth with a core that holds two of the three channels' errors) and none (zero,
+        // which must leave no colour gradient). The core changes nothing for w >= 0.
+        for (rgb, w, core) in [
+            (RgbLoss::L2, 1.0f32, 0.0f32),
+            (RgbLoss::L2, 0.4, 0.0),
+            (RgbLoss::L2, 0.4, 0.1),
+            (RgbLoss::Huber(0.1), 1.0, 0.0),
+            (RgbLoss::Huber(0.1), 0.4, 0.1),
+            (RgbLoss::L2, -0.7, 0.0),
+            (RgbLoss::Huber(0.1), -1.0, 0.0),
+            (RgbLoss::L2, -0.7, 0.1),
+            (RgbLoss::Huber(0.1), -1.0, 0.03),
+            (RgbLoss::L2, 0.0, 0.1),
         ] {
             let cfg = LossConfig {
                 rgb,
                 depth_lambda: 0.3,
+                l1_core: core,
             };
             let (r, d, t, td) = (
                 [0.9f32, 0.2, 0.55, 1.0],
@@ -1681,20 +1703,34 @@ mod tests {
                 "no target, no depth gradient"
             );
         }
-        // L1 is |e| summed over the channels / 3, times the weight.
-        let cfg = LossConfig {
+        // L1 is |e| summed over the channels / 3, times the weight; smooth L1 with a core of
+        // 0.1 is |e| - 0.05 for the error of 0.8 and e^2 / 0.2 for the two of 0.05.
+        let mut cfg = LossConfig {
             rgb: RgbLoss::L2,
             depth_lambda: 0.0,
+            l1_core: 0.0,
         };
-        let l1 = ray_loss(
-            [0.9, 0.2, 0.55, 1.0],
-            0.0,
-            [0.1, 0.25, 0.5, -0.5],
-            [0.0; 2],
-            &cfg,
-        )
-        .0;
-        assert!((l1 - 0.5 * (0.8 + 0.05 + 0.05) / 3.0).abs() < 1e-7, "{l1}");
+        let l1 = |cfg: &LossConfig| {
+            ray_loss(
+                [0.9, 0.2, 0.55, 1.0],
+                0.0,
+                [0.1, 0.25, 0.5, -0.5],
+                [0.0; 2],
+                cfg,
+            )
+        };
+        let plain = l1(&cfg).0;
+        assert!(
+            (plain - 0.5 * (0.8 + 0.05 + 0.05) / 3.0).abs() < 1e-7,
+            "{plain}"
+        );
+        cfg.l1_core = 0.1;
+        let (smooth, g, _) = l1(&cfg);
+        let want = 0.5 * (0.75 + 2.0 * 0.0025 / 0.2) / 3.0;
+        assert!((smooth - want).abs() < 1e-7, "{smooth} vs {want}");
+        // Inside the core the gradient is e / core, not the sign: here half of it.
+        assert!((g[1] - 0.5 * -0.5 / 3.0).abs() < 1e-6, "{g:?}");
+        assert!((g[0] - 0.5 / 3.0).abs() < 1e-7, "{g:?}");
         let hg = HashGridConfig {
             levels: 3,
             features: 2,

@@ -98,6 +98,12 @@ pub struct TrainConfig {
     /// offers them) or per-thread f32 (`scalar`).
     #[serde(default)]
     pub mlp: MlpMode,
+    /// Core of the virtual views' colour loss (`ViewKind::Virtual`: ExtraNeRF's w(t)-weighted
+    /// L1): 0, plain L1, whose gradient has the same size for any error however small; above 0,
+    /// smooth L1, quadratic for per-channel errors below the core (see
+    /// [`crate::render::loss::LossConfig::l1_core`]).
+    #[serde(default)]
+    pub virtual_l1_core: f32,
 }
 
 /// The photometric loss of captured views, as configs and the command line name it.
@@ -174,6 +180,7 @@ impl Default for TrainConfig {
             occupancy_opacity: default_occupancy_opacity(),
             fused_step: default_fused_step(),
             mlp: MlpMode::Auto,
+            virtual_l1_core: 0.0,
         }
     }
 }
@@ -188,6 +195,7 @@ impl TrainConfig {
         Ok(LossConfig {
             rgb,
             depth_lambda: self.depth_lambda,
+            l1_core: self.virtual_l1_core,
         })
     }
 

@@ -14,7 +14,8 @@ pub enum ViewKind {
     /// A photograph: the configured colour loss (L2 or Huber), scaled by the pixel's weight.
     Captured,
     /// A virtual view (an inpainted render): L1 on colour scaled by the pixel's weight, as
-    /// ExtraNeRF supervises with its w(t)-weighted L1.
+    /// ExtraNeRF supervises with its w(t)-weighted L1 (smooth L1 with
+    /// [`crate::trainer::TrainConfig::virtual_l1_core`]).
     Virtual,
 }
 

@@ -58,9 +58,10 @@ fn density_at(u: vec3<f32>, a: ptr<function, Act>) -> f32 {
     return trunc_exp((*a)[0].x);
 }
 
-// Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of).
+// Distance at normalised position s in [0, 1] (render/sample.wgsl's t_of). The including
+// kernel defines sample_spacing(): 0 linear in t, 1 linear in disparity.
 fn t_of(s: f32) -> f32 {
-    if params.spacing == 1u {
+    if sample_spacing() == 1u {
         return 1.0 / mix(1.0 / params.near, 1.0 / params.far, s);
     }
     return mix(params.near, params.far, s);

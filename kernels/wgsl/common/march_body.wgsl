@@ -55,6 +55,11 @@ struct Params {
 }
 var<immediate> params: Params;
 
+// The strata's spacing, for common/field_eval.wgsl's t_of.
+fn sample_spacing() -> u32 {
+    return params.spacing;
+}
+
 @group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
 // (camera, pixel = y * width + x) per ray.
 @group(0) @binding(1) var<storage, read> pixels: array<vec2<u32>>;

@@ -6,7 +6,9 @@
 //   w >= 0: the configured loss, scaled by w: L2 |e|^2 / 3 (kind 0) or Huber with threshold
 //           delta per channel (kind 1), e = rendered - target;
 //   w < 0:  L1 |e|_1 / 3 scaled by -w (the colour loss of virtual views, ExtraNeRF's
-//           w(t)-weighted L1);
+//           w(t)-weighted L1); with a core l1_core > 0 each channel's |e| becomes e^2 / (2 core)
+//           below the core and |e| - core / 2 above it (smooth L1: the L1's slope for large
+//           errors, a gradient that vanishes with the error instead of a constant-size sign);
 //   w = 0:  no colour loss (a pixel the view does not supervise).
 // Depth: lambda * confidence * (d - d*)^2 where the confidence is positive, whatever w is.
 
@@ -18,11 +20,17 @@ struct LossTerms {
 }
 
 fn photo_depth_loss(rgb: vec3<f32>, depth: f32, target_c: vec4<f32>, target_d: vec2<f32>, kind: u32,
-            delta: f32, depth_lambda: f32) -> LossTerms {
+            delta: f32, depth_lambda: f32, l1_core: f32) -> LossTerms {
     let e = rgb - target_c.xyz;
     let w = abs(target_c.w);
     var out: LossTerms;
-    if target_c.w < 0.0 {
+    if target_c.w < 0.0 && l1_core > 0.0 {
+        let a = abs(e);
+        let core = a <= vec3<f32>(l1_core);
+        let lv = select(a - 0.5 * l1_core, 0.5 * e * e / l1_core, core);
+        out.loss = w * (lv.x + lv.y + lv.z) / 3.0;
+        out.d_rgb = w * select(sign(e), e / l1_core, core) / 3.0;
+    } else if target_c.w < 0.0 {
         out.loss = w * (abs(e.x) + abs(e.y) + abs(e.z)) / 3.0;
         out.d_rgb = w * sign(e) / 3.0;
     } else if kind == 0u {

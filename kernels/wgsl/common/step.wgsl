@@ -23,8 +23,9 @@ struct Params {
     n: u32,
     // Samples per ray.
     samples: u32,
-    // 0: linear in t, 1: linear in disparity.
-    spacing: u32,
+    // The core of the virtual views' smooth L1 (0: plain L1; common/ray_loss.wgsl). The
+    // strata are linear in t in NDC and linear in disparity otherwise (sample_spacing).
+    l1_core: f32,
     near: f32,
     far: f32,
     // NDC's near plane (with flag bit 2).
@@ -71,6 +72,12 @@ const STEP_RANDOM_BG: u32 = 2u;
 const STEP_NDC: u32 = 4u;
 const STEP_HUBER: u32 = 8u;
 const STEP_GRAD_SCALING: u32 = 16u;
+
+// The strata's spacing (render/sample.wgsl; common/field_eval.wgsl's t_of asks for it): 0
+// (linear in t) in NDC, else 1 (linear in disparity).
+fn sample_spacing() -> u32 {
+    return select(1u, 0u, (params.flags & STEP_NDC) != 0u);
+}
 
 @group(0) @binding(0) var<storage, read> cameras: array<GpuCamera>;
 // (camera, pixel = y * width + x) per ray.
@@ -253,9 +260,9 @@ fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
     }
     let nf = vec2<f32>(params.near, params.far);
     if params.occ_cascades != 0u {
-        return occupied_stratum(mask, j, params.samples, jit, params.probes, nf, params.spacing);
+        return occupied_stratum(mask, j, params.samples, jit, params.probes, nf, sample_spacing());
     }
-    return ray_stratum(j, params.samples, jit, nf, params.spacing);
+    return ray_stratum(j, params.samples, jit, nf, sample_spacing());
 }
 
 // The samples of group gi of ray i: validity, record offsets (density, colour), strata
@@ -318,7 +325,7 @@ fn step_ray(i: u32, mask: ptr<function, ProbeMask>) -> StepRay {
     r.sh = p.sh;
     r.ds = 1.0 / f32(k);
     if params.occ_cascades != 0u {
-        *mask = probe_mask(r.ray[0], r.ray[1], vec2<f32>(params.near, params.far), params.spacing,
+        *mask = probe_mask(r.ray[0], r.ray[1], vec2<f32>(params.near, params.far), sample_spacing(),
                            params.probes, vec4<f32>(params.center.xyz, params.inv_radius),
                            OccGrid(params.occ_res, params.occ_cascades));
         r.ds = strata_ds(mask, k, params.probes);
@@ -384,7 +391,7 @@ fn step_losses(i: u32, f: Composite, ds: f32) -> StepGrad {
     mse[i] = dot(e, e) / 3.0;
     let rl = photo_depth_loss(rgb_out, f.depth, target_rgb[i], target_depth[i],
                               u32((params.flags & STEP_HUBER) != 0u),
-                              params.center.w, params.background.w);
+                              params.center.w, params.background.w, params.l1_core);
     loss[i] = rl.loss * inv_n;
     var g: StepGrad;
     g.gc = rl.d_rgb * inv_n;

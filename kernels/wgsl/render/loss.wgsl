@@ -14,6 +14,8 @@ struct Params {
     kind: u32,
     huber_delta: f32,
     depth_lambda: f32,
+    // The core of the virtual views' smooth L1 (0: plain L1; common/ray_loss.wgsl).
+    l1_core: f32,
 }
 var<immediate> params: Params;
 
@@ -35,7 +37,7 @@ fn ray_loss(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     }
     let inv_n = 1.0 / f32(params.n_rays);
     let rl = photo_depth_loss(rendered_rgba[r].xyz, rendered_depth[r], target_rgb[r], target_depth[r],
-                              params.kind, params.huber_delta, params.depth_lambda);
+                              params.kind, params.huber_delta, params.depth_lambda, params.l1_core);
     loss[r] = rl.loss * inv_n;
     d_rgba[r] = vec4<f32>(rl.d_rgb * inv_n, 0.0);
     d_depth[r] = rl.d_depth * inv_n;

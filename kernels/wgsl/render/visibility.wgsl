@@ -109,6 +109,11 @@ struct Params {
 }
 var<immediate> params: Params;
 
+// The strata's spacing, for common/field_eval.wgsl's t_of.
+fn sample_spacing() -> u32 {
+    return params.spacing;
+}
+
 // Bits of params.flags (render/visibility.rs has the host twins).
 const VIS_NDC: u32 = 1u;
 const VIS_ANALYTIC: u32 = 2u;

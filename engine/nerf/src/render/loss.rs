@@ -19,6 +19,29 @@ pub struct LossConfig {
     pub rgb: RgbLoss,
     /// Weight of the depth term (times each ray's target confidence).
     pub depth_lambda: f32,
+    /// Core of the L1 colour loss of rays with a negative colour weight (virtual views): 0,
+    /// plain L1 (`|e|` per channel); above 0, smooth L1 (`e^2 / (2 core)` below the core,
+    /// `|e| - core / 2` above), whose gradient vanishes with the error.
+    pub l1_core: f32,
+}
+
+impl LossConfig {
+    /// Checks the depth weight and the L1 core (finite, >= 0).
+    pub fn check(&self) -> Result<()> {
+        if !(self.depth_lambda >= 0.0 && self.depth_lambda.is_finite()) {
+            return Err(GpuError::Usage(format!(
+                "depth loss weight {} must be >= 0",
+                self.depth_lambda
+            )));
+        }
+        if !(self.l1_core >= 0.0 && self.l1_core.is_finite()) {
+            return Err(GpuError::Usage(format!(
+                "the virtual views' L1 core {} must be >= 0 (0: plain L1)",
+                self.l1_core
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// What each ray should render: `rgb[n, 4]` (rgb, unused) and `depth[n, 2]` (target depth,
@@ -69,12 +92,7 @@ impl RayLoss {
                 )))
             }
         };
-        if !(cfg.depth_lambda >= 0.0 && cfg.depth_lambda.is_finite()) {
-            return Err(GpuError::Usage(format!(
-                "depth loss weight {} must be >= 0",
-                cfg.depth_lambda
-            )));
-        }
+        cfg.check()?;
         for (b, w, what) in [
             (&rendered_rgba, 4, "rendered rgba"),
             (&rendered_depth, 1, "rendered depth"),
@@ -91,6 +109,7 @@ impl RayLoss {
             kind,
             huber_delta,
             depth_lambda: cfg.depth_lambda,
+            l1_core: cfg.l1_core,
         };
         let b = k::ray_loss::Bindings {
             rendered_rgba,

@@ -199,7 +199,8 @@ impl FusedStep {
             RgbLoss::Huber(d) => (STEP_HUBER, d),
         };
         let ok = |v: f32| v.is_finite() && v >= 0.0;
-        if !(ok(losses.distortion) && ok(losses.loss.depth_lambda) && ok(huber)) {
+        losses.loss.check()?;
+        if !(ok(losses.distortion) && ok(huber)) {
             return Err(GpuError::Usage(format!(
                 "fused step loss weights must be finite and >= 0: {losses:?}"
             )));
@@ -234,7 +235,7 @@ impl FusedStep {
         let p = k::Params {
             n: self.rays,
             samples: self.samples,
-            spacing: u32::from(!ndc),
+            l1_core: losses.loss.l1_core,
             near: cfg.near,
             far: cfg.far,
             ndc_near: 1.0,
