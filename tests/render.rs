@@ -736,10 +736,28 @@ fn stratified_samples_match_reference() {
         })
         .collect();
     let b = SampleBuffers::new(&e.ctx, &o, &d, &nf, k);
-    for (spacing, seed) in [
-        (Spacing::Linear, None),
-        (Spacing::Linear, Some(5u32)),
-        (Spacing::Disparity, Some(9u32)),
+    // A training batch's target colours: every third ray a virtual view's (negative weight,
+    // centred samples even when the others are jittered), some weighted 0 (jittered).
+    let virt = |ray: usize| ray.is_multiple_of(3);
+    let targets: Vec<f32> = (0..n)
+        .flat_map(|ray| {
+            let w = if virt(ray) {
+                -0.7
+            } else if ray % 3 == 1 {
+                0.0
+            } else {
+                1.0
+            };
+            [0.5, 0.5, 0.5, w]
+        })
+        .collect();
+    let tb = Buffer::from_slice(&e.ctx, "targets", &targets).unwrap();
+    for (spacing, seed, with_targets) in [
+        (Spacing::Linear, None, false),
+        (Spacing::Linear, Some(5u32), false),
+        (Spacing::Disparity, Some(9u32), false),
+        (Spacing::Disparity, Some(9u32), true),
+        (Spacing::Linear, None, true),
     ] {
         let out = b.outputs();
         let mut rec = e.ctx.recorder("sample").unwrap();
@@ -754,6 +772,7 @@ fn stratified_samples_match_reference() {
                 k,
                 spacing,
                 seed,
+                with_targets.then(|| tb.binding()),
                 None,
             )
             .unwrap();
@@ -772,7 +791,11 @@ fn stratified_samples_match_reference() {
                 nf[ray][1],
                 k,
                 spacing == Spacing::Disparity,
-                seed,
+                if with_targets && virt(ray) {
+                    None
+                } else {
+                    seed
+                },
             );
             let mut sum_dt = 0.0;
             for (i, w) in want.iter().enumerate() {
@@ -892,6 +915,7 @@ fn occupied_samples_match_reference() {
                     k,
                     spacing,
                     seed,
+                    None,
                     Some(&skip),
                 )
                 .unwrap();
@@ -990,6 +1014,7 @@ fn occupied_samples_match_reference() {
             n as u64,
             k,
             Spacing::Linear,
+            None,
             None,
             Some(&bad),
         )

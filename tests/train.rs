@@ -997,7 +997,9 @@ fn batches_draw_virtual_views_at_the_configured_fraction() {
 /// The generated 360-degree turntable scene (NeRF-synthetic layout, RGBA, transparent
 /// background) trains with random backgrounds behind its transparent pixels, and its held-out
 /// views rendered over white match the exact ray-traced views over white: empty space learns
-/// zero density, so the object's surroundings come out white.
+/// zero density, so the object's surroundings come out white. The trained field then checks
+/// that virtual views train with centred samples: its own renders as targets fit a virtual
+/// view to within their 8-bit quantisation, and not a captured view (jittered samples).
 #[test]
 fn turntable_scene_trains_to_its_exact_views_over_white() {
     use extranerf_nerf::autoconfig::model_for_scene;
@@ -1073,6 +1075,54 @@ fn turntable_scene_trains_to_its_exact_views_over_white() {
     assert!(
         empty.iter().all(|&m| m > 0.95),
         "empty space renders {empty:?}, not white"
+    );
+    // Virtual views are trained with centred samples, as the renderer renders: with the
+    // field's own renders (over the white background the training then uses too) as targets,
+    // a virtual view's rays fit them to within the targets' 8-bit quantisation, while the same
+    // targets as a captured view (jittered samples) are off by the jitter's noise, which the
+    // loss would reduce by smoothing the field.
+    let mut t = {
+        let mut cfg = t.config().clone();
+        cfg.random_background = false;
+        let params = t.nerf().params().read().unwrap();
+        let nerf = Nerf::new(ctx, model.clone(), &params, cfg.background).unwrap();
+        Trainer::new(ctx, nerf, cfg, steps, None).unwrap()
+    };
+    let own: Vec<_> = views
+        .iter()
+        .map(|v| {
+            let (rgb, _, _) = t
+                .nerf()
+                .render_with(ctx, &v.camera, 4096, 32, March::Fused(MarchCuts::EXACT))
+                .unwrap();
+            extranerf_nerf::views::View {
+                camera: v.camera.clone(),
+                image: extranerf_nerf::data::Image::opaque(v.camera.width, v.camera.height, rgb),
+                depth: None,
+                weight: None,
+                kind: extranerf_nerf::views::ViewKind::Virtual,
+            }
+        })
+        .collect();
+    let virt = TrainData::new(ctx, &own).unwrap();
+    let captured: Vec<_> = own
+        .iter()
+        .map(|v| extranerf_nerf::views::View {
+            kind: extranerf_nerf::views::ViewKind::Captured,
+            ..v.clone()
+        })
+        .collect();
+    let capt = TrainData::new(ctx, &captured).unwrap();
+    let virt_mse = t.run_steps(ctx, &e.prims, &virt, 1).unwrap().mse;
+    let capt_mse = t.run_steps(ctx, &e.prims, &capt, 1).unwrap().mse;
+    eprintln!("own renders as targets: virtual MSE {virt_mse:.2e}, captured {capt_mse:.2e}");
+    assert!(
+        virt_mse < 1e-5,
+        "virtual view of its own renders: MSE {virt_mse}"
+    );
+    assert!(
+        capt_mse > 10.0 * virt_mse.max(1e-7),
+        "jittered samples: MSE {capt_mse} against {virt_mse} centred"
     );
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(dir);

@@ -265,8 +265,9 @@ impl Nerf {
         self.field.layout().sections(buf)
     }
 
-    /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`), the field and the
-    /// compositing into `ws.out_rgba` / `ws.out_depth`.
+    /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`; with `targets`, a
+    /// training batch's target colours, not on virtual views' rays: [`Sampler::record`]), the
+    /// field and the compositing into `ws.out_rgba` / `ws.out_depth`.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub(crate) fn record_forward<'a>(
         &'a self,
@@ -276,6 +277,7 @@ impl Nerf {
         n_cameras: u32,
         n: u64,
         seed: Option<u32>,
+        targets: Option<Binding<'a>>,
         skip: Option<&SkipEmpty<'a>>,
         background: Background,
         prof: &mut Option<Profiler<'a>>,
@@ -323,6 +325,7 @@ impl Nerf {
             ws.samples,
             spacing,
             seed,
+            targets,
             skip,
         )?;
         mark(
@@ -504,6 +507,7 @@ impl Nerf {
                         cams.binding(),
                         1,
                         n,
+                        None,
                         None,
                         None,
                         Background::Fixed(self.background),

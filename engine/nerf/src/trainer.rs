@@ -600,6 +600,7 @@ impl Trainer {
             data.n_images,
             n,
             Some(seed),
+            Some(ws.target_rgb.binding()),
             skip,
             self.background(seed),
             prof,

@@ -15,7 +15,10 @@ pub enum ViewKind {
     Captured,
     /// A virtual view (an inpainted render): L1 on colour scaled by the pixel's weight, as
     /// ExtraNeRF supervises with its w(t)-weighted L1 (smooth L1 with
-    /// [`crate::trainer::TrainConfig::virtual_l1_core`]).
+    /// [`crate::trainer::TrainConfig::virtual_l1_core`]). Its rays are sampled at stratum
+    /// centres, never jittered: its target is a render made that way, and under jittered
+    /// samples a target within the jitter's noise of the field's own render makes the loss
+    /// reward a smoother (blurrier) field.
     Virtual,
 }
 

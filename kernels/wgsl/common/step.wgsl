@@ -38,7 +38,8 @@ struct Params {
     features: u32,
     // Seed of the strata's jitter (render/sample.wgsl's) and of random backgrounds.
     seed: u32,
-    // Bit 0: jitter the strata (else samples sit at midpoints); bit 1: each ray's background
+    // Bit 0: jitter the strata (else samples sit at midpoints; never on virtual views' rays,
+    // those with a negative colour weight); bit 1: each ray's background
     // is random (common/rng.wgsl's ray_background from `seed`), not `background.xyz`; bit 2:
     // march in NDC; bit 3: Huber photometric loss (else L2); bit 4: Floaters No More gradient
     // scaling, min(1, t^2) per sample.
@@ -252,10 +253,12 @@ fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
 }
 
 // The stratum of sample j: (t, dt, s) with s the jittered normalised position; with an
-// occupancy grid, spread over the ray's occupied probe intervals `mask`.
+// occupancy grid, spread over the ray's occupied probe intervals `mask`. A ray with a negative
+// colour weight (a virtual view's, whose target the renderer made with centred samples) is not
+// jittered, as render/sample.wgsl's jitter 2.
 fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
     var jit = 0.5;
-    if (params.flags & STEP_JITTER) != 0u {
+    if (params.flags & STEP_JITTER) != 0u && target_rgb[ray].w >= 0.0 {
         jit = strata_jitter(params.seed, ray, j);
     }
     let nf = vec2<f32>(params.near, params.far);

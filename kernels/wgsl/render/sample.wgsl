@@ -1,6 +1,7 @@
 // Stratified samples along rays (NeRF's coarse sampling): ray r gets `per_ray` samples between
 // its near and far distance, spaced linearly in t or in disparity (1/t, for unbounded depth),
-// jittered within their strata by a hash of (seed, ray, sample) unless jitter is off. Writes
+// jittered within their strata by a hash of (seed, ray, sample) unless jitter is off (or, in
+// training, the ray is a virtual view's: see Params.jitter). Writes
 // the sample positions, (t, dt) for compositing and (s, ds) in [0, 1] for the distortion loss,
 // and each ray's (first sample, count).
 //
@@ -21,6 +22,10 @@ struct Params {
     per_ray: u32,
     // 0: linear in t, 1: linear in disparity.
     spacing: u32,
+    // 0: samples at stratum centres; 1: jittered; 2: jittered except on rays whose target colour
+    // weight (target_rgb.w) is negative, the virtual views, whose targets are renders made with
+    // centred samples: trained with jittered ones, such a target is off by the jitter's noise
+    // and the loss rewards a smoother field.
     jitter: u32,
     seed: u32,
     // stratified_occupied: the grid, the probe intervals per ray (at most MAX_PROBES), and the
@@ -41,6 +46,9 @@ var<immediate> params: Params;
 @group(0) @binding(5) var<storage, read_write> s_ds: array<vec2<f32>>;
 @group(0) @binding(6) var<storage, read_write> rays: array<vec2<u32>>;
 @group(0) @binding(7) var<storage, read> occ_bits: array<u32>;
+// A training batch's target colours (jitter 2; any vec4 buffer of n_rays elements otherwise,
+// unread).
+@group(0) @binding(8) var<storage, read> target_rgb: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
 fn stratified(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -64,7 +72,7 @@ fn stratified(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
 
 // The position of sample i of ray r inside its stratum, in [0, 1).
 fn jitter(r: u32, i: u32) -> f32 {
-    if params.jitter != 0u {
+    if params.jitter == 1u || (params.jitter == 2u && target_rgb[r].w >= 0.0) {
         return strata_jitter(params.seed, r, i);
     }
     return 0.5;

@@ -74,7 +74,10 @@ impl Sampler {
 
     /// Records `per_ray` samples on each ray between its `near_far[n, 2]`; `origins` and
     /// `directions` as [`crate::render::rays::RayGen`] writes them. `seed: None` puts samples
-    /// at stratum centres.
+    /// at stratum centres. `targets`, a training batch's target colours `[n, 4]` with the signed
+    /// colour weight in the last: the rays with a negative weight (virtual views, whose targets
+    /// the renderer made with centred samples) keep centred samples when `seed` jitters the
+    /// others.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn record<'a>(
         &'a self,
@@ -87,6 +90,7 @@ impl Sampler {
         per_ray: u32,
         spacing: Spacing,
         seed: Option<u32>,
+        targets: Option<Binding<'a>>,
         skip: Option<&SkipEmpty<'a>>,
     ) -> Result<()> {
         let total = n_rays * per_ray as u64;
@@ -102,11 +106,21 @@ impl Sampler {
         out.t_dt.check_fits(2 * total, 4, "t_dt")?;
         out.s_ds.check_fits(2 * total, 4, "s_ds")?;
         out.rays.check_fits(2 * n_rays, 4, "ray spans")?;
+        if let Some(t) = &targets {
+            t.check_fits(4 * n_rays, 4, "target colours")?;
+        }
+        let jitter = match (seed, &targets) {
+            (None, _) => 0,
+            (Some(_), None) => 1,
+            (Some(_), Some(_)) => 2,
+        };
+        // Unread unless jitter is 2: the origins stand in.
+        let target_rgb = targets.unwrap_or(origins);
         let mut p = k::Params {
             n_rays: n_rays as u32,
             per_ray,
             spacing: spacing as u32,
-            jitter: u32::from(seed.is_some()),
+            jitter,
             seed: seed.unwrap_or(0),
             occ_res: 0,
             occ_cascades: 0,
@@ -129,6 +143,7 @@ impl Sampler {
                 s_ds: out.s_ds,
                 rays: out.rays,
                 occ_bits: skip.grid.bits().binding(),
+                target_rgb,
             };
             return rec.dispatch(&self.occupied, b.into_array(), &p, n_rays);
         }
@@ -140,6 +155,7 @@ impl Sampler {
             t_dt: out.t_dt,
             s_ds: out.s_ds,
             rays: out.rays,
+            target_rgb,
         };
         rec.dispatch(&self.kernel, b.into_array(), &p, n_rays)
     }
