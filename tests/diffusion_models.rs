@@ -736,6 +736,132 @@ fn seeded_sampling_is_deterministic_and_keeps_known_pixels() {
         .is_err());
 }
 
+/// A residual enhancer (`Task::EnhanceResidual`, the `sample` prediction) whose last
+/// convolution is zero, as `train_enhancer` starts it, is the identity: it returns the render
+/// it is shown from any noise level and seed, and its training loss is 0 when the render is
+/// already the photo. A v-predicting enhancer with the same zero output is not (it returns
+/// a noisy image); a residual task with another prediction is refused.
+#[test]
+fn a_residual_enhancer_starts_as_the_identity() {
+    use extranerf_diffusion::inpaint::Task;
+    let dev = cpu();
+    dev.seed(5);
+    let zero_out = |unet: &mut UNet2DConditionModel, dev: &Device| {
+        let conv = &mut unet.conv_out;
+        conv.weight = burn::module::Param::from_tensor(Tensor::zeros(conv.dims(), dev));
+        if let Some(b) = &conv.bias {
+            conv.bias = Some(burn::module::Param::from_tensor(Tensor::zeros(
+                b.dims(),
+                dev,
+            )));
+        }
+    };
+    let model = |pred: Prediction, task: Task| {
+        let mut unet = tiny_pixel_unet(&dev);
+        zero_out(&mut unet, &dev);
+        InpaintModel {
+            unet,
+            codec: Codec::Pixels(PixelCodec),
+            tokens: LearnedTokens::new(2, 8, &dev),
+            schedule: schedule(BetaSchedule::ScaledLinear, pred),
+            task,
+        }
+    };
+    // 13 x 10: not a multiple of the model's size step, so the padding is crossed too.
+    let (w, h) = (13, 10);
+    let rgb: Vec<f32> = rand_vec(w * h * 3, 4)
+        .iter()
+        .map(|v| 0.5 + 0.45 * v.clamp(-1.0, 1.0))
+        .collect();
+    let mask: Vec<f32> = (0..w * h).map(|i| (i % 7 == 0) as u8 as f32).collect();
+    let residual = model(Prediction::Sample, Task::EnhanceResidual);
+    let v = model(Prediction::V, Task::Enhance);
+    let mut v_change = 0f32;
+    for (seed, strength, steps) in [(1, 0.3, 10), (2, 0.3, 1), (3, 1.0, 4)] {
+        let set = SampleSettings {
+            strength,
+            steps,
+            guidance: 1.0,
+            keep_known: false,
+        };
+        let out = residual
+            .enhance_image(&rgb, Some(&mask), w, h, seed, &set, &dev)
+            .unwrap();
+        let err = out
+            .rgb
+            .iter()
+            .zip(&rgb)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(
+            err < 1e-5,
+            "strength {strength}, {steps} steps: the identity moved a pixel by {err}"
+        );
+        let out = v
+            .enhance_image(&rgb, Some(&mask), w, h, seed, &set, &dev)
+            .unwrap();
+        v_change = v_change.max(
+            out.rgb
+                .iter()
+                .zip(&rgb)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max),
+        );
+    }
+    assert!(
+        v_change > 0.05,
+        "a zero v-prediction returned the render ({v_change})"
+    );
+    // The residual prediction needs the `sample` prediction.
+    let bad = model(Prediction::V, Task::EnhanceResidual);
+    let e = bad
+        .enhance_image(&rgb, None, w, h, 0, &SampleSettings::default(), &dev)
+        .unwrap_err();
+    assert!(e.to_string().contains("\"sample\""), "{e}");
+    // Training: with the photo as its own guide, the residual loss starts at 0; v's does not.
+    let ad = dev.clone().autodiff();
+    let mut im = TrainImage::new(16, 16, stripes(16, 16));
+    im.guides = vec![train::Guide {
+        rgb: im.rgb.clone(),
+        mask: vec![0.0; 256],
+    }];
+    let aug = Augment {
+        crop: 16,
+        jitter: 0.0,
+        ..Augment::default()
+    };
+    let mut unet = tiny_pixel_unet(&ad);
+    zero_out(&mut unet, &ad);
+    let trainable = Trainable {
+        unet,
+        tokens: LearnedTokens::new(2, 8, &ad),
+    };
+    let loss = |pred: Prediction, residual: bool| {
+        let mut rng = extranerf_diffusion::inpaint::SplitMix(3);
+        let batch = train::draw_batch(std::slice::from_ref(&im), &aug, 4, &mut rng).unwrap();
+        assert!(batch.guide.is_some());
+        let s = schedule(BetaSchedule::ScaledLinear, pred);
+        train::batch_loss_upto(
+            &trainable,
+            &Codec::Pixels(PixelCodec),
+            &s,
+            &batch,
+            0.0,
+            0.6,
+            residual,
+            &mut rng,
+            &ad,
+        )
+        .into_scalar::<f32>()
+    };
+    let (r, plain) = (
+        loss(Prediction::Sample, true),
+        loss(Prediction::Sample, false),
+    );
+    assert!(r < 1e-10, "residual loss of an exact guide: {r}");
+    assert!(plain > 0.1, "x0 loss of a zero output: {plain}");
+}
+
 fn img_of(dev: &Device) -> Tensor<4> {
     Tensor::ones([1, 3, 8, 8], dev) * 0.5
 }
@@ -877,6 +1003,7 @@ fn a_tiny_model_overfits_one_image() {
         clip: 1.0,
         cond_dropout: 0.1,
         max_strength: 1.0,
+        residual: false,
     };
     let mut reports = 0;
     let (_, curve) = train::train(

@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use extranerf_diffusion::device::Backend;
-use extranerf_diffusion::enhancer::EnhancerSpec;
+use extranerf_diffusion::enhancer::{EnhancerOutput, EnhancerSpec};
 use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
 use extranerf_extrapolate::eval::{compare, KidEval, KidSpec};
 use extranerf_extrapolate::inception::{default_weights as default_inception, Inception};
@@ -153,6 +153,11 @@ pub struct ExtrapolateArgs {
     /// Stage 3: channels per level of the from-scratch enhancer.
     #[arg(long, value_delimiter = ',', default_value = "32,64,96")]
     enhancer_channels: Vec<usize>,
+    /// Stage 3: what the from-scratch enhancer predicts: `v`, as the scene prior, or
+    /// `residual`, the photo's difference from the render it is shown (an untrained enhancer
+    /// is the identity; on fern it added no pixel noise but shifted colours, see README).
+    #[arg(long, value_enum, default_value_t = EnhancerOutput::default())]
+    enhancer_output: EnhancerOutput,
     /// Stage 3: LoRA rank (with --enhancer-model).
     #[arg(long, default_value_t = EnhancerSpec::default().rank)]
     enhancer_rank: usize,
@@ -306,6 +311,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
                 crop: a.enhancer_crop,
                 lr: a.enhancer_lr,
                 seed: a.seed,
+                output: a.enhancer_output,
                 ..EnhancerSpec::default()
             },
             rounds: a.stage3_rounds,

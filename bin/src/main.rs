@@ -19,9 +19,9 @@ mod visibility;
 /// cameras that took them). This build trains the BaseNeRF field (hash grid + tiny MLPs) on
 /// posed photos, renders and evaluates it, runs a self-contained demo, and benchmarks the
 /// kernels and the training step, generates virtual cameras and computes multi-view visibility,
-/// runs the inpainting diffusion models (diffusers layout) on the same Vulkan device, and runs
-/// ExtraNeRF's stage 2 (`extrapolate`: inpainted virtual views supervising the field). Stage 3
-/// (enhancement) is not built yet.
+/// runs the inpainting and enhancement diffusion models (diffusers layout) on the same Vulkan
+/// device, and runs ExtraNeRF (`extrapolate`: stage 2, inpainted virtual views supervising the
+/// field, then stage 3, the same views enhanced), with `eval RUN` for its ablation table.
 #[derive(Parser, Debug)]
 #[command(name = "extranerf", version, propagate_version = true)]
 struct Cli {
@@ -72,9 +72,10 @@ enum Command {
     /// past the captured yaw), written as transforms.json for rendering and visibility.
     Cameras(nerf::CamerasArgs),
     /// ExtraNeRF: train (or reuse, --base) a BaseNeRF, find what no two training cameras saw
-    /// in virtual views beyond the rig, and train the field further on those views inpainted
-    /// (stage 2; one variant per --inpainter). Resumable at every stage (--resume); `eval RUN`
-    /// then writes the comparison table.
+    /// in virtual views beyond the rig, train the field further on those views inpainted
+    /// (stage 2; one variant per --inpainter), then on them enhanced by a model trained on the
+    /// scene's own corrupted renders (stage 3). Resumable at every stage (--resume); `eval RUN`
+    /// then writes the ablation table with KID and RUN/report.html.
     Extrapolate(extrapolate::ExtrapolateArgs),
     /// Multi-view transmittance visibility (ExtraNeRF): for each pixel of a view, what the
     /// training cameras saw of the surface it shows (a point counts as seen when --rank of

@@ -9,8 +9,8 @@
 
 use std::path::{Path, PathBuf};
 
-use burn::module::Module;
-use burn::tensor::Device;
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::config::UNetConfig;
@@ -24,6 +24,27 @@ use crate::{DiffusionError, Result};
 
 /// The file in an enhancer folder that says what it holds.
 pub const ENHANCER_FILE: &str = "enhancer.json";
+
+/// What a from-scratch enhancer's U-Net predicts.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum EnhancerOutput {
+    /// v (Salimans & Ho), as the scene prior: the enhancer denoises from scratch, and until it
+    /// is well trained its error lands on every pixel of its output.
+    #[default]
+    V,
+    /// The clean image's difference from the render it is shown (task `enhance_residual`, the
+    /// schedule's `sample` prediction), its last convolution starting at zero: an untrained
+    /// enhancer is the identity.
+    Residual,
+}
+
+impl EnhancerOutput {
+    fn is_default(&self) -> bool {
+        *self == EnhancerOutput::V
+    }
+}
 
 /// How the enhancer is made.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -51,6 +72,10 @@ pub struct EnhancerSpec {
     pub max_strength: f64,
     /// Seed of the initialisation, crops, timesteps and noise.
     pub seed: u64,
+    /// What the from-scratch U-Net predicts (LoRA keeps the base model's prediction).
+    /// Recorded only when not v, so the records of earlier runs (all v) read the same.
+    #[serde(default, skip_serializing_if = "EnhancerOutput::is_default")]
+    pub output: EnhancerOutput,
 }
 
 impl Default for EnhancerSpec {
@@ -66,6 +91,7 @@ impl Default for EnhancerSpec {
             jitter: 0.1,
             max_strength: 0.6,
             seed: 0,
+            output: EnhancerOutput::default(),
         }
     }
 }
@@ -136,7 +162,9 @@ pub fn train_enhancer(
     };
     let ad = device.clone().autodiff();
     ad.seed(spec.seed);
+    let residual = spec.base_model.is_none() && spec.output == EnhancerOutput::Residual;
     let settings = TrainSettings {
+        residual,
         steps: spec.steps,
         batch: spec.batch,
         lr: spec.lr,
@@ -172,8 +200,21 @@ pub fn train_enhancer(
         None => {
             let cfg = UNetConfig::pixel_space(&spec.channels, 64)
                 .map_err(|e| DiffusionError::InvalidConfig(format!("enhancer channels: {e}")))?;
-            let sched = SchedulerConfig::pixel_space(Prediction::V);
-            let pipe = Pipeline::new(cfg.clone(), None, sched.clone(), 4, &ad)?;
+            let (prediction, task) = if residual {
+                (Prediction::Sample, Task::EnhanceResidual)
+            } else {
+                (Prediction::V, Task::Enhance)
+            };
+            let sched = SchedulerConfig::pixel_space(prediction);
+            let mut pipe = Pipeline::new(cfg.clone(), None, sched.clone(), 4, &ad)?;
+            if residual {
+                // The identity to start from: the output (added to the guidance) is zero.
+                let conv = &mut pipe.model.unet.conv_out;
+                conv.weight = Param::from_tensor(Tensor::zeros(conv.dims(), &ad));
+                if let Some(b) = &conv.bias {
+                    conv.bias = Some(Param::from_tensor(Tensor::zeros(b.dims(), &ad)));
+                }
+            }
             let params = pipe.model.unet.num_params();
             let schedule = pipe.model.schedule.clone();
             let (model, curve) = run(
@@ -191,7 +232,7 @@ pub fn train_enhancer(
                     tokens: model.tokens,
                     codec: Codec::Pixels(PixelCodec),
                     schedule,
-                    task: Task::Enhance,
+                    task,
                 },
                 unet_config: cfg,
                 vae_config: None,
@@ -242,7 +283,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<Pipeline> {
         None => Pipeline::load(&model_dir(dir), device, "")?,
         Some(base) => Pipeline::load(base, device, "")?.with_lora(&lora_dir(dir), device)?,
     };
-    if pipe.model.task != Task::Enhance {
+    if !pipe.model.task.enhances() {
         return Err(DiffusionError::Config {
             path,
             problem: "the folder's model is not an enhancer".into(),
@@ -267,7 +308,7 @@ pub fn load_any(dir: &Path, lora: Option<&Path>, device: &Device) -> Result<Pipe
     if let Some(l) = lora {
         pipe = pipe.with_lora(l, device)?;
     }
-    if pipe.model.task != Task::Enhance {
+    if !pipe.model.task.enhances() {
         return Err(DiffusionError::Input(format!(
             "{}{} holds an inpainting model, not an enhancer (stage 3 of `extranerf extrapolate` trains one into RUN/stage3-enhancer)",
             dir.display(),
@@ -276,4 +317,35 @@ pub fn load_any(dir: &Path, lora: Option<&Path>, device: &Device) -> Result<Pipe
         )));
     }
     Ok(pipe)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(json: serde_json::Value) -> EnhancerSpec {
+        match serde_json::from_value(json) {
+            Ok(s) => s,
+            Err(e) => panic!("{e}"),
+        }
+    }
+
+    /// Records written before the choice of output existed (no `output` field) trained v and
+    /// read back as v; a v spec (the default) writes no field, so it still matches them; a
+    /// residual one is written out and read back.
+    #[test]
+    fn records_without_an_output_trained_v() {
+        let json = serde_json::to_value(EnhancerSpec::default()).unwrap_or_default();
+        assert!(json.is_object());
+        assert!(json.get("output").is_none(), "{json}");
+        let back = parse(json);
+        assert_eq!(back.output, EnhancerOutput::V);
+        let r = EnhancerSpec {
+            output: EnhancerOutput::Residual,
+            ..EnhancerSpec::default()
+        };
+        let json = serde_json::to_value(&r).unwrap_or_default();
+        assert_eq!(json["output"], "residual", "{json}");
+        assert_eq!(parse(json), r);
+    }
 }

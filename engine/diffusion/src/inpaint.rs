@@ -11,7 +11,7 @@ use burn::tensor::module::max_pool2d;
 use burn::tensor::ops::MaxPoolOptions;
 use burn::tensor::{Device, Tensor};
 
-use crate::scheduler::{ddim_timesteps, guide, Schedule};
+use crate::scheduler::{ddim_timesteps, guide, Prediction, Schedule};
 use crate::text::LearnedTokens;
 use crate::unet::UNet2DConditionModel;
 use crate::vae::AutoencoderKL;
@@ -95,6 +95,13 @@ pub enum Task {
     /// Enhance a whole render (ExtraNeRF's stage 3): the guidance is the image itself, not
     /// masked; the mask channel says where an earlier stage filled it in.
     Enhance,
+    /// Enhance as [`Task::Enhance`], with the U-Net's output a correction to its guidance: the
+    /// predicted clean variable is the guidance plus the output (the schedule's prediction
+    /// must be [`crate::scheduler::Prediction::Sample`]). A network whose last convolution
+    /// is zero is then the identity, and a briefly trained one stays near it: it changes a
+    /// render only where training found a consistent correction, instead of adding its own
+    /// denoising error to every pixel.
+    EnhanceResidual,
 }
 
 impl Task {
@@ -103,7 +110,18 @@ impl Task {
         match self {
             Task::Inpaint => "inpaint",
             Task::Enhance => "enhance",
+            Task::EnhanceResidual => "enhance_residual",
         }
+    }
+
+    /// Whether the guidance is the whole image (an enhancer).
+    pub fn enhances(self) -> bool {
+        matches!(self, Task::Enhance | Task::EnhanceResidual)
+    }
+
+    /// Whether the U-Net's output is added to its guidance ([`Task::EnhanceResidual`]).
+    pub fn residual(self) -> bool {
+        self == Task::EnhanceResidual
     }
 }
 
@@ -239,6 +257,13 @@ impl InpaintModel {
                 2 * c + 1
             )));
         }
+        if self.task.residual() && self.schedule.prediction() != Prediction::Sample {
+            return Err(DiffusionError::Input(format!(
+                "a residual enhancer (task \"{}\") predicts the clean image, but its scheduler's prediction_type is {:?} (want \"sample\")",
+                self.task.name(),
+                self.schedule.prediction()
+            )));
+        }
         let [_, d] = self.tokens.dims();
         if d != self.unet.cross_attention_dim {
             return Err(DiffusionError::Input(format!(
@@ -288,7 +313,7 @@ impl InpaintModel {
         s: &SampleSettings,
         device: &Device,
     ) -> Result<InpaintedImage> {
-        if self.task != Task::Enhance {
+        if !self.task.enhances() {
             return Err(DiffusionError::Input(
                 "this model was trained to inpaint, not to enhance (train an enhancer: `extranerf extrapolate` stage 3, or LoRA adapters written by it)".into(),
             ));
@@ -409,7 +434,7 @@ impl InpaintModel {
         // The guidance: the image with its hole blanked, or (an enhancer) all of it.
         let masked = match self.task {
             Task::Inpaint => self.codec.encode(x * keep.clone()),
-            Task::Enhance => z0.clone(),
+            Task::Enhance | Task::EnhanceResidual => z0.clone(),
         };
         let mask_z = self.codec.mask(mask.clone());
         if noise.dims() != z0.dims() {
@@ -443,6 +468,9 @@ impl InpaintModel {
             let inp = unet_input(zin, mask_in.clone(), masked_in.clone());
             let ts = vec![t as f32; inp.dims()[0]];
             let mut out = self.unet.forward(inp, &ts, &context);
+            if self.task.residual() {
+                out = out + masked_in.clone();
+            }
             if guided {
                 let mut halves = out.chunk(2, 0);
                 let u = halves.pop().unwrap_or_else(|| unreachable!("two halves"));

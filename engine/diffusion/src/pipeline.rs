@@ -38,7 +38,9 @@ fn read_task(path: &Path, v: &Value) -> Result<Task> {
         None => Ok(Task::Inpaint),
         Some(t) => serde_json::from_value(t.clone()).map_err(|e| DiffusionError::Config {
             path: path.to_path_buf(),
-            problem: format!("\"task\": {e} (known: \"inpaint\", \"enhance\")"),
+            problem: format!(
+                "\"task\": {e} (known: \"inpaint\", \"enhance\", \"enhance_residual\")"
+            ),
         }),
     }
 }

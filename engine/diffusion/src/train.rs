@@ -158,6 +158,11 @@ pub struct TrainSettings {
     /// from a lightly noised render and never sees the rest); 1: all of them.
     #[serde(default = "all_timesteps")]
     pub max_strength: f64,
+    /// The U-Net's output is added to its guidance before the loss
+    /// ([`crate::inpaint::Task::EnhanceResidual`]; with an enhancer's guides and the
+    /// `sample` prediction).
+    #[serde(default)]
+    pub residual: bool,
 }
 
 fn all_timesteps() -> f64 {
@@ -177,6 +182,7 @@ impl Default for TrainSettings {
             clip: 1.0,
             cond_dropout: 0.1,
             max_strength: 1.0,
+            residual: false,
         }
     }
 }
@@ -397,12 +403,15 @@ pub fn batch_loss(
         batch,
         cond_dropout,
         1.0,
+        false,
         rng,
         device,
     )
 }
 
-/// [`batch_loss`] with the timesteps drawn from the first `max_strength` of the schedule.
+/// [`batch_loss`] with the timesteps drawn from the first `max_strength` of the schedule,
+/// and with `residual`, the U-Net's output added to its guidance
+/// ([`crate::inpaint::Task::EnhanceResidual`]).
 #[allow(clippy::too_many_arguments)] // each is a distinct operand
 pub fn batch_loss_upto(
     model: &Trainable,
@@ -411,6 +420,7 @@ pub fn batch_loss_upto(
     batch: &Batch,
     cond_dropout: f64,
     max_strength: f64,
+    residual: bool,
     rng: &mut SplitMix,
     device: &Device,
 ) -> Tensor<1> {
@@ -450,9 +460,12 @@ pub fn batch_loss_upto(
         let k = Tensor::<1>::from_floats(keep.as_slice(), device).reshape([n, 1, 1]);
         model.tokens.forward(n) * k.clone() + model.tokens.null(n, device) * (k.neg() + 1.0)
     };
-    let pred = model
+    let mut pred = model
         .unet
-        .forward(unet_input(zt, mask_z, masked), &ts, &context);
+        .forward(unet_input(zt, mask_z, masked.clone()), &ts, &context);
+    if residual {
+        pred = pred + masked;
+    }
     let c = pred.dims()[1] as f64;
     let err = (pred - target).powi_scalar(2) * valid.clone();
     err.sum() / (valid.sum() * c + 1e-6)
@@ -569,6 +582,7 @@ pub fn train(
             &batch,
             s.cond_dropout,
             s.max_strength,
+            s.residual,
             &mut rng,
             device,
         );
