@@ -98,9 +98,8 @@ pub enum Task {
     /// Enhance as [`Task::Enhance`], with the U-Net's output a correction to its guidance: the
     /// predicted clean variable is the guidance plus the output (the schedule's prediction
     /// must be [`crate::scheduler::Prediction::Sample`]). A network whose last convolution
-    /// is zero is then the identity, and a briefly trained one stays near it: it changes a
-    /// render only where training found a consistent correction, instead of adding its own
-    /// denoising error to every pixel.
+    /// is zero is then the identity, and training starts from there, not from a denoiser that
+    /// must first learn to give the render back.
     EnhanceResidual,
 }
 
