@@ -746,19 +746,9 @@ fn a_residual_enhancer_starts_as_the_identity() {
     use extranerf_diffusion::inpaint::Task;
     let dev = cpu();
     dev.seed(5);
-    let zero_out = |unet: &mut UNet2DConditionModel, dev: &Device| {
-        let conv = &mut unet.conv_out;
-        conv.weight = burn::module::Param::from_tensor(Tensor::zeros(conv.dims(), dev));
-        if let Some(b) = &conv.bias {
-            conv.bias = Some(burn::module::Param::from_tensor(Tensor::zeros(
-                b.dims(),
-                dev,
-            )));
-        }
-    };
     let model = |pred: Prediction, task: Task| {
         let mut unet = tiny_pixel_unet(&dev);
-        zero_out(&mut unet, &dev);
+        unet.conv_out.zero(&dev);
         InpaintModel {
             unet,
             codec: Codec::Pixels(PixelCodec),
@@ -831,7 +821,7 @@ fn a_residual_enhancer_starts_as_the_identity() {
         ..Augment::default()
     };
     let mut unet = tiny_pixel_unet(&ad);
-    zero_out(&mut unet, &ad);
+    unet.conv_out.zero(&ad);
     let trainable = Trainable {
         unet,
         tokens: LearnedTokens::new(2, 8, &ad),

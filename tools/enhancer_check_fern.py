@@ -18,6 +18,7 @@ Needs numpy and Pillow (pip install numpy pillow); CI does not run it.
 import argparse
 import json
 import os
+import shutil
 import struct
 import subprocess
 import sys
@@ -79,6 +80,9 @@ def main():
     work = tempfile.mkdtemp(prefix="enhancer_check_")
     rows = []
 
+    def triplet_png(key):
+        return os.path.join(data_dir, next(f for f in os.listdir(data_dir) if f.startswith(key + "_")))
+
     def enhance(src, label, photo):
         out = os.path.join(work, label + "_enhanced.png")
         subprocess.run(
@@ -94,8 +98,8 @@ def main():
         t = triplets.get(key)
         if t is None:
             sys.exit(f"{data_dir}/triplets.json: no triplet {key}")
-        src = [f for f in os.listdir(data_dir) if f.startswith(key + "_")][0]
-        enhance(os.path.join(data_dir, src), f"triplet {src[:-4]}", truth[t["slot"]])
+        src = triplet_png(key)
+        enhance(src, f"triplet {os.path.basename(src)[:-4]}", truth[t["slot"]])
     for i in [int(k) for k in a.tests.split(",") if k]:
         render = load(os.path.join(a.run, f"stage2-{a.stage2}", f"test_{i:03}.png"))
         src = os.path.join(work, f"test_{i:03}.png")
@@ -107,9 +111,9 @@ def main():
     # What the enhancer was trained to add on average: photo - render over all its triplets.
     diffs = []
     for key, t in sorted(triplets.items()):
-        src = [f for f in os.listdir(data_dir) if f.startswith(key + "_")][0]
-        diffs.append((truth[t["slot"]] - load(os.path.join(data_dir, src))).mean((0, 1)))
+        diffs.append((truth[t["slot"]] - load(triplet_png(key))).mean((0, 1)))
     d = np.mean(diffs, 0)
+    shutil.rmtree(work)
     print(f"enhancer {model}")
     print(f"photo - render over its {len(diffs)} triplets: {d[0]:+.4f}, {d[1]:+.4f}, {d[2]:+.4f}")
     print("| image | PSNR render | PSNR enhanced | mean shift (r, g, b) |")

@@ -9,8 +9,8 @@
 
 use std::path::{Path, PathBuf};
 
-use burn::module::{Module, Param};
-use burn::tensor::{Device, Tensor};
+use burn::module::Module;
+use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use crate::config::UNetConfig;
@@ -209,11 +209,7 @@ pub fn train_enhancer(
             let mut pipe = Pipeline::new(cfg.clone(), None, sched.clone(), 4, &ad)?;
             if residual {
                 // The identity to start from: the output (added to the guidance) is zero.
-                let conv = &mut pipe.model.unet.conv_out;
-                conv.weight = Param::from_tensor(Tensor::zeros(conv.dims(), &ad));
-                if let Some(b) = &conv.bias {
-                    conv.bias = Some(Param::from_tensor(Tensor::zeros(b.dims(), &ad)));
-                }
+                pipe.model.unet.conv_out.zero(&ad);
             }
             let params = pipe.model.unet.num_params();
             let schedule = pipe.model.schedule.clone();

@@ -137,6 +137,15 @@ impl Conv2d {
         Conv2d { padding, ..self }
     }
 
+    /// Sets the weight and bias to zero (trainable, on `device`): the layer outputs zeros,
+    /// as a residual enhancer's last convolution starts.
+    pub fn zero(&mut self, device: &Device) {
+        self.weight = Param::from_tensor(Tensor::zeros(self.dims(), device));
+        if let Some(b) = &self.bias {
+            self.bias = Some(Param::from_tensor(Tensor::zeros(b.dims(), device)));
+        }
+    }
+
     /// `[out, in, kh, kw]`.
     pub fn dims(&self) -> [usize; 4] {
         let s = self.weight.lazy_shape();
