@@ -17,7 +17,9 @@ use extranerf_extrapolate::manifest::Manifest;
 use extranerf_extrapolate::pipeline::{
     extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec,
 };
-use extranerf_extrapolate::stage3::{collector_views, Stage3Spec, Triplets};
+use extranerf_extrapolate::stage3::{
+    check_triplets, collector_views, EnhancerCheck, Stage3Gate, Stage3Spec, Triplets, CHECK_FILE,
+};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
@@ -423,6 +425,8 @@ fn stage3_spec() -> Stage3Spec {
         steps_per_round: 25,
         ddim_steps: 3,
         backend: Backend::Cpu,
+        // The loop itself is under test here; the gate has its own part below.
+        gate: Stage3Gate::Off,
         ..Stage3Spec::default()
     }
 }
@@ -773,6 +777,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         extranerf_extrapolate::eval::compare(&a, None, Some(&kid), &mut Record::default()).unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic", "stage3-harmonic"]);
+    assert!(t.notes.is_empty(), "{:?}", t.notes);
     let report = t.kid.as_ref().unwrap();
     assert_eq!(report.crops_per_view.iter().sum::<usize>(), 8);
     assert_eq!(report.patch_subset_size, Some(4));
@@ -807,6 +812,125 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
     let inlined = html.matches("src=\"data:image/").count();
     assert_eq!(images, inlined);
     assert_eq!(images, 5 * loaded.split.test.len() + 3);
+
+    // The gate (--stage3-gate check), on a copy with stage 3 redone: the check enhances one
+    // triplet per training view (the sources in turn) and scores it against the photo (the
+    // renders' PSNR is recomputed here); the stage ran or was skipped as the check says. The
+    // check is then forged to the other verdict and the stage redone, so that both outcomes
+    // are tested whichever the small enhancer earns.
+    let g = dir.join("g");
+    copy_dir(&a, &g);
+    let gated = |redo: &str, enhancer_steps: usize| {
+        let mut o = opts(&g);
+        o.resume = true;
+        o.redo = vec![redo.into()];
+        let s3 = o.stage3.as_mut().unwrap();
+        s3.enhancer.steps = enhancer_steps;
+        s3.gate = Stage3Gate::Check;
+        s3.lpips = Some(extranerf_tests::shared_data().join("../models/lpips"));
+        let mut rec = Record::default();
+        extrapolate(ctx, &o, &mut rec).unwrap();
+        let m = Manifest::load(&g).unwrap().unwrap();
+        let report = m
+            .stages
+            .iter()
+            .find(|s| s.name == "stage3-harmonic")
+            .unwrap()
+            .report
+            .clone();
+        (report, rec.notes)
+    };
+    let check_path = g.join("stage3-enhancer").join(CHECK_FILE);
+    let read_check = || -> EnhancerCheck {
+        serde_json::from_str(&std::fs::read_to_string(&check_path).unwrap()).unwrap()
+    };
+    let outcome = |report: &serde_json::Value, notes: &[String], check: &EnhancerCheck| {
+        assert_eq!(report["check"], serde_json::to_value(check).unwrap());
+        let stage3 = g.join("stage3-harmonic");
+        let t =
+            extranerf_extrapolate::eval::compare(&g, None, None, &mut Record::default()).unwrap();
+        let row = |v: &str| t.rows.iter().find(|r| r.variant == v).unwrap().psnr;
+        if check.helps() {
+            assert!(report["skipped"].is_null(), "{report}");
+            assert_eq!(report["rounds"].as_array().unwrap().len(), 2);
+            assert!(stage3.join("round_01").is_dir());
+            assert!(t.notes.is_empty(), "{:?}", t.notes);
+        } else {
+            let why = report["skipped"].as_str().unwrap();
+            assert!(
+                why.contains("worse") && why.contains("--stage3-gate off"),
+                "{why}"
+            );
+            assert!(notes.iter().any(|n| n.contains(why)), "{notes:?}");
+            assert!(!stage3.join("round_00").exists());
+            // The stage-2 field and its renders, byte for byte; the fly-through made from it.
+            let same = |f: &str| {
+                std::fs::read(stage3.join(f)).unwrap()
+                    == std::fs::read(g.join("stage2-harmonic").join(f)).unwrap()
+            };
+            assert!(same(extranerf_nerf::run::CHECKPOINT_FILE));
+            for &i in &loaded.split.test {
+                assert!(same(&format!("test_{i:03}.png")), "test view {i}");
+            }
+            assert!(g.join("flythrough/stage3-harmonic.gif").is_file());
+            assert_eq!(row("stage3-harmonic"), row("stage2-harmonic"));
+            assert_eq!(t.notes, [format!("stage3-harmonic: {why}")]);
+            assert!(t.markdown().contains(why));
+        }
+    };
+    let (report, notes) = gated("stage3-harmonic", 60);
+    let check = read_check();
+    eprintln!("enhancer check: {}", check.describe());
+    let picks = check_triplets(&tr);
+    assert_eq!(picks.len(), views);
+    for (v, &k) in picks.iter().enumerate() {
+        let e = &tr.entries[k];
+        assert_eq!(e.slot, v);
+        let mine: Vec<&str> = tr
+            .entries
+            .iter()
+            .filter(|x| x.slot == v)
+            .map(|x| x.source.as_str())
+            .collect();
+        assert_eq!(e.source, mine[v % mine.len()]);
+        assert_eq!(check.triplets[v], e.key);
+    }
+    let want = picks
+        .iter()
+        .map(|&k| {
+            extranerf_nerf::metrics::psnr(&tr.renders[k].0, &tr.photos[tr.entries[k].slot]).unwrap()
+        })
+        .sum::<f64>()
+        / views as f64;
+    assert!(
+        (check.psnr_render - want).abs() < 1e-9,
+        "{} {want}",
+        check.psnr_render
+    );
+    let (lr, le) = (check.lpips_render.unwrap(), check.lpips_enhanced.unwrap());
+    assert!(lr.is_finite() && le.is_finite() && check.psnr_enhanced.is_finite());
+    assert_eq!(check.helps(), le < lr);
+    outcome(&report, &notes, &check);
+    let forged = EnhancerCheck {
+        lpips_enhanced: Some(if check.helps() { lr + 0.1 } else { 0.5 * lr }),
+        ..check.clone()
+    };
+    assert_ne!(forged.helps(), check.helps());
+    std::fs::write(&check_path, serde_json::to_string(&forged).unwrap()).unwrap();
+    let (report, notes) = gated("stage3-harmonic", 60);
+    assert_eq!(
+        read_check(),
+        forged,
+        "a check with the same settings is reused"
+    );
+    outcome(&report, &notes, &forged);
+    // A new enhancer is checked again: the forged check, made with the same settings, is
+    // dropped with the enhancer it judged.
+    let (report, _) = gated("stage3-enhancer", 2);
+    let again = read_check();
+    assert_ne!(again, forged, "a stale check survived");
+    assert_eq!(report["check"], serde_json::to_value(&again).unwrap());
+
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -12,7 +12,7 @@ the enhancement's mean colour shift (and, for comparison, the mean of photo - re
 the triplets it was trained on). An enhancer that helps raises the PSNR.
 
 Usage: tools/enhancer_check_fern.py RUN [--bin BIN] [--triplets t000,t012] [--tests 0,9]
-       [--stage2 harmonic] [--data ../shared/data/llff/fern]
+       [--stage2 harmonic] [--data ../shared/data/llff/fern] [--strength 0.3] [--steps 10]
 Needs numpy and Pillow (pip install numpy pillow); CI does not run it.
 """
 import argparse
@@ -67,6 +67,8 @@ def main():
     ap.add_argument("--tests", default="0,9")
     ap.add_argument("--stage2", default="harmonic")
     ap.add_argument("--data", default="../shared/data/llff/fern")
+    ap.add_argument("--strength", default="0.3", help="noise strength (stage 3's --stage3-t)")
+    ap.add_argument("--steps", default="10", help="DDIM steps (stage 3's --stage3-ddim-steps)")
     a = ap.parse_args()
     data_dir = os.path.join(a.run, "stage3-data")
     model = os.path.join(a.run, "stage3-enhancer")
@@ -87,7 +89,7 @@ def main():
         out = os.path.join(work, label + "_enhanced.png")
         subprocess.run(
             [a.bin, "diffusion", "enhance", "--model", model, "--image", src, "--out", out,
-             "--diffusion-backend", "cpu"],
+             "--diffusion-backend", "cpu", "--strength", a.strength, "--steps", a.steps],
             check=True, stdout=subprocess.DEVNULL,
         )
         r, e = load(src), load(out)
@@ -114,7 +116,7 @@ def main():
         diffs.append((truth[t["slot"]] - load(triplet_png(key))).mean((0, 1)))
     d = np.mean(diffs, 0)
     shutil.rmtree(work)
-    print(f"enhancer {model}")
+    print(f"enhancer {model}, strength {a.strength}, {a.steps} DDIM steps")
     print(f"photo - render over its {len(diffs)} triplets: {d[0]:+.4f}, {d[1]:+.4f}, {d[2]:+.4f}")
     print("| image | PSNR render | PSNR enhanced | mean shift (r, g, b) |")
     print("|---|---|---|---|")

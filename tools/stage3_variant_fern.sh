@@ -10,7 +10,8 @@
 # e.g.   tools/stage3_variant_fern.sh runs/fern_stage3_anchor3 \
 #            results/extrapolate_fern_stage3_anchor3_lavapipe --stage3-anchor 3
 # RUN's other settings are repeated from results/extrapolate_fern_stage3_lavapipe (its
-# enhancer stopped at 200 steps): EXTRA (default `--diffusion-backend cpu --enhancer-steps 200`).
+# enhancer stopped at 200 steps, stage 3 not gated as in the runs made before the gate): EXTRA
+# (default `--diffusion-backend cpu --enhancer-steps 200 --stage3-gate off`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ $# -lt 2 ]; then
@@ -33,17 +34,23 @@ if [ ! -d "$new" ]; then
     cp -a "$run" "$new.part"
     mv "$new.part" "$new"
 fi
-read -r -a extra <<<"${EXTRA:---diffusion-backend cpu --enhancer-steps 200}"
+read -r -a extra <<<"${EXTRA:---diffusion-backend cpu --enhancer-steps 200 --stage3-gate off}"
 mkdir -p "$out/images"
 /usr/bin/time -f "extrapolate --redo stage3-$kind wall %e s" \
     "$bin" extrapolate --base "$base" --out "$new" --resume --inpainter "$kind" \
     --redo "stage3-$kind" "${extra[@]}" "$@" 2>&1 | tee "$out/extrapolate_redo.log"
 /usr/bin/time -f "eval wall %e s" "$bin" eval "$new" --no-kid 2>&1 | tee "$out/eval.log"
 cp "$new/eval.md" "$new/eval.json" "$new/extrapolate.json" "$out/"
-for f in "$new/stage3-$kind"/test_*.png; do
-    cp "$f" "$out/images/$(basename "$f" .png)_stage3-$kind.png"
-done
-last=$(ls -d "$new/stage3-$kind"/round_* | tail -1)
-cp "$last/virtual_004.png" "$out/images/virtual_004_stage3-$kind.png"
-cp "$last/virtual_004_render.png" "$out/images/virtual_004_render_stage3-$kind.png"
+if ! ls -d "$new/stage3-$kind"/round_* >/dev/null 2>&1; then
+    # --stage3-gate check kept the stage-2 field: its renders are stage 2's, byte for byte.
+    rmdir "$out/images"
+    echo "stage3-$kind was skipped by its gate (eval.md says why): no images of its own" >&2
+else
+    for f in "$new/stage3-$kind"/test_*.png; do
+        cp "$f" "$out/images/$(basename "$f" .png)_stage3-$kind.png"
+    done
+    last=$(ls -d "$new/stage3-$kind"/round_* | tail -1)
+    cp "$last/virtual_004.png" "$out/images/virtual_004_stage3-$kind.png"
+    cp "$last/virtual_004_render.png" "$out/images/virtual_004_render_stage3-$kind.png"
+fi
 echo "wrote $out" >&2

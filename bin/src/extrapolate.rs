@@ -13,7 +13,7 @@ use extranerf_extrapolate::pipeline::{
     extrapolate as run_pipeline, BaseSpec, DiffusionSpec, FlythroughSpec, Options, Stage2Spec,
     VirtualSpec,
 };
-use extranerf_extrapolate::stage3::Stage3Spec;
+use extranerf_extrapolate::stage3::{Stage3Gate, Stage3Spec};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
@@ -214,6 +214,16 @@ pub struct ExtrapolateArgs {
     /// Stage 3: learning rate of its steps.
     #[arg(long, default_value_t = Stage3Spec::default().lr)]
     stage3_lr: f32,
+    /// Stage 3: `check` enhances one corrupted render of each training view as stage 3 would
+    /// and runs stage 3 only when that lowers their LPIPS against the photos (PSNR, raised,
+    /// where no LPIPS weights load); otherwise the stage-2 field is kept and the log, manifest
+    /// and `eval` say why. `off`: always run it (the paper's ablation)
+    #[arg(long, value_enum, default_value_t = Stage3Gate::default())]
+    stage3_gate: Stage3Gate,
+    /// Folder with lpips_alex_v0.1.safetensors for --stage3-gate (default:
+    /// $EXTRANERF_MODELS/lpips, else ../shared/models/lpips)
+    #[arg(long, value_name = "DIR")]
+    lpips: Option<PathBuf>,
     /// Continue the run in --out: finished stages are skipped, stages 2 and 3 resume after
     /// their last finished round, the enhancer's training at its last save. The settings must
     /// be those it was started with.
@@ -326,6 +336,8 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             lr: a.stage3_lr,
             seed: a.seed,
             backend: a.diffusion_backend,
+            gate: a.stage3_gate,
+            lpips: a.lpips.clone(),
         }),
         resume: a.resume,
         redo: a.redo.clone(),

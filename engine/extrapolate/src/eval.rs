@@ -58,6 +58,8 @@ pub struct Table {
     pub rows: Vec<Row>,
     /// How KID was measured (absent when it was not).
     pub kid: Option<KidReport>,
+    /// What the run's stages said of a row (a stage 3 that its gate skipped).
+    pub notes: Vec<String>,
 }
 
 /// KID's protocols (`extranerf eval --kid-*`).
@@ -294,7 +296,11 @@ pub fn compare(
     let maps_path = dir.join("visibility").join(MAPS_FILE);
     let st = SafeTensors::read(&maps_path)?;
     let mut variants = vec![("base".to_string(), dir.join("visibility"), "_base")];
+    let mut notes = Vec::new();
     for s in &manifest.stages {
+        if let (true, Some(why)) = (s.done, s.report["skipped"].as_str()) {
+            notes.push(format!("{}: {why}", s.name));
+        }
         let stage3 = s.name.starts_with("stage3-")
             && s.name != crate::stage3::DATA_STAGE
             && s.name != crate::stage3::ENHANCER_STAGE;
@@ -440,6 +446,7 @@ pub fn compare(
         views,
         rows,
         kid: kid_ref.map(|r| r.0),
+        notes,
     })
 }
 
@@ -491,6 +498,9 @@ impl Table {
         }
         if let Some(k) = &self.kid {
             s += &format!("\n{}\n", k.describe());
+        }
+        for n in &self.notes {
+            s += &format!("\n{n}\n");
         }
         s
     }

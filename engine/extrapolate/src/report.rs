@@ -144,6 +144,9 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> anyhow::Result<PathBuf
             if let Some(k) = &t.kid {
                 let _ = writeln!(h, "<p>{}</p>", escape(&k.describe()));
             }
+            for n in &t.notes {
+                let _ = writeln!(h, "<p>{}</p>", escape(n));
+            }
         }
         None => h += "<p>No evaluation table (run <code>extranerf eval RUN</code>).</p>\n",
     }

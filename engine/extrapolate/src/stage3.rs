@@ -25,6 +25,7 @@ use extranerf_diffusion::inpaint::SampleSettings;
 use extranerf_diffusion::train::{Guide, TrainImage};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::{Camera, Image};
+use extranerf_nerf::metrics::psnr;
 use extranerf_nerf::render::visibility::mask_all_but;
 use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::run::{load_checkpoint, training_views, write_png, RunConfig};
@@ -36,7 +37,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
-use crate::driver::{Progress, Reporter, Unit};
+use crate::driver::{default_lpips_dir, lpips_alex, Progress, Reporter, Unit};
 use crate::inpaint::{Fill, InpainterKind, Source, Target};
 use crate::pipeline::{
     build_inpainter, downscale_image, load_map, load_round, make_virtual, render, train_round,
@@ -95,6 +96,28 @@ pub struct Stage3Spec {
     pub seed: u64,
     /// Where the enhancer runs.
     pub backend: Backend,
+    /// Whether the enhancer is checked before stage 3 trusts it ([`Stage3Gate`]).
+    #[serde(default)]
+    pub gate: Stage3Gate,
+    /// The folder of the LPIPS weights the gate scores with (None: [`default_lpips_dir`]);
+    /// where none load, it scores with PSNR.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<PathBuf>,
+}
+
+/// Whether stage 3 first checks that its enhancer helps.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Stage3Gate {
+    /// Enhance one corrupted render per training view (its triplets, the sources taken in
+    /// turn) as stage 3 would, and run stage 3 only when that brings them closer to their
+    /// photos (mean LPIPS lowered; PSNR raised where no LPIPS weights load). Otherwise the
+    /// stage keeps the stage-2 field and says why: an enhancer that cannot improve renders of
+    /// the views it was trained on would supervise the virtual views with its own errors.
+    #[default]
+    Check,
+    /// Always run stage 3 (the paper's ablation, whatever the enhancer does).
+    Off,
 }
 
 impl Default for Stage3Spec {
@@ -116,6 +139,8 @@ impl Default for Stage3Spec {
             lr: 3e-3,
             seed: 0,
             backend: Backend::Auto,
+            gate: Stage3Gate::Check,
+            lpips: None,
         }
     }
 }
@@ -401,6 +426,157 @@ impl Triplets {
             })
             .collect()
     }
+}
+
+/// The file in the enhancer's folder that holds its [`EnhancerCheck`].
+pub const CHECK_FILE: &str = "check.json";
+
+/// What [`Stage3Gate::Check`] measured: corrupted renders of the training views enhanced as
+/// stage 3 enhances the virtual views, against their photos.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnhancerCheck {
+    /// The enhancement's settings (a check made with other ones is made again).
+    pub t: f32,
+    pub ddim_steps: usize,
+    pub seed: u64,
+    /// The triplets enhanced (their keys).
+    pub triplets: Vec<String>,
+    /// Mean PSNR of the renders and of their enhancements against the photos.
+    pub psnr_render: f64,
+    pub psnr_enhanced: f64,
+    /// Mean LPIPS-alex of the same, where the weights loaded and the views are large enough.
+    pub lpips_render: Option<f64>,
+    pub lpips_enhanced: Option<f64>,
+    /// Wall seconds of the check.
+    pub seconds: f64,
+}
+
+impl EnhancerCheck {
+    /// The enhancement brought the renders closer to their photos: LPIPS lowered, or where it
+    /// was not measured, PSNR raised.
+    pub fn helps(&self) -> bool {
+        match (self.lpips_render, self.lpips_enhanced) {
+            (Some(r), Some(e)) => e < r,
+            _ => self.psnr_enhanced > self.psnr_render,
+        }
+    }
+
+    /// One line of what it measured.
+    pub fn describe(&self) -> String {
+        let lpips = match (self.lpips_render, self.lpips_enhanced) {
+            (Some(r), Some(e)) => format!("LPIPS-alex {r:.3} -> {e:.3}, "),
+            _ => String::new(),
+        };
+        format!(
+            "enhancing {} training-view renders (triplets {}) from t = {} in {} DDIM steps: {lpips}PSNR {:.2} -> {:.2} dB",
+            self.triplets.len(),
+            self.triplets.join(", "),
+            self.t,
+            self.ddim_steps,
+            self.psnr_render,
+            self.psnr_enhanced
+        )
+    }
+}
+
+/// The triplets the check enhances: one per training view, the sources taken in turn (view
+/// `v` gets its `v mod n`-th triplet of `n`), so that every view and every kind of corruption
+/// is seen at the cost of one enhancement per view.
+pub fn check_triplets(tr: &Triplets) -> Vec<usize> {
+    (0..tr.photos.len())
+        .filter_map(|v| {
+            let mine: Vec<usize> = (0..tr.entries.len())
+                .filter(|&k| tr.entries[k].slot == v)
+                .collect();
+            (!mine.is_empty()).then(|| mine[v % mine.len()])
+        })
+        .collect()
+}
+
+/// The enhancer check of a run ([`Stage3Gate::Check`]): read from the enhancer's folder when
+/// it was made there with these settings, otherwise made and written there.
+pub fn check_enhancer(
+    dir: &RunDir,
+    spec: &Stage3Spec,
+    pipe: &extranerf_diffusion::pipeline::Pipeline,
+    device: &burn::tensor::Device,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<EnhancerCheck> {
+    let path = EnhancerStage::dir(dir).join(CHECK_FILE);
+    if path.is_file() {
+        let c: EnhancerCheck = serde_json::from_str(
+            &std::fs::read_to_string(&path)
+                .with_context(|| format!("reading {}", path.display()))?,
+        )
+        .with_context(|| format!("{}: malformed", path.display()))?;
+        if (c.t, c.ddim_steps, c.seed) == (spec.t, spec.ddim_steps, spec.seed) {
+            return Ok(c);
+        }
+    }
+    let t0 = Instant::now();
+    let tr = Triplets::load(&dir.root.join(DATA_STAGE))?;
+    let (w, h) = (tr.width, tr.height);
+    let lp = match lpips_alex(spec.lpips.as_deref()) {
+        Ok(l) if (w.min(h) as u32) >= l.net().min_size() => Some(l),
+        Ok(_) => {
+            rep.note(&format!(
+                "enhancer check: {w}x{h} views are below LPIPS's smallest input; scored with PSNR"
+            ));
+            None
+        }
+        Err(e) => {
+            rep.note(&format!(
+                "enhancer check: no LPIPS ({e:#}; default folder {}); scored with PSNR",
+                default_lpips_dir().display()
+            ));
+            None
+        }
+    };
+    let picks = check_triplets(&tr);
+    let (mut pr, mut pe, mut lr, mut le) = (0.0, 0.0, 0.0, 0.0);
+    for (n, &k) in picks.iter().enumerate() {
+        let (render, mask) = &tr.renders[k];
+        let photo = &tr.photos[tr.entries[k].slot];
+        let enhanced = pipe
+            .model
+            .enhance_image(
+                render,
+                Some(mask),
+                w,
+                h,
+                spec.seed ^ 0xc4ec_0000 ^ k as u64,
+                &SampleSettings {
+                    strength: f64::from(spec.t),
+                    steps: spec.ddim_steps,
+                    guidance: 1.0,
+                    keep_known: false,
+                },
+                device,
+            )
+            .with_context(|| format!("enhancing triplet {}", tr.entries[k].key))?;
+        pr += psnr(render, photo)?;
+        pe += psnr(&enhanced.rgb, photo)?;
+        if let Some(l) = &lp {
+            lr += l.distance(render, photo, w as u32, h as u32)?;
+            le += l.distance(&enhanced.rgb, photo, w as u32, h as u32)?;
+        }
+        progress_views(rep, n + 1, picks.len(), &t0);
+    }
+    let n = picks.len().max(1) as f64;
+    let c = EnhancerCheck {
+        t: spec.t,
+        ddim_steps: spec.ddim_steps,
+        seed: spec.seed,
+        triplets: picks.iter().map(|&k| tr.entries[k].key.clone()).collect(),
+        psnr_render: pr / n,
+        psnr_enhanced: pe / n,
+        lpips_render: lp.as_ref().map(|_| lr / n),
+        lpips_enhanced: lp.as_ref().map(|_| le / n),
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    extranerf_nerf::safetensors::write_atomic(&path, serde_json::to_string_pretty(&c)?.as_bytes())?;
+    Ok(c)
 }
 
 /// A `sw x sh` mask resized to `w x h` by nearest neighbour (>= 0.5: 1).
@@ -792,6 +968,12 @@ impl Stage for EnhancerStage {
         ));
         let out = Self::dir(dir);
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        // A check of an earlier enhancer in this folder no longer holds.
+        let check = out.join(CHECK_FILE);
+        if check.exists() {
+            std::fs::remove_file(&check)
+                .with_context(|| format!("removing {}", check.display()))?;
+        }
         let t = Instant::now();
         let rec = enhancer::train_enhancer(&triplets.train_images(), e, &out, &device, &mut |p| {
             let secs = t.elapsed().as_secs_f64();
@@ -860,6 +1042,10 @@ impl Stage for EnhanceStage {
         if s.l1_core > 0.0 {
             c["l1_core"] = json!(s.l1_core);
         }
+        // Recorded only when checked: runs made before the gate existed ran stage 3 always.
+        if s.gate == Stage3Gate::Check {
+            c["gate"] = json!(s.gate);
+        }
         c
     }
 
@@ -871,6 +1057,31 @@ impl Stage for EnhanceStage {
         self.spec.validate()?;
         let out = dir.root.join(self.name());
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
+        let pipe = enhancer::load(&EnhancerStage::dir(dir), &device)?;
+        let check = match self.spec.gate {
+            Stage3Gate::Off => None,
+            Stage3Gate::Check => {
+                let c = check_enhancer(dir, &self.spec, &pipe, &device, rep)?;
+                rep.note(&format!(
+                    "{}: enhancer check, {}",
+                    self.name(),
+                    c.describe()
+                ));
+                Some(c)
+            }
+        };
+        if let Some(c) = check.as_ref().filter(|c| !c.helps()) {
+            let why = format!(
+                "skipped: the enhancer made the renders of its own training views worse ({}); \
+                 the field is {}'s (--stage3-gate off runs stage 3 anyway)",
+                c.describe(),
+                self.stage2_name()
+            );
+            rep.note(&format!("{}: {why}", self.name()));
+            keep_stage2(&dir.root.join(self.stage2_name()), &out)?;
+            return Ok(json!({"rounds": [], "seconds": 0.0, "check": c, "skipped": why}));
+        }
         let base = BaseField::load(ctx, &dir.base)?;
         let from = load_checkpoint(&dir.root.join(self.stage2_name()))
             .with_context(|| format!("the {} field", self.stage2_name()))?;
@@ -915,8 +1126,6 @@ impl Stage for EnhanceStage {
             moments,
         )?;
         let prims = Prims::new(ctx)?;
-        let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
-        let pipe = enhancer::load(&EnhancerStage::dir(dir), &device)?;
         rep.note(&format!(
             "{}: enhancer on {}, from t = {} in {} DDIM steps, loss weight {:.3}",
             self.name(),
@@ -1035,13 +1244,103 @@ impl Stage for EnhanceStage {
             }));
         }
         write_test_renders(ctx, trainer.nerf(), &base.loaded, samples, &out)?;
-        Ok(json!({"rounds": rounds, "seconds": seconds}))
+        Ok(json!({"rounds": rounds, "seconds": seconds, "check": check}))
     }
+}
+
+/// A skipped stage 3: the stage-2 field and its held-out renders, copied from `from` to `out`
+/// (what the fly-through and `eval` read).
+fn keep_stage2(from: &Path, out: &Path) -> anyhow::Result<()> {
+    let entries = std::fs::read_dir(from).with_context(|| format!("reading {}", from.display()))?;
+    for e in entries {
+        let e = e.with_context(|| format!("reading {}", from.display()))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        let test = name.starts_with("test_") && name.ends_with(".png");
+        if test
+            || name == extranerf_nerf::run::CHECKPOINT_FILE
+            || name == extranerf_nerf::run::CONFIG_FILE
+        {
+            std::fs::copy(e.path(), out.join(&name))
+                .with_context(|| format!("copying {} to {}", e.path().display(), out.display()))?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
-    use super::{detail_energy, stage3_target, virtual_weights};
+    use super::{
+        check_triplets, detail_energy, stage3_target, virtual_weights, EnhancerCheck, TripletEntry,
+        Triplets,
+    };
+
+    #[test]
+    fn the_check_judges_by_lpips_and_by_psnr_without_it() {
+        let c = EnhancerCheck {
+            t: 0.3,
+            ddim_steps: 10,
+            seed: 0,
+            triplets: vec!["t000".into()],
+            psnr_render: 25.0,
+            psnr_enhanced: 26.0,
+            lpips_render: Some(0.20),
+            lpips_enhanced: Some(0.25),
+            seconds: 1.0,
+        };
+        // LPIPS rules where measured, even against a better PSNR; an equal LPIPS fails.
+        assert!(!c.helps());
+        let better = EnhancerCheck {
+            lpips_enhanced: Some(0.15),
+            psnr_enhanced: 20.0,
+            ..c.clone()
+        };
+        assert!(better.helps());
+        assert!(!EnhancerCheck {
+            lpips_enhanced: Some(0.20),
+            ..c.clone()
+        }
+        .helps());
+        let psnr_only = EnhancerCheck {
+            lpips_render: None,
+            lpips_enhanced: None,
+            ..c.clone()
+        };
+        assert!(psnr_only.helps());
+        assert!(!EnhancerCheck {
+            psnr_enhanced: 25.0,
+            ..psnr_only.clone()
+        }
+        .helps());
+        assert!(c.describe().contains("LPIPS-alex 0.200 -> 0.250"));
+        assert!(!psnr_only.describe().contains("LPIPS"));
+    }
+
+    #[test]
+    fn the_check_takes_one_triplet_per_view_with_the_sources_in_turn() {
+        let entry = |k: usize, slot: usize, source: &str| TripletEntry {
+            key: format!("t{k:03}"),
+            slot,
+            source: source.into(),
+        };
+        // Three views with two sources each, view 1 with none.
+        let entries = vec![
+            entry(0, 0, "base"),
+            entry(1, 2, "base"),
+            entry(2, 0, "inpainted@0"),
+            entry(3, 2, "inpainted@0"),
+            entry(4, 2, "inpainted@1"),
+        ];
+        let tr = Triplets {
+            width: 1,
+            height: 1,
+            photos: vec![vec![0.0; 3]; 3],
+            masks: vec![vec![0.0]; 3],
+            renders: vec![(vec![0.0; 3], vec![0.0]); entries.len()],
+            entries,
+        };
+        // View 0: its 0th (t000); view 1: none; view 2: its 2 mod 3 = 2nd (t004).
+        assert_eq!(check_triplets(&tr), [0, 4]);
+    }
 
     /// An `[h, w, 3]` image from a per-pixel function of (x, y), the same in every channel.
     fn image(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Vec<f32> {
