@@ -18,7 +18,8 @@ use extranerf_extrapolate::pipeline::{
     extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec,
 };
 use extranerf_extrapolate::stage3::{
-    check_triplets, collector_views, EnhancerCheck, Stage3Gate, Stage3Spec, Triplets, CHECK_FILE,
+    check_triplets, collector_views, unsharp, EnhancerCheck, Stage3Enhancer, Stage3Gate,
+    Stage3Spec, Triplets, CHECK_FILE,
 };
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_nerf::cameras::Trajectory;
@@ -924,12 +925,106 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         "a check with the same settings is reused"
     );
     outcome(&report, &notes, &forged);
+    // A check file that does not read is made again, not an error.
+    std::fs::write(&check_path, "{ not json").unwrap();
+    let (report, _) = gated("stage3-harmonic", 60);
+    assert_eq!(report["check"], serde_json::to_value(read_check()).unwrap());
+
+    // A stage resumed after its first round does not judge again, even with its check gone:
+    // it passed when it started (a skipped stage writes no rounds).
+    let passing = EnhancerCheck {
+        lpips_enhanced: Some(0.5 * lr),
+        ..check.clone()
+    };
+    std::fs::write(&check_path, serde_json::to_string(&passing).unwrap()).unwrap();
+    let gated_opts = |redo: Vec<String>| {
+        let mut o = opts(&g);
+        o.resume = true;
+        o.redo = redo;
+        let s3 = o.stage3.as_mut().unwrap();
+        s3.gate = Stage3Gate::Check;
+        s3.lpips = Some(extranerf_tests::shared_data().join("../models/lpips"));
+        o
+    };
+    let crash = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let mut rec = Record {
+            panic_at: Some(2),
+            crash_in: Some("stage3-harmonic"),
+            ..Record::default()
+        };
+        let _ = extrapolate(ctx, &gated_opts(vec!["stage3-harmonic".into()]), &mut rec);
+    }));
+    assert!(crash.is_err(), "the simulated crash did not happen");
+    let state = std::fs::read_to_string(g.join("stage3-harmonic/round.json")).unwrap();
+    assert!(state.contains("\"rounds_done\":1"), "{state}");
+    std::fs::remove_file(&check_path).unwrap();
+    let mut rec = Record::default();
+    extrapolate(ctx, &gated_opts(Vec::new()), &mut rec).unwrap();
+    for note in [
+        "stage3-harmonic: resuming, the enhancer check passed when it started",
+        "stage3-harmonic: resuming after round 1",
+    ] {
+        assert!(
+            rec.notes.iter().any(|n| n.contains(note)),
+            "{note}: {:?}",
+            rec.notes
+        );
+    }
+    assert!(!check_path.exists(), "a resumed stage judged again");
+    assert!(g.join("stage3-harmonic/round_01").is_dir());
+
     // A new enhancer is checked again: the forged check, made with the same settings, is
     // dropped with the enhancer it judged.
+    std::fs::write(&check_path, serde_json::to_string(&forged).unwrap()).unwrap();
     let (report, _) = gated("stage3-enhancer", 2);
     let again = read_check();
     assert_ne!(again, forged, "a stale check survived");
     assert_eq!(report["check"], serde_json::to_value(&again).unwrap());
+
+    // --stage3-enhancer unsharp: no data or enhancer stage in the plan, no check, and each
+    // virtual view's target is the unsharp mask of its render (to the PNGs' 8 bits).
+    let mut o = opts(&g);
+    o.resume = true;
+    o.redo = vec!["stage3-harmonic".into()];
+    let s3 = o.stage3.as_mut().unwrap();
+    s3.enhance = Stage3Enhancer::Unsharp;
+    s3.gate = Stage3Gate::Check;
+    let mut rec = Record::default();
+    extrapolate(ctx, &o, &mut rec).unwrap();
+    assert!(
+        !rec.notes
+            .iter()
+            .any(|n| n.contains("stage3-data") || n.contains("stage3-enhancer")),
+        "{:?}",
+        rec.notes
+    );
+    assert!(rec
+        .notes
+        .iter()
+        .any(|n| n.contains("unsharp mask, amount 0.5 radius 1")));
+    let m = Manifest::load(&g).unwrap().unwrap();
+    let st = m
+        .stages
+        .iter()
+        .find(|s| s.name == "stage3-harmonic")
+        .unwrap();
+    assert!(st.report["check"].is_null() && st.report["skipped"].is_null());
+    assert_eq!(st.config["enhance"], "unsharp");
+    assert!(st.config["gate"].is_null());
+    for round in ["round_00", "round_01"] {
+        let d = g.join("stage3-harmonic").join(round);
+        let r = load_image(&d.join("virtual_000_render.png")).unwrap();
+        let t = load_image(&d.join("virtual_000.png")).unwrap();
+        let want = unsharp(&r.rgb, r.width as usize, r.height as usize, 0.5, 1);
+        let worst = want
+            .iter()
+            .zip(&t.rgb)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 0.01, "{round}: {worst}");
+        let changed = r.rgb.iter().zip(&t.rgb).filter(|(a, b)| a != b).count();
+        assert!(changed > 0, "{round}: the target is the render");
+    }
 
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);

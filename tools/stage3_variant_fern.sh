@@ -43,7 +43,7 @@ mkdir -p "$out/images"
 cp "$new/eval.md" "$new/eval.json" "$new/extrapolate.json" "$out/"
 if ! ls -d "$new/stage3-$kind"/round_* >/dev/null 2>&1; then
     # --stage3-gate check kept the stage-2 field: its renders are stage 2's, byte for byte.
-    rmdir "$out/images"
+    rm -rf "$out/images"
     echo "stage3-$kind was skipped by its gate (eval.md says why): no images of its own" >&2
 else
     for f in "$new/stage3-$kind"/test_*.png; do

@@ -13,7 +13,7 @@ use extranerf_extrapolate::pipeline::{
     extrapolate as run_pipeline, BaseSpec, DiffusionSpec, FlythroughSpec, Options, Stage2Spec,
     VirtualSpec,
 };
-use extranerf_extrapolate::stage3::{Stage3Gate, Stage3Spec};
+use extranerf_extrapolate::stage3::{Stage3Enhancer, Stage3Gate, Stage3Spec};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
@@ -214,10 +214,25 @@ pub struct ExtrapolateArgs {
     /// Stage 3: learning rate of its steps.
     #[arg(long, default_value_t = Stage3Spec::default().lr)]
     stage3_lr: f32,
-    /// Stage 3: `check` enhances one corrupted render of each training view as stage 3 would
-    /// and runs stage 3 only when that lowers their LPIPS against the photos (PSNR, raised,
-    /// where no LPIPS weights load); otherwise the stage-2 field is kept and the log, manifest
-    /// and `eval` say why. `off`: always run it (the paper's ablation)
+    /// Stage 3: what enhances the virtual views: `diffusion`, the enhancer trained on the
+    /// scene's corrupted renders (the paper; stages stage3-data and stage3-enhancer), or
+    /// `unsharp`, an unsharp mask of the render (no model or training data; it sharpens what
+    /// is there and invents nothing)
+    #[arg(long, value_enum, default_value_t = Stage3Enhancer::default())]
+    stage3_enhancer: Stage3Enhancer,
+    /// Stage 3 with `--stage3-enhancer unsharp`: the amount, render + amount * (render -
+    /// blur(render))
+    #[arg(long, default_value_t = Stage3Spec::default().unsharp_amount)]
+    stage3_unsharp_amount: f32,
+    /// Stage 3 with `--stage3-enhancer unsharp`: the blur, a box of this radius in pixels
+    /// applied twice
+    #[arg(long, default_value_t = Stage3Spec::default().unsharp_radius)]
+    stage3_unsharp_radius: usize,
+    /// Stage 3 with the diffusion enhancer: `check` enhances one corrupted render of each
+    /// training view as stage 3 would and runs stage 3 only when that lowers their LPIPS
+    /// against the photos (PSNR, raised, where no LPIPS weights load); otherwise the stage-2
+    /// field is kept and the log, manifest and `eval` say why. `off`: always run it (the
+    /// paper's ablation; runs made before the gate need it to resume)
     #[arg(long, value_enum, default_value_t = Stage3Gate::default())]
     stage3_gate: Stage3Gate,
     /// Folder with lpips_alex_v0.1.safetensors for --stage3-gate (default:
@@ -239,7 +254,8 @@ pub struct ExtrapolateArgs {
 impl ExtrapolateArgs {
     /// Whether burn may run on the engine's own device (the context must then be shareable).
     pub fn needs_wgpu(&self) -> bool {
-        (self.inpainter.iter().any(|k| k.uses_diffusion()) || !self.no_stage3)
+        (self.inpainter.iter().any(|k| k.uses_diffusion())
+            || (!self.no_stage3 && self.stage3_enhancer == Stage3Enhancer::Diffusion))
             && self.diffusion_backend != Backend::Cpu
     }
 }
@@ -336,6 +352,9 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
             lr: a.stage3_lr,
             seed: a.seed,
             backend: a.diffusion_backend,
+            enhance: a.stage3_enhancer,
+            unsharp_amount: a.stage3_unsharp_amount,
+            unsharp_radius: a.stage3_unsharp_radius,
             gate: a.stage3_gate,
             lpips: a.lpips.clone(),
         }),

@@ -697,7 +697,7 @@ pub(crate) struct RoundState {
 }
 
 /// The file of [`RoundState`].
-const ROUND_FILE: &str = "round.json";
+pub(crate) const ROUND_FILE: &str = "round.json";
 
 /// The last finished round of a round-based stage in `out`, with its checkpoint.
 pub(crate) fn load_round(out: &Path) -> anyhow::Result<Option<(RoundState, Checkpoint)>> {
@@ -1336,15 +1336,18 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
     }
     if let Some(s3) = &o.stage3 {
         s3.validate()?;
-        stages.push(Box::new(crate::stage3::EnhancerDataStage {
-            spec: s3.clone(),
-            inpainter: o.inpainters[0],
-            diffusion: o.diffusion.clone(),
-            stage2: o.stage2.clone(),
-            virt: o.virt.clone(),
-            vis: o.vis.clone(),
-        }));
-        stages.push(Box::new(crate::stage3::EnhancerStage { spec: s3.clone() }));
+        // A fixed filter needs no training data and no model.
+        if s3.enhance == crate::stage3::Stage3Enhancer::Diffusion {
+            stages.push(Box::new(crate::stage3::EnhancerDataStage {
+                spec: s3.clone(),
+                inpainter: o.inpainters[0],
+                diffusion: o.diffusion.clone(),
+                stage2: o.stage2.clone(),
+                virt: o.virt.clone(),
+                vis: o.vis.clone(),
+            }));
+            stages.push(Box::new(crate::stage3::EnhancerStage { spec: s3.clone() }));
+        }
         for &kind in &o.inpainters {
             stages.push(Box::new(crate::stage3::EnhanceStage {
                 kind,

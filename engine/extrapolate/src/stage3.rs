@@ -96,6 +96,15 @@ pub struct Stage3Spec {
     pub seed: u64,
     /// Where the enhancer runs.
     pub backend: Backend,
+    /// What enhances the virtual views ([`Stage3Enhancer`]).
+    #[serde(default)]
+    pub enhance: Stage3Enhancer,
+    /// [`Stage3Enhancer::Unsharp`]: how much of the render's detail above the blur is added.
+    #[serde(default = "default_unsharp_amount")]
+    pub unsharp_amount: f32,
+    /// [`Stage3Enhancer::Unsharp`]: the box-blur radius (applied twice: a tent).
+    #[serde(default = "default_unsharp_radius")]
+    pub unsharp_radius: usize,
     /// Whether the enhancer is checked before stage 3 trusts it ([`Stage3Gate`]).
     #[serde(default)]
     pub gate: Stage3Gate,
@@ -103,6 +112,37 @@ pub struct Stage3Spec {
     /// where none load, it scores with PSNR.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lpips: Option<PathBuf>,
+}
+
+fn default_unsharp_amount() -> f32 {
+    0.5
+}
+
+fn default_unsharp_radius() -> usize {
+    1
+}
+
+/// What stage 3 enhances the virtual views with.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Stage3Enhancer {
+    /// The diffusion enhancer trained on the scene's corrupted renders (the paper): stages
+    /// `stage3-data` and `stage3-enhancer` make it.
+    #[default]
+    Diffusion,
+    /// An unsharp mask of the render, `render + amount * (render - blur(render))` ([`unsharp`]):
+    /// no model, no training data, no noise; it sharpens what is there and invents nothing.
+    Unsharp,
+}
+
+/// An unsharp mask of an `[h, w, 3]` image: `img + amount * (img - blur(img))` with the tent
+/// blur of radius `radius` ([`crate::inpaint::blur`]), clamped to [0, 1].
+pub fn unsharp(img: &[f32], w: usize, h: usize, amount: f32, radius: usize) -> Vec<f32> {
+    let b = crate::inpaint::blur(img, w, h, 3, radius);
+    img.iter()
+        .zip(&b)
+        .map(|(&x, &y)| (x + amount * (x - y)).clamp(0.0, 1.0))
+        .collect()
 }
 
 /// Whether stage 3 first checks that its enhancer helps.
@@ -139,6 +179,9 @@ impl Default for Stage3Spec {
             lr: 3e-3,
             seed: 0,
             backend: Backend::Auto,
+            enhance: Stage3Enhancer::Diffusion,
+            unsharp_amount: default_unsharp_amount(),
+            unsharp_radius: default_unsharp_radius(),
             gate: Stage3Gate::Check,
             lpips: None,
         }
@@ -187,6 +230,18 @@ impl Stage3Spec {
             bail!(
                 "--stage3-visible-weight {}: use a value in [0, 1]",
                 self.visible_weight
+            );
+        }
+        if self.enhance == Stage3Enhancer::Unsharp
+            && !(self.unsharp_amount.is_finite()
+                && self.unsharp_amount > 0.0
+                && self.unsharp_amount <= 4.0
+                && (1..=MAX_RADIUS).contains(&self.unsharp_radius))
+        {
+            bail!(
+                "--stage3-unsharp-amount {} and --stage3-unsharp-radius {}: use an amount in (0, 4] and a radius of 1 to {MAX_RADIUS} pixels",
+                self.unsharp_amount,
+                self.unsharp_radius
             );
         }
         let e = &self.enhancer;
@@ -436,10 +491,13 @@ pub const CHECK_FILE: &str = "check.json";
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EnhancerCheck {
-    /// The enhancement's settings (a check made with other ones is made again).
+    /// The enhancement's settings (a check made with other ones is made again), with the
+    /// anchoring and smoothing that turn an enhancement into stage 3's target.
     pub t: f32,
     pub ddim_steps: usize,
     pub seed: u64,
+    pub anchor_radius: usize,
+    pub smooth_radius: usize,
     /// The triplets enhanced (their keys).
     pub triplets: Vec<String>,
     /// Mean PSNR of the renders and of their enhancements against the photos.
@@ -481,8 +539,9 @@ impl EnhancerCheck {
 }
 
 /// The triplets the check enhances: one per training view, the sources taken in turn (view
-/// `v` gets its `v mod n`-th triplet of `n`), so that every view and every kind of corruption
-/// is seen at the cost of one enhancement per view.
+/// `v` gets its `v mod n`-th triplet of `n`), which spreads the kinds of corruption over the
+/// views at the cost of one enhancement per view (each kind once when every view has the same
+/// `n` sources and there are at least `n` views).
 pub fn check_triplets(tr: &Triplets) -> Vec<usize> {
     (0..tr.photos.len())
         .filter_map(|v| {
@@ -504,17 +563,6 @@ pub fn check_enhancer(
     rep: &mut dyn Reporter,
 ) -> anyhow::Result<EnhancerCheck> {
     let path = EnhancerStage::dir(dir).join(CHECK_FILE);
-    if path.is_file() {
-        let c: EnhancerCheck = serde_json::from_str(
-            &std::fs::read_to_string(&path)
-                .with_context(|| format!("reading {}", path.display()))?,
-        )
-        .with_context(|| format!("{}: malformed", path.display()))?;
-        if (c.t, c.ddim_steps, c.seed) == (spec.t, spec.ddim_steps, spec.seed) {
-            return Ok(c);
-        }
-    }
-    let t0 = Instant::now();
     let tr = Triplets::load(&dir.root.join(DATA_STAGE))?;
     let (w, h) = (tr.width, tr.height);
     let lp = match lpips_alex(spec.lpips.as_deref()) {
@@ -533,7 +581,42 @@ pub fn check_enhancer(
             None
         }
     };
+    // A check made with these settings and the same score is reused; any other (or a file
+    // that does not read) is made again: it is only a cache.
+    if let Some(c) = std::fs::read_to_string(&path)
+        .ok()
+        .and_then(|text| serde_json::from_str::<EnhancerCheck>(&text).ok())
+    {
+        let key = |c: &EnhancerCheck| {
+            (
+                c.t,
+                c.ddim_steps,
+                c.seed,
+                c.anchor_radius,
+                c.smooth_radius,
+                c.lpips_render.is_some(),
+            )
+        };
+        let want = (
+            spec.t,
+            spec.ddim_steps,
+            spec.seed,
+            spec.anchor_radius,
+            spec.smooth_radius,
+            lp.is_some(),
+        );
+        if key(&c) == want {
+            return Ok(c);
+        }
+    }
+    let t0 = Instant::now();
     let picks = check_triplets(&tr);
+    if picks.is_empty() {
+        bail!(
+            "{}: no triplets to check the enhancer on",
+            dir.root.join(DATA_STAGE).display()
+        );
+    }
     let (mut pr, mut pe, mut lr, mut le) = (0.0, 0.0, 0.0, 0.0);
     for (n, &k) in picks.iter().enumerate() {
         let (render, mask) = &tr.renders[k];
@@ -555,11 +638,20 @@ pub fn check_enhancer(
                 device,
             )
             .with_context(|| format!("enhancing triplet {}", tr.entries[k].key))?;
+        // What stage 3 would train on.
+        let enhanced = stage3_target(
+            render,
+            &enhanced.rgb,
+            w,
+            h,
+            spec.anchor_radius,
+            spec.smooth_radius,
+        );
         pr += psnr(render, photo)?;
-        pe += psnr(&enhanced.rgb, photo)?;
+        pe += psnr(&enhanced, photo)?;
         if let Some(l) = &lp {
             lr += l.distance(render, photo, w as u32, h as u32)?;
-            le += l.distance(&enhanced.rgb, photo, w as u32, h as u32)?;
+            le += l.distance(&enhanced, photo, w as u32, h as u32)?;
         }
         progress_views(rep, n + 1, picks.len(), &t0);
     }
@@ -568,6 +660,8 @@ pub fn check_enhancer(
         t: spec.t,
         ddim_steps: spec.ddim_steps,
         seed: spec.seed,
+        anchor_radius: spec.anchor_radius,
+        smooth_radius: spec.smooth_radius,
         triplets: picks.iter().map(|&k| tr.entries[k].key.clone()).collect(),
         psnr_render: pr / n,
         psnr_enhanced: pe / n,
@@ -1042,27 +1136,56 @@ impl Stage for EnhanceStage {
         if s.l1_core > 0.0 {
             c["l1_core"] = json!(s.l1_core);
         }
-        // Recorded only when checked: runs made before the gate existed ran stage 3 always.
-        if s.gate == Stage3Gate::Check {
-            c["gate"] = json!(s.gate);
+        match s.enhance {
+            // Recorded only when checked: runs made before the gate existed ran stage 3 always.
+            Stage3Enhancer::Diffusion if s.gate == Stage3Gate::Check => {
+                c["gate"] = json!(s.gate);
+            }
+            Stage3Enhancer::Diffusion => {}
+            // The gate judges a trained enhancer; a fixed filter has none to judge.
+            Stage3Enhancer::Unsharp => {
+                c["enhance"] = json!(s.enhance);
+                c["unsharp_amount"] = json!(s.unsharp_amount);
+                c["unsharp_radius"] = json!(s.unsharp_radius);
+            }
         }
         c
     }
 
     fn inputs(&self) -> Vec<String> {
-        vec![self.stage2_name(), ENHANCER_STAGE.into()]
+        match self.spec.enhance {
+            Stage3Enhancer::Diffusion => vec![self.stage2_name(), ENHANCER_STAGE.into()],
+            Stage3Enhancer::Unsharp => vec![self.stage2_name()],
+        }
     }
 
     fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
         self.spec.validate()?;
         let out = dir.root.join(self.name());
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-        let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
-        let pipe = enhancer::load(&EnhancerStage::dir(dir), &device)?;
-        let check = match self.spec.gate {
-            Stage3Gate::Off => None,
-            Stage3Gate::Check => {
-                let c = check_enhancer(dir, &self.spec, &pipe, &device, rep)?;
+        // The diffusion enhancer and where it runs; None: the unsharp mask.
+        let model = match self.spec.enhance {
+            Stage3Enhancer::Diffusion => {
+                let (b, device) =
+                    extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
+                let pipe = enhancer::load(&EnhancerStage::dir(dir), &device)?;
+                Some((b, device, pipe))
+            }
+            Stage3Enhancer::Unsharp => None,
+        };
+        // A stage with rounds done passed its gate when it started (a skipped one writes
+        // none); it resumes without judging again.
+        let resuming = out.join(crate::pipeline::ROUND_FILE).exists();
+        let check = match (&model, self.spec.gate) {
+            (Some(_), Stage3Gate::Check) if resuming => {
+                rep.note(&format!(
+                    "{}: resuming, the enhancer check passed when it started",
+                    self.name()
+                ));
+                None
+            }
+            (Some((_, device, pipe)), Stage3Gate::Check) => {
+                let c = check_enhancer(dir, &self.spec, pipe, device, rep)?;
                 rep.note(&format!(
                     "{}: enhancer check, {}",
                     self.name(),
@@ -1070,6 +1193,7 @@ impl Stage for EnhanceStage {
                 ));
                 Some(c)
             }
+            _ => None,
         };
         if let Some(c) = check.as_ref().filter(|c| !c.helps()) {
             let why = format!(
@@ -1127,11 +1251,20 @@ impl Stage for EnhanceStage {
         )?;
         let prims = Prims::new(ctx)?;
         rep.note(&format!(
-            "{}: enhancer on {}, from t = {} in {} DDIM steps, loss weight {:.3}",
+            "{}: {}, loss weight {:.3}",
             self.name(),
-            b.name(),
-            self.spec.t,
-            self.spec.ddim_steps,
+            match &model {
+                Some((b, _, _)) => format!(
+                    "enhancer on {}, from t = {} in {} DDIM steps",
+                    b.name(),
+                    self.spec.t,
+                    self.spec.ddim_steps
+                ),
+                None => format!(
+                    "unsharp mask, amount {} radius {}",
+                    self.spec.unsharp_amount, self.spec.unsharp_radius
+                ),
+            },
             self.spec.weight()
         ));
         let weight = self.spec.weight();
@@ -1152,37 +1285,48 @@ impl Stage for EnhanceStage {
                 let te = Instant::now();
                 let (w, h) = (cam.width as usize, cam.height as usize);
                 let seed = self.spec.seed ^ 0xe7_4a9c_e000 ^ ((round as u64) << 32) ^ k as u64;
-                let mut enhanced = pipe
-                    .model
-                    .enhance_image(
+                let enhanced = match &model {
+                    Some((_, device, pipe)) => {
+                        pipe.model
+                            .enhance_image(
+                                &rgb,
+                                Some(&masks[k]),
+                                w,
+                                h,
+                                seed,
+                                &SampleSettings {
+                                    strength: f64::from(self.spec.t),
+                                    steps: self.spec.ddim_steps,
+                                    guidance: 1.0,
+                                    keep_known: false,
+                                },
+                                device,
+                            )
+                            .with_context(|| format!("enhancing virtual view {k}, round {round}"))?
+                            .rgb
+                    }
+                    None => unsharp(
                         &rgb,
-                        Some(&masks[k]),
                         w,
                         h,
-                        seed,
-                        &SampleSettings {
-                            strength: f64::from(self.spec.t),
-                            steps: self.spec.ddim_steps,
-                            guidance: 1.0,
-                            keep_known: false,
-                        },
-                        &device,
-                    )
-                    .with_context(|| format!("enhancing virtual view {k}, round {round}"))?;
+                        self.spec.unsharp_amount,
+                        self.spec.unsharp_radius,
+                    ),
+                };
                 enhance_s += te.elapsed().as_secs_f64();
-                enhanced.rgb = stage3_target(
+                let target = stage3_target(
                     &rgb,
-                    &enhanced.rgb,
+                    &enhanced,
                     w,
                     h,
                     self.spec.anchor_radius,
                     self.spec.smooth_radius,
                 );
                 detail_render += detail_energy(&rgb, w, h);
-                detail_target += detail_energy(&enhanced.rgb, w, h);
+                detail_target += detail_energy(&target, w, h);
                 change += rgb
                     .iter()
-                    .zip(&enhanced.rgb)
+                    .zip(&target)
                     .map(|(a, b)| (a - b).abs() as f64)
                     .sum::<f64>()
                     / rgb.len() as f64;
@@ -1196,14 +1340,14 @@ impl Stage for EnhanceStage {
                     &round_dir.join(format!("virtual_{k:03}.png")),
                     cam.width,
                     cam.height,
-                    &enhanced.rgb,
+                    &target,
                 )?;
                 // The enhanced colours with w(t) (times --stage3-visible-weight where seen);
                 // the depth loss on the field's own (stage-2 completed) depth keeps the
                 // geometry while the colours change.
                 views.push(View {
                     camera: cam.clone(),
-                    image: Image::opaque(cam.width, cam.height, enhanced.rgb),
+                    image: Image::opaque(cam.width, cam.height, target),
                     depth: Some(depth.iter().map(|&d| [d, 1.0]).collect()),
                     weight: Some(virtual_weights(&masks[k], weight, self.spec.visible_weight)),
                     kind: ViewKind::Virtual,
@@ -1270,9 +1414,52 @@ fn keep_stage2(from: &Path, out: &Path) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::{
-        check_triplets, detail_energy, stage3_target, virtual_weights, EnhancerCheck, TripletEntry,
-        Triplets,
+        check_triplets, detail_energy, stage3_target, unsharp, virtual_weights, EnhancerCheck,
+        Stage3Enhancer, Stage3Spec, TripletEntry, Triplets,
     };
+
+    #[test]
+    fn the_unsharp_mask_overshoots_an_edge_by_the_tent_blur() {
+        // A vertical step 0.2 | 0.8 between columns 3 and 4 of an 8x3 image. The tent of
+        // radius 1 is [1, 2, 3, 2, 1] / 9: beside the edge the blur is 0.4 (dark side) and 0.6
+        // (bright side), so amount 0.5 gives 0.1 and 0.9; two columns away it is 2.4 / 9 and
+        // 6.6 / 9, giving 1 / 6 and 5 / 6; three columns away nothing changes.
+        let (w, h) = (8, 3);
+        let img: Vec<f32> = (0..w * h * 3)
+            .map(|i| if (i / 3) % w < 4 { 0.2 } else { 0.8 })
+            .collect();
+        let out = unsharp(&img, w, h, 0.5, 1);
+        let want = [0.2, 0.2, 1.0 / 6.0, 0.1, 0.9, 5.0 / 6.0, 0.8, 0.8];
+        for (i, v) in out.iter().enumerate() {
+            let x = (i / 3) % w;
+            assert!((v - want[x]).abs() < 1e-6, "column {x}: {v}");
+        }
+        // Clamped to [0, 1]; a constant image is left as it is.
+        let strong = unsharp(&img, w, h, 4.0, 1);
+        assert!(strong.iter().all(|v| (0.0..=1.0).contains(v)));
+        assert_eq!((strong[3 * 3], strong[4 * 3]), (0.0, 1.0));
+        let flat = vec![0.37f32; w * h * 3];
+        assert!(unsharp(&flat, w, h, 2.0, 2)
+            .iter()
+            .all(|v| (v - 0.37).abs() < 1e-6));
+        // Its settings are checked only when it is chosen.
+        let spec = |amount, radius| Stage3Spec {
+            enhance: Stage3Enhancer::Unsharp,
+            unsharp_amount: amount,
+            unsharp_radius: radius,
+            ..Stage3Spec::default()
+        };
+        assert!(spec(0.5, 1).validate().is_ok());
+        for (a, r) in [(0.0, 1), (4.5, 1), (f32::NAN, 1), (0.5, 0), (0.5, 65)] {
+            let e = spec(a, r).validate().unwrap_err().to_string();
+            assert!(e.contains("--stage3-unsharp-amount"), "{e}");
+        }
+        let diffusion = Stage3Spec {
+            unsharp_amount: 0.0,
+            ..Stage3Spec::default()
+        };
+        assert!(diffusion.validate().is_ok());
+    }
 
     #[test]
     fn the_check_judges_by_lpips_and_by_psnr_without_it() {
@@ -1280,6 +1467,8 @@ mod tests {
             t: 0.3,
             ddim_steps: 10,
             seed: 0,
+            anchor_radius: 0,
+            smooth_radius: 0,
             triplets: vec!["t000".into()],
             psnr_render: 25.0,
             psnr_enhanced: 26.0,
@@ -1322,7 +1511,7 @@ mod tests {
             slot,
             source: source.into(),
         };
-        // Three views with two sources each, view 1 with none.
+        // Three views: view 0 with two triplets, view 1 with none, view 2 with three.
         let entries = vec![
             entry(0, 0, "base"),
             entry(1, 2, "base"),
