@@ -39,6 +39,14 @@ impl Reporter for Console {
                 eprintln!("{label} view {:>3}/{}  {:.1} s", p.step, p.total, p.secs);
                 return;
             }
+        } else if p.unit == Unit::ModelSteps {
+            if !self.tty {
+                eprintln!(
+                    "{label} {:>5}/{}  loss {:.5}  {:.1} s elapsed  ETA {:.0} s",
+                    p.step, p.total, p.loss, p.secs, p.eta
+                );
+                return;
+            }
         } else if !self.tty {
             eprintln!(
                 "{label} {:>5}/{}  loss {:.5}  psnr {:6.2} dB  {:.3e} samples/s  {:.1} s elapsed  ETA {:.0} s",
@@ -64,6 +72,10 @@ impl Reporter for Console {
                 p.loss, p.psnr, p.samples_per_s, p.secs, p.eta
             ),
             Unit::Views => format!("views  {:.0} s", p.secs),
+            Unit::ModelSteps => format!(
+                "steps  loss {:.5}  {:.0} s, ETA {:.0} s",
+                p.loss, p.secs, p.eta
+            ),
         });
     }
 
@@ -109,11 +121,18 @@ impl<R: Reporter> Reporter for Logged<R> {
     fn progress(&mut self, p: &Progress) {
         if p.step == p.total {
             use std::io::Write;
-            let _ = writeln!(
-                self.file,
-                "  {}/{}  loss {:.5}  psnr {:.2} dB  {:.3e} samples/s  {:.1} s",
-                p.step, p.total, p.loss, p.psnr, p.samples_per_s, p.secs
-            );
+            let _ = match p.unit {
+                Unit::ModelSteps => writeln!(
+                    self.file,
+                    "  {}/{}  loss {:.5}  {:.1} s",
+                    p.step, p.total, p.loss, p.secs
+                ),
+                _ => writeln!(
+                    self.file,
+                    "  {}/{}  loss {:.5}  psnr {:.2} dB  {:.3e} samples/s  {:.1} s",
+                    p.step, p.total, p.loss, p.psnr, p.samples_per_s, p.secs
+                ),
+            };
         }
         self.inner.progress(p);
     }
@@ -122,5 +141,41 @@ impl<R: Reporter> Reporter for Logged<R> {
         use std::io::Write;
         let _ = writeln!(self.file, "== stage {name}");
         self.inner.stage(name);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Logged;
+    use extranerf_extrapolate::driver::{Progress, Quiet, Reporter, Unit};
+
+    #[test]
+    fn the_log_gives_model_steps_no_psnr_or_pace() {
+        let path = std::env::temp_dir().join(format!("extranerf-log-{}.txt", std::process::id()));
+        let file = std::fs::File::create(&path).unwrap();
+        let mut log = Logged { inner: Quiet, file };
+        let p = |unit| Progress {
+            unit,
+            step: 4,
+            total: 4,
+            loss: 0.25,
+            psnr: 21.5,
+            samples_per_s: 1e5,
+            secs: 3.0,
+            eta: 0.0,
+        };
+        log.progress(&p(Unit::Steps));
+        log.progress(&p(Unit::ModelSteps));
+        drop(log);
+        let text = std::fs::read_to_string(&path).unwrap();
+        let _ = std::fs::remove_file(&path);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(
+            lines,
+            [
+                "  4/4  loss 0.25000  psnr 21.50 dB  1.000e5 samples/s  3.0 s",
+                "  4/4  loss 0.25000  3.0 s"
+            ]
+        );
     }
 }

@@ -34,6 +34,9 @@ pub enum Unit {
     Steps,
     /// Views rendered, mapped or inpainted (only the counts and seconds apply).
     Views,
+    /// Optimiser steps of a model without a batch PSNR or a pace in samples (the stage-3
+    /// enhancer): the loss, seconds and ETA apply.
+    ModelSteps,
 }
 
 /// A training loop's progress after a window of steps, or a stage's over its views.

@@ -1072,7 +1072,7 @@ impl Stage for EnhancerStage {
         let rec = enhancer::train_enhancer(&triplets.train_images(), e, &out, &device, &mut |p| {
             let secs = t.elapsed().as_secs_f64();
             rep.progress(&Progress {
-                unit: Unit::Steps,
+                unit: Unit::ModelSteps,
                 step: p.step as u32,
                 total: p.steps as u32,
                 loss: p.loss,
