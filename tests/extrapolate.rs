@@ -62,6 +62,35 @@ impl Reporter for Record {
     }
 }
 
+impl Record {
+    /// Every one of `want` is part of a note.
+    fn assert_notes(&self, want: &[&str]) {
+        for note in want {
+            assert!(
+                self.notes.iter().any(|n| n.contains(note)),
+                "{note}: {:?}",
+                self.notes
+            );
+        }
+    }
+}
+
+/// Runs `o` with a simulated crash inside stage3-harmonic's second round, and checks that the
+/// run in `run` kept its first.
+fn crash_in_stage3_round_two(ctx: &extranerf_gpu::Context, o: &Options, run: &Path) {
+    let crash = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let mut rec = Record {
+            panic_at: Some(2),
+            crash_in: Some("stage3-harmonic"),
+            ..Record::default()
+        };
+        let _ = extrapolate(ctx, o, &mut rec);
+    }));
+    assert!(crash.is_err(), "the simulated crash did not happen");
+    let state = std::fs::read_to_string(run.join("stage3-harmonic/round.json")).unwrap();
+    assert!(state.contains("\"rounds_done\":1"), "{state}");
+}
+
 fn scene(dir: &Path) -> SceneSpec {
     SceneSpec {
         dir: dir.to_path_buf(),
@@ -654,38 +683,22 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         .retain(|s| s.name != "stage3-harmonic" && s.name != "flythrough-stage3-harmonic");
     man.save(&c).unwrap();
     std::fs::remove_dir_all(c.join("stage3-harmonic")).unwrap();
-    let crash = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        let mut rec = Record {
-            panic_at: Some(2),
-            crash_in: Some("stage3-harmonic"),
-            ..Record::default()
-        };
-        let o = Options {
-            resume: true,
-            ..opts(&c)
-        };
-        let _ = extrapolate(ctx, &o, &mut rec);
-    }));
-    assert!(crash.is_err(), "the simulated crash did not happen");
-    let state = std::fs::read_to_string(c.join("stage3-harmonic/round.json")).unwrap();
-    assert!(state.contains("\"rounds_done\":1"), "{state}");
+    let o = Options {
+        resume: true,
+        ..opts(&c)
+    };
+    crash_in_stage3_round_two(ctx, &o, &c);
     let mut rec = Record::default();
     let o = Options {
         resume: true,
         ..opts(&c)
     };
     extrapolate(ctx, &o, &mut rec).unwrap();
-    for note in [
+    rec.assert_notes(&[
         "stage stage3-data: done, skipped",
         "stage stage3-enhancer: done, skipped",
         "stage3-harmonic: resuming after round 1",
-    ] {
-        assert!(
-            rec.notes.iter().any(|n| n.contains(note)),
-            "{note}: {:?}",
-            rec.notes
-        );
-    }
+    ]);
     let mut sum = 0.0;
     for &i in &loaded.split.test {
         let f = format!("stage3-harmonic/test_{i:03}.png");
@@ -946,30 +959,14 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
         s3.lpips = Some(extranerf_tests::shared_data().join("../models/lpips"));
         o
     };
-    let crash = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        let mut rec = Record {
-            panic_at: Some(2),
-            crash_in: Some("stage3-harmonic"),
-            ..Record::default()
-        };
-        let _ = extrapolate(ctx, &gated_opts(vec!["stage3-harmonic".into()]), &mut rec);
-    }));
-    assert!(crash.is_err(), "the simulated crash did not happen");
-    let state = std::fs::read_to_string(g.join("stage3-harmonic/round.json")).unwrap();
-    assert!(state.contains("\"rounds_done\":1"), "{state}");
+    crash_in_stage3_round_two(ctx, &gated_opts(vec!["stage3-harmonic".into()]), &g);
     std::fs::remove_file(&check_path).unwrap();
     let mut rec = Record::default();
     extrapolate(ctx, &gated_opts(Vec::new()), &mut rec).unwrap();
-    for note in [
+    rec.assert_notes(&[
         "stage3-harmonic: resuming, the enhancer check passed when it started",
         "stage3-harmonic: resuming after round 1",
-    ] {
-        assert!(
-            rec.notes.iter().any(|n| n.contains(note)),
-            "{note}: {:?}",
-            rec.notes
-        );
-    }
+    ]);
     assert!(!check_path.exists(), "a resumed stage judged again");
     assert!(g.join("stage3-harmonic/round_01").is_dir());
 

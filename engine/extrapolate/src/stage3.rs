@@ -261,6 +261,54 @@ impl Stage3Spec {
     pub fn weight(&self) -> f32 {
         (1.0 - self.t * self.t).max(0.0).sqrt()
     }
+
+    /// Stage 3's target for an `[h, w, 3]` render with its not-visible `mask`: the render
+    /// enhanced (by the diffusion `model` from t in the DDIM steps, seeded with `seed`; None:
+    /// the unsharp mask), then anchored and smoothed ([`stage3_target`]). The loop and the
+    /// gate's check both make their targets here.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn target(
+        &self,
+        model: Option<(
+            &extranerf_diffusion::pipeline::Pipeline,
+            &burn::tensor::Device,
+        )>,
+        render: &[f32],
+        mask: &[f32],
+        w: usize,
+        h: usize,
+        seed: u64,
+    ) -> anyhow::Result<Vec<f32>> {
+        let enhanced = match model {
+            Some((pipe, device)) => {
+                pipe.model
+                    .enhance_image(
+                        render,
+                        Some(mask),
+                        w,
+                        h,
+                        seed,
+                        &SampleSettings {
+                            strength: f64::from(self.t),
+                            steps: self.ddim_steps,
+                            guidance: 1.0,
+                            keep_known: false,
+                        },
+                        device,
+                    )?
+                    .rgb
+            }
+            None => unsharp(render, w, h, self.unsharp_amount, self.unsharp_radius),
+        };
+        Ok(stage3_target(
+            render,
+            &enhanced,
+            w,
+            h,
+            self.anchor_radius,
+            self.smooth_radius,
+        ))
+    }
 }
 
 /// The largest `--stage3-anchor` and `--stage3-smooth` radius (a blur wider than this is
@@ -621,32 +669,17 @@ pub fn check_enhancer(
     for (n, &k) in picks.iter().enumerate() {
         let (render, mask) = &tr.renders[k];
         let photo = &tr.photos[tr.entries[k].slot];
-        let enhanced = pipe
-            .model
-            .enhance_image(
+        // What stage 3 would train on.
+        let enhanced = spec
+            .target(
+                Some((pipe, device)),
                 render,
-                Some(mask),
+                mask,
                 w,
                 h,
                 spec.seed ^ 0xc4ec_0000 ^ k as u64,
-                &SampleSettings {
-                    strength: f64::from(spec.t),
-                    steps: spec.ddim_steps,
-                    guidance: 1.0,
-                    keep_known: false,
-                },
-                device,
             )
             .with_context(|| format!("enhancing triplet {}", tr.entries[k].key))?;
-        // What stage 3 would train on.
-        let enhanced = stage3_target(
-            render,
-            &enhanced.rgb,
-            w,
-            h,
-            spec.anchor_radius,
-            spec.smooth_radius,
-        );
         pr += psnr(render, photo)?;
         pe += psnr(&enhanced, photo)?;
         if let Some(l) = &lp {
@@ -655,7 +688,7 @@ pub fn check_enhancer(
         }
         progress_views(rep, n + 1, picks.len(), &t0);
     }
-    let n = picks.len().max(1) as f64;
+    let n = picks.len() as f64;
     let c = EnhancerCheck {
         t: spec.t,
         ddim_steps: spec.ddim_steps,
@@ -1285,43 +1318,19 @@ impl Stage for EnhanceStage {
                 let te = Instant::now();
                 let (w, h) = (cam.width as usize, cam.height as usize);
                 let seed = self.spec.seed ^ 0xe7_4a9c_e000 ^ ((round as u64) << 32) ^ k as u64;
-                let enhanced = match &model {
-                    Some((_, device, pipe)) => {
-                        pipe.model
-                            .enhance_image(
-                                &rgb,
-                                Some(&masks[k]),
-                                w,
-                                h,
-                                seed,
-                                &SampleSettings {
-                                    strength: f64::from(self.spec.t),
-                                    steps: self.spec.ddim_steps,
-                                    guidance: 1.0,
-                                    keep_known: false,
-                                },
-                                device,
-                            )
-                            .with_context(|| format!("enhancing virtual view {k}, round {round}"))?
-                            .rgb
-                    }
-                    None => unsharp(
+                let target = self
+                    .spec
+                    .target(
+                        model.as_ref().map(|(_, device, pipe)| (pipe, device)),
                         &rgb,
+                        &masks[k],
                         w,
                         h,
-                        self.spec.unsharp_amount,
-                        self.spec.unsharp_radius,
-                    ),
-                };
+                        seed,
+                    )
+                    .with_context(|| format!("enhancing virtual view {k}, round {round}"))?;
+                // The anchoring and smoothing are counted too (a blur or two: milliseconds).
                 enhance_s += te.elapsed().as_secs_f64();
-                let target = stage3_target(
-                    &rgb,
-                    &enhanced,
-                    w,
-                    h,
-                    self.spec.anchor_radius,
-                    self.spec.smooth_radius,
-                );
                 detail_render += detail_energy(&rgb, w, h);
                 detail_target += detail_energy(&target, w, h);
                 change += rgb
