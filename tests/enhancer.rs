@@ -1,6 +1,7 @@
-//! The stage-3 enhancer on a task with a known answer (issue 18), alone in its test binary:
-//! burn's random state is process-global, so a test sharing the process would change the
-//! enhancer's initialisation from run to run. Alone, the run is the same every time.
+//! The stage-3 enhancer on a task with a known answer (issue 18), alone in a process of its own
+//! (rusty-fork runs it in a child of the test binary): burn's random state is process-global, so
+//! a test sharing the process would change the enhancer's initialisation from run to run. Alone,
+//! the run is the same every time.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
@@ -10,6 +11,7 @@ use extranerf_diffusion::pipeline::Pipeline;
 use extranerf_diffusion::scheduler::SchedulerConfig;
 use extranerf_diffusion::train::TrainImage;
 use extranerf_tests::{scratch_dir, tiny_pixel_unet_config};
+use rusty_fork::rusty_fork_test;
 
 fn cpu() -> Device {
     Device::flex()
@@ -59,8 +61,7 @@ fn box_blur(img: &[f32], s: usize, r: usize) -> Vec<f32> {
 /// their sharp originals in LPIPS than the blurred input is, by at least 15%, with either
 /// output (v, and the residual on the render); the folder
 /// it writes reloads as an enhancer, and an inpainting model is refused as one.
-#[test]
-fn an_enhancer_learns_to_sharpen_blurred_textures() {
+fn an_enhancer_learns_to_sharpen_blurred_textures_in_this_process() {
     use extranerf_diffusion::enhancer::{self, EnhancerOutput, EnhancerSpec};
     use extranerf_diffusion::train::Guide;
     let s = 48;
@@ -180,4 +181,13 @@ fn an_enhancer_learns_to_sharpen_blurred_textures() {
         let _ = std::fs::remove_dir_all(&out);
     }
     let _ = std::fs::remove_dir_all(&inpainter);
+}
+
+rusty_fork_test! {
+    /// In a process of its own (rusty-fork): burn's random generator is process-global, so a test
+    /// drawing from it at the same time would change the enhancer's initialisation.
+    #[test]
+    fn an_enhancer_learns_to_sharpen_blurred_textures() {
+        an_enhancer_learns_to_sharpen_blurred_textures_in_this_process();
+    }
 }

@@ -30,6 +30,7 @@ use extranerf_nerf::run::{load_checkpoint, RunConfig, SceneSpec};
 use extranerf_nerf::trainer::TrainConfig;
 use extranerf_nerf::views::ViewKind;
 use extranerf_tests::{assert_no_validation_messages, engine, scratch_dir};
+use rusty_fork::rusty_fork_test;
 
 /// Keeps the notes; panics at the `panic_at`-th training progress of the stage named
 /// `crash_in` (default stage 2's: a crash).
@@ -466,8 +467,7 @@ fn stage3_spec() -> Stage3Spec {
 /// written and reloaded, the enhancer trained on them, the stage-3 loop run, resumed after a
 /// crash inside it with the data and the enhancer reused, the visible region kept close to
 /// stage 2's, and `eval`'s rows.
-#[test]
-fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
+fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     let e = engine();
     let ctx = &e.ctx;
     let dir = scratch_dir("extrapolate_stage3");
@@ -1025,4 +1025,13 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
 
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+rusty_fork_test! {
+    /// In a process of its own (rusty-fork): stage 3 trains an enhancer from burn's process-global
+    /// random generator, which a test drawing from it at the same time would change.
+    #[test]
+    fn stage_three_enhances_resumes_and_keeps_the_visible_region() {
+        stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process();
+    }
 }

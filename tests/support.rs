@@ -144,9 +144,19 @@ pub fn inception_weights() -> PathBuf {
     f
 }
 
-/// A fresh empty folder under the system temp dir for one test.
+/// A fresh empty folder under the system temp dir for one test, named by the process, the
+/// calling test file (the modules of one test binary share a process) and `name`.
+#[track_caller]
 pub fn scratch_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("extranerf-test-{}-{name}", std::process::id()));
+    let caller = std::path::Path::new(std::panic::Location::caller().file());
+    let module = caller
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("tests");
+    let d = std::env::temp_dir().join(format!(
+        "extranerf-test-{}-{module}-{name}",
+        std::process::id()
+    ));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap_or_else(|e| panic!("creating {}: {e}", d.display()));
     d
@@ -154,6 +164,7 @@ pub fn scratch_dir(name: &str) -> PathBuf {
 
 /// The training views (extrapolation split, full resolution) of the procedural demo scene at
 /// 32x24, written into a fresh scratch folder `name`, for `model`'s ray space.
+#[track_caller]
 pub fn demo_training_views(
     name: &str,
     model: &extranerf_nerf::model::ModelConfig,

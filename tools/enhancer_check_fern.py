@@ -62,7 +62,7 @@ def photos(path):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run")
-    ap.add_argument("--bin", default=os.environ.get("EXTRANERF_BIN", "target/debug/extranerf"))
+    ap.add_argument("--bin", default=os.environ.get("EXTRANERF_BIN", "target/release/extranerf"))
     ap.add_argument("--triplets", default="t000,t012")
     ap.add_argument("--tests", default="0,9")
     ap.add_argument("--stage2", default="harmonic")
