@@ -2,8 +2,9 @@
 //! runtime adopts it, engine kernels read and write burn's tensors in place, and the diffusion
 //! models run there and match burn's CPU backend and diffusers.
 //!
-//! One test binary with one shared context and fixed shapes: each lavapipe process pays burn's
-//! shader compilation once per shape set. The tests take a lock: burn and the engine submit to
+//! One context shared by this module's tests (its own, shared with wgpu; the other modules use
+//! `extranerf_tests::engine`) and fixed shapes: the test process pays burn's shader compilation
+//! once per shape set. The tests take a lock: burn and the engine submit to
 //! the same queue and must take turns.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message

@@ -4,7 +4,9 @@
 //! is process-global: enhancer.rs, extrapolate.rs's stage 3) run in a child process of this
 //! binary (rusty-fork) while the others go on.
 //!
-//! Run one module with a filter: `cargo test --release -p extranerf-tests --test main field::`.
+//! Run one module with a filter: `cargo test --release --workspace --test main field::`
+//! (`--workspace`, so that the dependencies keep the features of the full build and are not
+//! compiled again).
 
 mod data;
 mod diffusion;

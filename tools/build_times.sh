@@ -12,7 +12,10 @@
 # tests the cooperative-matrix lavapipe: eval "$(tools/lavapipe_coop.sh)" first).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-out="$(realpath -m "${1:?usage: tools/build_times.sh OUT [REV] [--ci]}")"
+case "${1:-}" in
+    ""|-*) echo "usage: tools/build_times.sh OUT [REV] [--ci] [--keep]" >&2; exit 2 ;;
+esac
+out="$(realpath -m "$1")"
 rev="HEAD"
 ci=0
 keep=0
@@ -77,7 +80,6 @@ step one_line_check "$c" tools/check.sh
 if [ "$ci" = 1 ]; then
     git clone -q "$repo" "$work/ci"
     git -C "$work/ci" checkout -q "$commit"
-    ln -sfn "$(realpath ../shared)" "$work/shared"
     step ci_cold "$work/ci" env CI=true EXTRANERF_CI_TARGET="$work/ci-target" bash .ci/run
 fi
 cat "$tsv"

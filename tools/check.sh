@@ -39,33 +39,44 @@ while [ $# -gt 0 ]; do
     esac
 done
 
-main_modules=" gpu prims field render march optim train stability split data fuzz metrics mvs visibility diffusion diffusion_models enhancer extrapolate "
+# The modules of the test binary `main`, as tests/main.rs declares them.
+main_modules=" $(sed -n 's/^mod \([a-z0-9_]*\);$/\1/p' tests/main.rs | tr '\n' ' ')"
 own_binaries=" cli "
 
-# Changed path -> integration targets that test it directly.
+# Changed path -> integration targets that test it directly (first match wins).
 targets_of() {
     case "$1" in
         tests/support.rs|tests/main.rs|tests/Cargo.toml) echo "gpu prims optim" ;;
         tests/*.rs) basename "$1" .rs ;;
         tests/fixtures/diffusers_tiny/*) echo "diffusion_models diffusion" ;;
         tests/fixtures/inception*) echo "metrics" ;;
-        bin/tests/*|bin/*) echo "cli" ;;
+        bin/*) echo "cli" ;;
         engine/gpu/*) echo "gpu prims" ;;
         engine/prims/*|kernels/wgsl/prims/*) echo "prims" ;;
-        kernels/wgsl/common/*|kernels/build.rs|kernels/src/*) echo "prims field render march" ;;
+        kernels/wgsl/common/*|kernels/build.rs|kernels/src/*|kernels/Cargo.toml)
+            echo "prims field render march train" ;;
         kernels/wgsl/field/*|engine/nerf/src/field/*) echo "field" ;;
-        kernels/wgsl/render/*|engine/nerf/src/render/*|engine/nerf/src/renderer.rs) echo "render march" ;;
+        kernels/wgsl/render/visibility.wgsl|engine/nerf/src/render/visibility.rs) echo "visibility" ;;
+        kernels/wgsl/render/train_step*|engine/nerf/src/render/train_step.rs|engine/nerf/src/trainer.rs)
+            echo "train" ;;
+        kernels/wgsl/render/march*|engine/nerf/src/render/march.rs|engine/nerf/src/renderer.rs)
+            echo "march render" ;;
+        kernels/wgsl/render/occupancy.wgsl|engine/nerf/src/render/occupancy.rs) echo "render march train" ;;
+        kernels/wgsl/render/*|engine/nerf/src/render/*) echo "render train" ;;
         kernels/wgsl/optim/*|engine/nerf/src/optim.rs) echo "optim" ;;
-        kernels/wgsl/depth/*|engine/nerf/src/mvs.rs|engine/nerf/src/depth_completion.rs) echo "mvs" ;;
+        kernels/wgsl/depth/mvs.wgsl|engine/nerf/src/mvs.rs) echo "mvs" ;;
+        kernels/wgsl/depth/*|engine/nerf/src/depth_completion.rs) echo "render" ;;
         engine/nerf/src/data/*|engine/nerf/src/safetensors.rs|engine/nerf/src/cameras.rs) echo "data fuzz" ;;
         engine/nerf/src/metrics/*) echo "metrics" ;;
         engine/nerf/src/reference.rs) echo "field render" ;;
         engine/nerf/src/*) echo "train stability" ;;
         engine/diffusion/src/device.rs) echo "diffusion" ;;
+        engine/diffusion/src/enhancer.rs) echo "enhancer diffusion_models" ;;
         engine/diffusion/*) echo "diffusion_models" ;;
         engine/extrapolate/src/visibility.rs) echo "visibility" ;;
         engine/extrapolate/src/inception.rs|engine/extrapolate/src/eval.rs) echo "metrics" ;;
         engine/extrapolate/src/stage3.rs) echo "extrapolate enhancer" ;;
+        engine/extrapolate/src/inpaint/*) echo "extrapolate diffusion_models" ;;
         engine/extrapolate/*) echo "extrapolate" ;;
         Cargo.toml|Cargo.lock|.cargo/*) echo "gpu prims optim" ;;
         *) ;;
@@ -87,17 +98,17 @@ package_of() {
 
 packages=()
 if [ ${#targets[@]} -eq 0 ]; then
-    changed="$( { git diff --name-only HEAD; git ls-files --others --exclude-standard;
-                  if [ -n "$since" ]; then git diff --name-only "$since" HEAD; fi; } | sort -u)"
-    for f in $changed; do
+    while IFS= read -r f; do
+        [ -n "$f" ] || continue
         # shellcheck disable=SC2207
         targets+=($(targets_of "$f"))
         p="$(package_of "$f")"
-        [ -n "$p" ] && packages+=("$p")
-    done
+        if [ -n "$p" ]; then packages+=("$p"); fi
+    done < <({ git diff --name-only HEAD; git ls-files --others --exclude-standard;
+               if [ -n "$since" ]; then git diff --name-only "$since" HEAD; fi; } | sort -u)
     if [ ${#targets[@]} -eq 0 ] && [ ${#packages[@]} -eq 0 ]; then
         targets=(gpu prims optim)
-        packages=(all)
+        packages=(extranerf-prims extranerf-nerf extranerf-diffusion extranerf-extrapolate extranerf)
     fi
 fi
 # shellcheck disable=SC2207
@@ -132,22 +143,27 @@ fi
 
 export EXTRANERF_VALIDATION="${EXTRANERF_VALIDATION:-required}"
 if [ ${#packages[@]} -gt 0 ]; then
-    if [ "${packages[0]}" = all ]; then
-        step "unit tests of every crate"
-        cargo test --release --workspace --lib --bins
-    else
-        args=()
-        for p in "${packages[@]}"; do args+=(-p "$p"); done
-        step "unit tests of ${packages[*]}"
-        cargo test --release "${args[@]}" --lib --bins
-    fi
+    # The binary's package is always selected: cargo unifies features over the packages a
+    # command selects, and without it the engine crates would build without the features the
+    # release binary gives them (clap, wgpu), a second time.
+    args=(-p extranerf --bins)
+    for p in "${packages[@]}"; do
+        if [ "$p" != extranerf ]; then args+=(-p "$p"); fi
+    done
+    # --lib only with a library package selected (the binary's has none).
+    if [ ${#args[@]} -gt 2 ]; then args+=(--lib); fi
+    step "unit tests of ${packages[*]} (and the binary's)"
+    cargo test --release "${args[@]}"
 fi
 if [ ${#filters[@]} -gt 0 ]; then
-    step "cargo test --release -p extranerf-tests --test main -- ${filters[*]}"
-    cargo test --release -p extranerf-tests --test main -- "${filters[@]}"
+    # --workspace, not -p extranerf-tests: the features of the shared dependencies are then those
+    # of the full build (with the test crate alone, portable-atomic loses its default features
+    # and burn, wgpu and cubecl would compile again).
+    step "cargo test --release --workspace --test main -- ${filters[*]}"
+    cargo test --release --workspace --test main -- "${filters[@]}"
 fi
 for b in "${binaries[@]}"; do
-    step "cargo test --release -p extranerf --test $b"
-    cargo test --release -p extranerf --test "$b"
+    step "cargo test --release --workspace --test $b"
+    cargo test --release --workspace --test "$b"
 done
 echo "check: passed in $(( $(date +%s) - start )) s" >&2

@@ -8,6 +8,6 @@ cd "$(dirname "$0")/.."
 cases="${1:-5000}"
 mkdir -p results
 out="results/fuzz_${cases}.txt"
-EXTRANERF_FUZZ_RANDOM=1 EXTRANERF_FUZZ_CASES="$cases" cargo test --release -p extranerf-tests --test main fuzz:: -- --nocapture --test-threads 1 2>&1 \
+EXTRANERF_FUZZ_RANDOM=1 EXTRANERF_FUZZ_CASES="$cases" cargo test --release --workspace --test main fuzz:: -- --nocapture --test-threads 1 2>&1 \
     | tee /dev/stderr | grep -oE 'fuzz [^:]+: [0-9]+ inputs.*|test result.*' > "$out"
 echo "wrote $out" >&2
