@@ -3,9 +3,9 @@
 # (default HEAD) with a cold target folder runs README.md's main job, then the test command
 # (its build and its run timed apart), then the same again warm, then a one-line change in
 # engine/nerf followed by the release rebuild and tools/check.sh. With --ci it then runs .ci/run
-# from another clean clone with a cold target folder of its own. Writes OUT/times.tsv (step,
-# seconds, exit status) and one log per step. Run it alone: the machine's 2 cores are the
-# measurement.
+# from another clean clone with a cold target folder of its own, then again with it warm.
+# Writes OUT/times.tsv (step, seconds, exit status) and one log per step. Run it alone: the
+# machine's 2 cores are the measurement.
 # Usage: tools/build_times.sh OUT [REV] [--ci] [--keep]
 #   --keep  leave the clones and their target folders in /tmp (their path is printed)
 # Needs what .ci/run installs (lavapipe, the validation layer, EXTRANERF_INCEPTION, and for the
@@ -67,7 +67,7 @@ unset CARGO_TARGET_DIR
 step cold_main_job "$c" cargo run --release -p extranerf -- demo
 step cold_test_build "$c" cargo test --release --workspace --no-run
 step test_run "$c" cargo test --release --workspace
-du -sb "$c/target" | awk '{printf "target_bytes\t%d\t0\n", $1}' >> "$tsv"
+du -sm "$c/target" | awk '{print "target_mib\t" $1 "\t0"}' >> "$tsv"
 step warm_main_job "$c" cargo run --release -p extranerf -- demo
 step warm_test_build "$c" cargo test --release --workspace --no-run
 # The quick check's own first builds (clippy's check units are not the release build's), so
@@ -81,5 +81,6 @@ if [ "$ci" = 1 ]; then
     git clone -q "$repo" "$work/ci"
     git -C "$work/ci" checkout -q "$commit"
     step ci_cold "$work/ci" env CI=true EXTRANERF_CI_TARGET="$work/ci-target" bash .ci/run
+    step ci_warm "$work/ci" env CI=true EXTRANERF_CI_TARGET="$work/ci-target" bash .ci/run
 fi
 cat "$tsv"
