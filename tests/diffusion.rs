@@ -4,8 +4,8 @@
 //!
 //! One context shared by this module's tests (its own, shared with wgpu; the other modules use
 //! `extranerf_tests::engine`) and fixed shapes: the test process pays burn's shader compilation
-//! once per shape set. The tests take a lock: burn and the engine submit to
-//! the same queue and must take turns.
+//! once per shape set. The tests take a lock: burn and the engine submit to the same queue and
+//! must take turns.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
