@@ -724,3 +724,109 @@ fn bad_split_files_give_errors_naming_the_file() {
     assert!(e.contains("fern") && e.contains("split files"), "{e}");
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// On fern and synth2 (forward-facing, NDC) auto-config's grid box holds every sample of every
+/// pixel of every camera, and of the virtual views `extrapolate` makes by default (an 8-view
+/// spiral 1.5 times beyond the rig), and the samples span the scene's depth bounds. NDC's
+/// unit cube, the box before, misses part of most views; t 0 to 1, the range before, put
+/// about 13 of 32 fern samples outside the bounds.
+#[test]
+fn the_grid_box_holds_every_camera_and_samples_span_the_bounds() {
+    use extranerf_nerf::autoconfig::{auto_model_covering, scene_depth_range, NdcFit};
+    use extranerf_nerf::cameras::{virtual_cameras, Trajectory};
+    use extranerf_nerf::reference::ndc_ray;
+    for (name, dir) in [("fern", fern()), ("synth2", shared_data().join("synth2"))] {
+        let scene = load_llff(
+            &dir,
+            &LlffOptions {
+                factor: 8,
+                ..LlffOptions::default()
+            },
+        )
+        .unwrap();
+        assert!(scene.forward_facing, "{name}");
+        let train: Vec<usize> = (0..scene.cameras.len()).step_by(2).collect();
+        let train_cams: Vec<_> = train.iter().map(|&i| scene.cameras[i].clone()).collect();
+        let virt = virtual_cameras(&train_cams, Trajectory::Spiral, 8, 1.5).unwrap();
+        let m = auto_model_covering(&scene, &train, &virt, NdcFit::default()).model;
+        m.validate().unwrap();
+        let centre = DVec3::from(m.center.map(f64::from));
+        let half = m.radius as f64;
+        let (t0, t1) = (m.near as f64, m.far as f64);
+        assert!(scene_depth_range(&scene.cameras).is_some(), "{name}");
+        // NDC t of world z (near plane z = -1): nearer than the plane, 0 (the ray starts
+        // there); at or behind z = 0, 1 (infinity).
+        let t_near = |z: f64| if z <= -1.0 { 1.0 + 1.0 / z } else { 0.0 };
+        let t_far = |z: f64| {
+            if z < 0.0 {
+                (1.0 + 1.0 / z).max(0.0)
+            } else {
+                1.0
+            }
+        };
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        let (mut outside_unit, mut pixels) = (0u64, 0u64);
+        for (k, c) in scene.cameras.iter().chain(&virt).enumerate() {
+            let real = k < scene.cameras.len();
+            for py in 0..=c.height {
+                for px in 0..=c.width {
+                    let (o, d) = c.ray(px as f64, py as f64);
+                    let (no, nd) = ndc_ray(c, o.to_array(), d.to_array(), 1.0);
+                    let mut out_unit = false;
+                    for s in [t0, t1] {
+                        let p = DVec3::from(no) + DVec3::from(nd) * s;
+                        let off = (p - centre).abs().max_element();
+                        assert!(off <= half, "{name} camera {k} ({px}, {py}) t {s}: {p}");
+                        out_unit |= p.abs().max_element() > 1.0;
+                    }
+                    if real {
+                        let (near, far) = c.bounds.unwrap();
+                        lo = lo.min(t_near((o + d * 0.9 * near).z));
+                        hi = hi.max(t_far((o + d * far).z));
+                        outside_unit += u64::from(out_unit);
+                        pixels += 1;
+                    }
+                }
+            }
+        }
+        // The sampled range is that of the cameras' bounds (0.9 x near to far, each camera's
+        // own) in the NDC frame's depth, no wider.
+        assert!(
+            (t0 - lo).abs() < 1e-5 && (t1 - hi).abs() < 1e-5,
+            "{name}: {t0}..{t1} vs {lo}..{hi}"
+        );
+        assert!(t1 < 0.95, "{name}: {t0}..{t1}");
+        if name == "fern" {
+            assert!(t0 > 0.05, "{name}: {t0}..{t1}");
+        }
+        // NDC's unit cube missed samples of some pixels; the box is larger, with as many cells
+        // per unit as the unit cube had per image pixel.
+        assert!(
+            outside_unit > pixels / 50,
+            "{name}: {outside_unit} of {pixels}"
+        );
+        assert!(half > 1.0, "{name}: {half}");
+        let widest = scene
+            .cameras
+            .iter()
+            .map(|c| c.width.max(c.height))
+            .max()
+            .unwrap();
+        let cells_per_unit = m.max_res as f64 / (2.0 * half);
+        let want = widest.next_power_of_two() as f64 / 2.0;
+        assert!(
+            (cells_per_unit / want - 1.0).abs() < 0.01,
+            "{name}: {cells_per_unit} vs {want}"
+        );
+        if name == "fern" {
+            // Before: strata over t 0..1, of which the bounds hold about 77%.
+            let inside = t1 - t0;
+            assert!((0.7..0.85).contains(&inside), "{inside}");
+            eprintln!(
+                "{name}: t {t0:.3}..{t1:.3} (32 strata over 0..1 put {:.1} outside), box half side {half:.3}, {:.1}% of pixels reach outside the unit cube",
+                32.0 * (1.0 - inside),
+                100.0 * outside_unit as f64 / pixels as f64
+            );
+        }
+    }
+}

@@ -485,70 +485,81 @@ fn extremes_give_finite_bounded_maps() {
     assert_no_validation_messages(ctx);
 }
 
-/// A random NDC field (the fused march's test model) against the reference.
+/// A random NDC field (the fused march's test model) against the reference: over NDC's unit
+/// cube sampled from t 0 to 1, and as auto-config fits a scene, a shifted box of half side 1.3
+/// sampled from t 0.15 to 0.85 (the segments toward the cameras then end where t = 0.15).
 #[test]
 fn trained_field_path_matches_the_reference_in_ndc() {
     let ctx = &engine().ctx;
-    let cfg_m = ModelConfig {
-        levels: 4,
-        features: 2,
-        log2_table: 9,
-        min_res: 4,
-        max_res: 48,
-        density_width: 16,
-        density_layers: 1,
-        geo_dims: 8,
-        color_width: 16,
-        color_layers: 2,
-        ..ModelConfig::default()
-    };
-    let mut rng = Rng::new(3);
-    let mut p = init_params(&cfg_m, 3);
-    let lay = ParamLayout::new(&cfg_m);
-    for v in &mut p[lay.table.0..lay.table.0 + lay.table.1] {
-        *v = rng.uniform(-2.0, 2.0);
+    for (near, far, center, radius) in [
+        (0.0f32, 1.0f32, [0.0f32; 3], 1.0f32),
+        (0.15, 0.85, [0.05, -0.02, -0.06], 1.3),
+    ] {
+        let cfg_m = ModelConfig {
+            levels: 4,
+            features: 2,
+            log2_table: 9,
+            min_res: 4,
+            max_res: 48,
+            density_width: 16,
+            density_layers: 1,
+            geo_dims: 8,
+            color_width: 16,
+            color_layers: 2,
+            near,
+            far,
+            center,
+            radius,
+            ..ModelConfig::default()
+        };
+        let mut rng = Rng::new(3);
+        let mut p = init_params(&cfg_m, 3);
+        let lay = ParamLayout::new(&cfg_m);
+        for v in &mut p[lay.table.0..lay.table.0 + lay.table.1] {
+            *v = rng.uniform(-2.0, 2.0);
+        }
+        let nerf = Nerf::new(ctx, cfg_m.clone(), &p, [0.0; 3]).unwrap();
+        let train: Vec<Camera> = [-0.2, 0.0, 0.25]
+            .iter()
+            .map(|&x| camera([x, 0.05, 0.0], 0.0, 12, 9, 10.0))
+            .collect();
+        let cam = camera([0.35, -0.05, 0.1], 0.12, 12, 9, 10.0);
+        let c = cfg(24, 16, 2);
+        let d = Density::Field {
+            field: nerf.field(),
+            params: nerf.field().layout().sections(nerf.params()).unwrap(),
+            occupancy: None,
+        };
+        let got = vis_map(&d, &cam, &train, 0b111, &c);
+        let density = |x: [f64; 3]| {
+            let pos = [x[0] as f32, x[1] as f32, x[2] as f32];
+            field_forward(&cfg_m, &p, &pos, &[[0.0, 0.0, -1.0]], 1)[0].0
+        };
+        let want = check(
+            &got,
+            &density,
+            &cam,
+            &train,
+            &setup(true, near, far, &c, 0b111),
+            2e-3,
+        );
+        let partial = want.iter().filter(|w| w[0] > 0.05 && w[0] < w[1] - 0.05);
+        assert!(
+            partial.count() > 5,
+            "near {near}: the field should be partly visible: {want:?}"
+        );
+        // The same through transmittance volumes (each camera's own NDC rays).
+        check_volume(
+            &d,
+            &density,
+            &cam,
+            &train,
+            &setup(true, near, far, &c, 0b111),
+            &c,
+            12,
+            24,
+        );
     }
-    let nerf = Nerf::new(ctx, cfg_m.clone(), &p, [0.0; 3]).unwrap();
-    let train: Vec<Camera> = [-0.2, 0.0, 0.25]
-        .iter()
-        .map(|&x| camera([x, 0.05, 0.0], 0.0, 12, 9, 10.0))
-        .collect();
-    let cam = camera([0.35, -0.05, 0.1], 0.12, 12, 9, 10.0);
-    let c = cfg(24, 16, 2);
-    let d = Density::Field {
-        field: nerf.field(),
-        params: nerf.field().layout().sections(nerf.params()).unwrap(),
-        occupancy: None,
-    };
-    let got = vis_map(&d, &cam, &train, 0b111, &c);
-    let density = |x: [f64; 3]| {
-        let pos = [x[0] as f32, x[1] as f32, x[2] as f32];
-        field_forward(&cfg_m, &p, &pos, &[[0.0, 0.0, -1.0]], 1)[0].0
-    };
-    let want = check(
-        &got,
-        &density,
-        &cam,
-        &train,
-        &setup(true, 0.0, 1.0, &c, 0b111),
-        2e-3,
-    );
-    let partial = want.iter().filter(|w| w[0] > 0.05 && w[0] < w[1] - 0.05);
-    assert!(
-        partial.count() > 5,
-        "the field should be partly visible: {want:?}"
-    );
-    // The same through transmittance volumes (each camera's own NDC rays).
-    check_volume(
-        &d,
-        &density,
-        &cam,
-        &train,
-        &setup(true, 0.0, 1.0, &c, 0b111),
-        &c,
-        12,
-        24,
-    );
     assert_no_validation_messages(ctx);
 }
 

@@ -3,7 +3,13 @@
 into results/curves/SCENE.svg (held-out PSNR and LPIPS-alex against training seconds) and
 prints a Markdown table of each curve's last point. Standard library only.
 
-Usage: tools/plot_curves.py SCENE [NAME ...]   (default: every curve of the scene)
+Usage: tools/plot_curves.py SCENE [NAME ...] [--x seconds|steps|samples] [--out STEM]
+  NAME: a curve of the scene (default: every one), or the path of a .jsonl with its
+        .config.json beside it (e.g. ../shared/baselines/fern17_c85d100_steps6000.jsonl).
+  --x:  the horizontal axis: training seconds (default), steps, or samples processed
+        (steps x rays x samples per ray, from the run's config: equal compute whatever the
+        machine's speed).
+  --out: write results/curves/STEM.svg instead of SCENE.svg.
 """
 import json
 import pathlib
@@ -20,8 +26,20 @@ def load(path):
     return rows
 
 
-def panel(curves, key, x0, y0, w, h, label, lower_better):
-    pts = [(r["train_seconds"], r[key]) for _, rows in curves for r in rows
+X_LABELS = {"seconds": "training seconds", "steps": "steps",
+            "samples": "samples processed (millions)"}
+
+
+def x_of(r, axis):
+    if axis == "seconds":
+        return r["train_seconds"]
+    if axis == "steps":
+        return r["step"]
+    return r["step"] * r["_per_step"] / 1e6
+
+
+def panel(curves, key, x0, y0, w, h, label, lower_better, axis="seconds"):
+    pts = [(x_of(r, axis), r[key]) for _, rows in curves for r in rows
            if r.get(key) is not None]
     if not pts:
         return ""
@@ -37,17 +55,17 @@ def panel(curves, key, x0, y0, w, h, label, lower_better):
            f'<text x="{x0 + w / 2}" y="{y0 + 14}" text-anchor="middle" font-size="13">{label}'
            f' ({"lower" if lower_better else "higher"} is better)</text>',
            f'<text x="{x0 + w / 2}" y="{y0 + h - 4}" text-anchor="middle" font-size="11">'
-           'training seconds</text>']
+           f'{X_LABELS[axis]}</text>']
     for i in range(5):
         y = ymin + (ymax - ymin) * i / 4
         out.append(f'<text x="{x0 + 46}" y="{sy(y) + 4:.1f}" text-anchor="end" '
                    f'font-size="10">{y:.3g}</text>')
         x = xmax * i / 4
         out.append(f'<text x="{sx(x):.1f}" y="{y0 + h - 16}" text-anchor="middle" '
-                   f'font-size="10">{x:.0f}</text>')
+                   f'font-size="10">{x:.4g}</text>')
     for ci, (name, rows) in enumerate(curves):
         c = COLOURS[ci % len(COLOURS)]
-        p = [(sx(r["train_seconds"]), sy(r[key])) for r in rows if r.get(key) is not None]
+        p = [(sx(x_of(r, axis)), sy(r[key])) for r in rows if r.get(key) is not None]
         out.append('<polyline fill="none" stroke="%s" stroke-width="1.5" points="%s"/>'
                    % (c, " ".join(f"{x:.1f},{y:.1f}" for x, y in p)))
         for x, y in p:
@@ -55,15 +73,48 @@ def panel(curves, key, x0, y0, w, h, label, lower_better):
     return "\n".join(out)
 
 
+def curve(root, scene, name):
+    """(label, rows) of a curve named in the scene's folder or by a .jsonl path; each row gets
+    `_per_step`, the samples of one step, from the run's config."""
+    path = pathlib.Path(name)
+    if not name.endswith(".jsonl"):
+        path = root / scene / f"{name}.jsonl"
+    rows = load(path)
+    cfg_path = path.with_name(path.name[:-len(".jsonl")] + ".config.json")
+    per_step = None
+    if cfg_path.exists():
+        t = json.loads(cfg_path.read_text())["train"]
+        per_step = t["rays"] * t["samples"]
+    for r in rows:
+        r["_per_step"] = per_step
+    return path.name[:-len(".jsonl")], rows
+
+
 def main():
-    if len(sys.argv) < 2:
+    args = sys.argv[1:]
+    axis, stem = "seconds", None
+    for flag in ("--x", "--out"):
+        if flag in args:
+            i = args.index(flag)
+            if i + 1 >= len(args):
+                raise SystemExit(f"{flag} needs a value")
+            if flag == "--x":
+                axis = args[i + 1]
+            else:
+                stem = args[i + 1]
+            del args[i:i + 2]
+    if not args or axis not in X_LABELS:
         raise SystemExit(__doc__)
     root = pathlib.Path(__file__).resolve().parent.parent / "results" / "curves"
-    scene = sys.argv[1]
-    names = sys.argv[2:] or sorted(p.stem for p in (root / scene).glob("*.jsonl"))
+    scene = args[0]
+    names = args[1:] or sorted(p.stem for p in (root / scene).glob("*.jsonl"))
     if not names:
         raise SystemExit(f"no curves in {root / scene}")
-    curves = [(n, load(root / scene / f"{n}.jsonl")) for n in names]
+    curves = [curve(root, scene, n) for n in names]
+    if axis == "samples":
+        for n, rows in curves:
+            if rows[0]["_per_step"] is None:
+                raise SystemExit(f"{n}: no .config.json beside the curve to count samples")
     w, h = 520, 330
     legend = "\n".join(
         f'<rect x="{20 + 200 * (i % 5)}" y="{h + 12 + 18 * (i // 5)}" width="12" height="12" '
@@ -73,10 +124,13 @@ def main():
     rows = (len(curves) + 4) // 5
     svg = (f'<svg xmlns="http://www.w3.org/2000/svg" width="{2 * w}" height="{h + 20 + 18 * rows}" '
            'font-family="sans-serif"><rect width="100%" height="100%" fill="white"/>\n'
-           + panel(curves, "test_psnr", 0, 0, w, h, f"{scene}: held-out PSNR (dB)", False) + "\n"
-           + panel(curves, "test_lpips_alex", w, 0, w, h, f"{scene}: held-out LPIPS-alex", True)
+           + panel(curves, "test_psnr", 0, 0, w, h, f"{scene}: held-out PSNR (dB)", False, axis)
+           + "\n"
+           + panel(curves, "test_lpips_alex", w, 0, w, h, f"{scene}: held-out LPIPS-alex", True,
+                   axis)
            + "\n" + legend + "\n</svg>\n")
-    (root / f"{scene}.svg").write_text(svg)
+    out = root / f"{stem or scene}.svg"
+    out.write_text(svg)
     print(f"| {scene} | steps | train s | held-out PSNR | SSIM | LPIPS-alex | opacity | batch PSNR |")
     print("|---|---|---|---|---|---|---|---|")
     for n, rows in curves:
@@ -85,7 +139,7 @@ def main():
         print(f"| {n} | {r['step']} | {r['train_seconds']:.0f} | {r['test_psnr']:.2f} | "
               f"{r['test_ssim']:.3f} | {'-' if lp is None else f'{lp:.3f}'} | "
               f"{r['test_opacity']:.3f} | {r['batch_psnr']:.2f} |")
-    print(f"wrote {root / (scene + '.svg')}", file=sys.stderr)
+    print(f"wrote {out}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -6,10 +6,12 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use extranerf_extrapolate::driver::{default_lpips_dir, fit_budget, train_loop, TrainRun, ViewSet};
 use extranerf_gpu::Context;
-use extranerf_nerf::autoconfig::model_for_scene;
+use extranerf_nerf::autoconfig::{
+    model_covering, model_for_scene, ndc_pixels_in_cube, GridBox, NdcFit, SampleRange,
+};
 use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::field::mlp::MlpMode;
-use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
+use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet, PooledError};
 use extranerf_nerf::model::Precision;
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
@@ -17,7 +19,7 @@ use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_nerf::run::{
     load_checkpoint, training_views, write_png, write_ray_depth_exr, RunConfig, SceneSpec,
 };
-use extranerf_nerf::trainer::{TrainConfig, Trainer, STAT_SLOTS};
+use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer, STAT_SLOTS};
 use extranerf_nerf::views::TrainData;
 use extranerf_prims::Prims;
 
@@ -93,12 +95,23 @@ pub struct TrainArgs {
     /// Hash decay weight (0: off).
     #[arg(long)]
     hash_decay: Option<f32>,
-    /// Scale gradients by min(1, t^2) near the cameras (Floaters No More).
+    /// Scale gradients by min(1, d^2) at depth d near the cameras (Floaters No More); world-space
+    /// fields only (NDC refuses it: no sample lies nearer than depth 1, so it changes nothing).
     #[arg(long)]
     grad_scaling: bool,
     /// Seed of the initialisation and batches.
     #[arg(long)]
     seed: Option<u64>,
+    /// NDC scenes: the hash grid's box. cameras: the cube holding every sample of every
+    /// camera, at the unit cube's cell size; unit: NDC's unit cube, where samples outside take
+    /// a face's features (the model before 2026-12, for comparisons) [default: cameras].
+    #[arg(long, value_enum, value_name = "BOX")]
+    grid_box: Option<GridBox>,
+    /// NDC scenes: the sampled range of NDC t. bounds: between the cameras' depth bounds (0.9 x
+    /// each camera's near bound to its far bound); full: 0 to 1, the near plane to infinity
+    /// (before 2026-12, for comparisons) [default: bounds].
+    #[arg(long, value_enum, value_name = "RANGE")]
+    sample_range: Option<SampleRange>,
     /// Skip empty space while training: an occupancy grid of this many cells per axis (0:
     /// off, the default). Each ray's strata then cover only the part of it in occupied cells,
     /// so the same samples per ray sit closer together where there is content.
@@ -155,6 +168,12 @@ pub struct TrainArgs {
     /// Learning rate of the last step; the decay between is log-linear [default: 3e-3].
     #[arg(long, value_name = "LR")]
     lr_end: Option<f32>,
+    /// Photometric loss of the captured views: l2 (squared error) or huber [default: l2].
+    #[arg(long, value_enum, value_name = "LOSS")]
+    rgb_loss: Option<RgbLossKind>,
+    /// The Huber loss's threshold, in colour units [default: 0.1].
+    #[arg(long, value_name = "DELTA")]
+    huber_delta: Option<f32>,
     /// Every this many steps (and at the last), render the held-out views and append their
     /// mean PSNR, SSIM, LPIPS-alex (when the weights are found) and opacity to RUN/curve.jsonl
     /// with the training seconds so far, which leave out the evaluations themselves (0: off).
@@ -236,6 +255,8 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--hash-decay", a.hash_decay.is_some()),
             ("--grad-scaling", a.grad_scaling),
             ("--seed", a.seed.is_some()),
+            ("--grid-box", a.grid_box.is_some()),
+            ("--sample-range", a.sample_range.is_some()),
             ("--auto", a.auto),
             ("--no-auto", a.no_auto),
             ("--occupancy-res", a.occupancy_res.is_some()),
@@ -248,6 +269,8 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--lr-start", a.lr_start.is_some()),
             ("--background", a.background.is_some()),
             ("--lr-end", a.lr_end.is_some()),
+            ("--rgb-loss", a.rgb_loss.is_some()),
+            ("--huber-delta", a.huber_delta.is_some()),
         ]
         .iter()
         .filter(|g| g.1)
@@ -283,15 +306,24 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         };
         let loaded = scene.load()?;
         let auto = !a.no_auto;
+        let fit = NdcFit {
+            grid_box: a.grid_box.unwrap_or_default(),
+            range: a.sample_range.unwrap_or_default(),
+        };
         let mut model = if auto {
-            let choice = extranerf_nerf::autoconfig::auto_model(&loaded.scene, &loaded.split.train);
+            let choice = extranerf_nerf::autoconfig::auto_model_covering(
+                &loaded.scene,
+                &loaded.split.train,
+                &[],
+                fit,
+            );
             eprintln!("auto-config:");
             for r in &choice.reasons {
                 eprintln!("  {r}");
             }
             choice.model
         } else {
-            model_for_scene(&loaded.scene)
+            model_covering(&loaded.scene, &[], fit)
         };
         apply(&mut model.log2_table, a.log2_table);
         apply(&mut model.levels, a.levels);
@@ -310,6 +342,8 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         apply(&mut train.seed, a.seed);
         apply(&mut train.lr_start, a.lr_start);
         apply(&mut train.lr_end, a.lr_end);
+        apply(&mut train.rgb_loss, a.rgb_loss);
+        apply(&mut train.huber_delta, a.huber_delta);
         match a.background {
             None => {
                 // RGBA captures (NeRF-synthetic) are scored over white, as published tables
@@ -546,8 +580,12 @@ struct Rendered {
     height: u32,
     rgb: Vec<f32>,
     depth: Vec<f32>,
+    opacity: Vec<f32>,
     truth: Vec<f32>,
     seconds: f64,
+    camera: extranerf_nerf::data::Camera,
+    /// The grid's cube (centre, half side) of an NDC field.
+    ndc_cube: Option<(glam::DVec3, f64)>,
 }
 
 #[allow(clippy::too_many_arguments)] // each is a distinct setting
@@ -600,7 +638,7 @@ fn render_views(
     for (i, role) in list {
         let cam = &loaded.scene.cameras[i];
         let t = Instant::now();
-        let (rgb, depth, _) = nerf.render_with(ctx, cam, chunk, samples, how)?;
+        let (rgb, depth, opacity) = nerf.render_with(ctx, cam, chunk, samples, how)?;
         let seconds = t.elapsed().as_secs_f64();
         let truth = extranerf_nerf::data::load_image_over(&cam.image, cfg.train.background)?;
         eprintln!(
@@ -616,8 +654,14 @@ fn render_views(
             height: cam.height,
             rgb,
             depth,
+            opacity,
             truth: truth.rgb,
             seconds,
+            camera: cam.clone(),
+            ndc_cube: (cfg.model.space == extranerf_nerf::model::Space::Ndc).then(|| {
+                let c = cfg.model.center.map(f64::from);
+                (glam::DVec3::from(c), cfg.model.radius as f64)
+            }),
         })?;
     }
     Ok(cfg)
@@ -704,6 +748,9 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(&img_dir)?;
     }
     let mut sizes = std::collections::BTreeSet::new();
+    // Per role: the pooled error of the pixels inside NDC's unit cube and outside it.
+    let mut regions: std::collections::BTreeMap<&str, (PooledError, PooledError)> =
+        Default::default();
     let cfg = render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {
         sizes.insert(format!("{}x{}", r.width, r.height));
         let p = psnr(&r.rgb, &r.truth)?;
@@ -713,6 +760,30 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
             "psnr": p,
             "render_seconds": r.seconds,
         });
+        if let Some((centre, half)) = r.ndc_cube {
+            // Where each pixel's rendered point (its expected depth) lies: NDC's unit cube (the
+            // grid's box before auto-config fitted it to the cameras) and the model's own
+            // cube. Pixels the field leaves transparent have no point and count in neither.
+            let opaque: Vec<bool> = r.opacity.iter().map(|&o| o > 1e-3).collect();
+            let depth: Vec<f32> = r
+                .depth
+                .iter()
+                .zip(&r.opacity)
+                .map(|(&d, &o)| d / o.max(1e-3))
+                .collect();
+            let unit = ndc_pixels_in_cube(&r.camera, &depth, glam::DVec3::ZERO, 1.0);
+            let own = ndc_pixels_in_cube(&r.camera, &depth, centre, half);
+            let inside: Vec<bool> = unit.iter().zip(&opaque).map(|(&u, &o)| u && o).collect();
+            let outside: Vec<bool> = unit.iter().zip(&opaque).map(|(&u, &o)| !u && o).collect();
+            let seen = opaque.iter().filter(|&&o| o).count().max(1) as f64;
+            let out_of =
+                |v: &[bool]| v.iter().zip(&opaque).filter(|(&x, &o)| !x && o).count() as f64 / seen;
+            m["outside_unit_cube"] = out_of(&unit).into();
+            m["outside_grid_box"] = out_of(&own).into();
+            let e = regions.entry(r.role).or_default();
+            e.0.add(&r.rgb, &r.truth, &inside)?;
+            e.1.add(&r.rgb, &r.truth, &outside)?;
+        }
         if r.role == "test" {
             m["ssim"] = ssim(&r.rgb, &r.truth, r.width, r.height)?.into();
             for (key, net) in &nets {
@@ -749,6 +820,15 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
             "lpips_vgg": mean("test", "lpips_vgg"),
         },
         "train": {"psnr": mean("train", "psnr")},
+        // NDC fields: PSNR of the (not transparent) pixels whose rendered point lies inside
+        // NDC's unit cube and outside it, pooled over the views of each role.
+        "unit_cube": regions.iter().map(|(role, (i, o))| {
+            (role.to_string(), serde_json::json!({
+                "psnr_inside": i.psnr(),
+                "psnr_outside": o.psnr(),
+                "outside_fraction": o.values as f64 / (i.values + o.values).max(1) as f64,
+            }))
+        }).collect::<serde_json::Map<_, _>>(),
         "views": per_view,
         "seconds": t0.elapsed().as_secs_f64(),
         "render": a.march.json(),
@@ -797,6 +877,10 @@ pub struct BenchTrainArgs {
     /// Hash-grid levels.
     #[arg(long, default_value_t = 16)]
     levels: u32,
+    /// Finest grid resolution (default: the scene's model without auto-config: 2048 over NDC's
+    /// unit cube, scaled to the grid box).
+    #[arg(long, value_name = "N")]
+    max_res: Option<u32>,
     /// Timed steps (after 2 warm-up steps that also compile the kernels).
     #[arg(long, default_value_t = 10)]
     steps: u32,
@@ -855,6 +939,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     let mut model = model_for_scene(&loaded.scene);
     model.log2_table = a.log2_table;
     model.levels = a.levels;
+    apply(&mut model.max_res, a.max_res);
     model.density_width = a.width;
     model.color_width = a.width;
     let views = training_views(&spec, &loaded, &model)?;

@@ -245,6 +245,20 @@ fn train_resume_render_eval_on_fern() {
     for f in ["config.json", "checkpoint.safetensors", "progress.jsonl"] {
         assert!(run.join(f).exists(), "{f} missing");
     }
+    // Gradient scaling is refused in NDC, and a Huber loss without a positive threshold.
+    for (flags, want) in [
+        (&["--grad-scaling"][..], "NDC"),
+        (&["--rgb-loss", "huber", "--huber-delta", "0"][..], "Huber"),
+    ] {
+        let bad = dir.join("bad");
+        let mut a = vec!["train", "--scene", scene.to_str().unwrap()];
+        a.extend(["--out", bad.to_str().unwrap(), "--steps", "2"]);
+        a.extend(tiny);
+        a.extend(flags);
+        let (ok, _, err) = extranerf(&a);
+        assert!(!ok && err.contains(want), "{flags:?}: {err}");
+        let _ = std::fs::remove_dir_all(&bad);
+    }
     // A second plain train into the same folder is refused; --resume extends it.
     let (ok, _, err) = extranerf(&args);
     assert!(!ok && err.contains("--resume"), "{err}");
@@ -362,6 +376,18 @@ fn train_resume_render_eval_on_fern() {
     assert!(out.contains("test: PSNR"), "{out}");
     let m: serde_json::Value =
         serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    // Where the rendered points lie, per view and pooled over the role's views: shares of
+    // the pixels outside NDC's unit cube (the grid box before) and outside the model's box,
+    // which holds every point a sample can be at (an expected depth lies in the range).
+    let v0 = &m["views"][0];
+    let unit = v0["outside_unit_cube"].as_f64().unwrap();
+    assert_eq!(v0["outside_grid_box"].as_f64(), Some(0.0), "{v0}");
+    assert!((0.0..1.0).contains(&unit), "{v0}");
+    let pooled = &m["unit_cube"]["test"];
+    assert!(
+        (pooled["outside_fraction"].as_f64().unwrap() - unit).abs() < 1e-9,
+        "{m}"
+    );
     let psnr = m["test"]["psnr"].as_f64().unwrap();
     let lp = m["test"]["lpips_alex"].as_f64().unwrap();
     let ssim = m["test"]["ssim"].as_f64().unwrap();
@@ -770,13 +796,19 @@ fn auto_config_budget_and_tradeoff_on_fern() {
     assert!(ok, "{err}");
     assert!(
         err.contains("auto-config:")
-            && err.contains("finest resolution 512")
+            && err.contains("finest resolution 687")
+            && err.contains("512 over NDC's unit cube")
+            && err.contains("grid box: centre")
+            && err.contains("samples: NDC t 0.085 to 0.852")
             && err.contains("space: NDC"),
         "{err}"
     );
     let cfg: serde_json::Value =
         serde_json::from_slice(&std::fs::read(run.join("config.json")).unwrap()).unwrap();
-    assert_eq!(cfg["model"]["max_res"], 512, "{cfg}");
+    // Fern's box has half side 1.341: 512 cells across the unit cube become 687.
+    assert_eq!(cfg["model"]["max_res"], 687, "{cfg}");
+    let radius = cfg["model"]["radius"].as_f64().unwrap();
+    assert!((radius - 1.341).abs() < 1e-3, "{cfg}");
     let run = dir.join("budget");
     let (ok, _, err) = extranerf(&[
         "train",

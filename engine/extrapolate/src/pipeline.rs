@@ -257,12 +257,31 @@ pub trait Stage {
 pub struct BaseStage {
     pub spec: BaseSpec,
     pub scene: SceneSpec,
+    /// The virtual views the later stages render: the field's box holds them too.
+    pub virt: VirtualSpec,
 }
 
-/// The default training configuration for a scene (as `extranerf train` with no flags).
-pub fn default_run_config(scene: &SceneSpec, rep: &mut dyn Reporter) -> anyhow::Result<RunConfig> {
+/// The default training configuration for a scene (as `extranerf train` with no flags), its
+/// grid box also holding the virtual views of `virt`.
+pub fn default_run_config(
+    scene: &SceneSpec,
+    virt: &VirtualSpec,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<RunConfig> {
     let loaded = scene.load()?;
-    let choice = extranerf_nerf::autoconfig::auto_model(&loaded.scene, &loaded.split.train);
+    let train: Vec<Camera> = loaded
+        .split
+        .train
+        .iter()
+        .map(|&i| loaded.scene.cameras[i].clone())
+        .collect();
+    let extra = make_virtual(virt, &train)?;
+    let choice = extranerf_nerf::autoconfig::auto_model_covering(
+        &loaded.scene,
+        &loaded.split.train,
+        &extra,
+        extranerf_nerf::autoconfig::NdcFit::default(),
+    );
     for r in &choice.reasons {
         rep.note(&format!("auto-config: {r}"));
     }
@@ -314,7 +333,7 @@ impl Stage for BaseStage {
                 run(&ck.config, ck.step, None, Some(ck.params), ck.moments, rep)?;
             }
         } else {
-            let mut cfg = default_run_config(&self.scene, rep)?;
+            let mut cfg = default_run_config(&self.scene, &self.virt, rep)?;
             fit_budget(ctx, &mut cfg, self.spec.budget, true, rep)?;
             run(&cfg, 0, Some(self.spec.budget), None, None, rep)?;
         }
@@ -1319,6 +1338,7 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
         Box::new(BaseStage {
             spec: o.base.clone(),
             scene,
+            virt: o.virt.clone(),
         }),
         Box::new(VisibilityStage {
             virt: o.virt.clone(),

@@ -95,12 +95,206 @@ pub fn rig_centre(cameras: &[Camera]) -> (DVec3, CentreFrom) {
     (p, CentreFrom::OpticalAxes { rms })
 }
 
-/// The model configuration a scene needs: NDC for forward-facing captures; otherwise world
-/// space with the L2 contraction around the rig's centre ([`rig_centre`]) with the farthest
-/// camera on the inner ball's surface, sampled between the cameras' bounds.
-pub fn model_for_scene(scene: &Scene) -> ModelConfig {
+/// Samples start at this fraction of the nearest depth bound, as NeRF's LLFF loader starts
+/// them (the bounds are the 0.1 and 99.9 percentiles of each view's COLMAP point depths, so a
+/// few points lie nearer); they end at the farthest bound.
+pub const NEAR_MARGIN: f64 = 0.9;
+
+/// The grid box of an NDC field.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum GridBox {
+    /// The cube that holds every sample of every camera ([`ndc_extent`]), its resolutions
+    /// scaled to keep the unit cube's cell size.
+    #[default]
+    Cameras,
+    /// NDC's unit cube [-1, 1]^3 (before 2026-12: what lies outside takes a face's features).
+    Unit,
+}
+
+/// The range of NDC t an NDC field samples.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum SampleRange {
+    /// Between the cameras' depth bounds ([`ndc_extent`]).
+    #[default]
+    Bounds,
+    /// 0 to 1: the near plane to infinity (before 2026-12).
+    Full,
+}
+
+/// How an NDC field fits its scene.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct NdcFit {
+    /// The grid box.
+    pub grid_box: GridBox,
+    /// The sampled range.
+    pub range: SampleRange,
+}
+
+/// Where a forward-facing scene's samples lie in NDC (near plane 1): the range of t every ray
+/// samples, and the axis-aligned box that holds every sample of every camera given.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NdcExtent {
+    /// NDC t of the first and of the last sample of every ray.
+    pub t: (f64, f64),
+    /// The box's lowest corner.
+    pub min: DVec3,
+    /// The box's highest corner.
+    pub max: DVec3,
+}
+
+impl NdcExtent {
+    /// The smallest cube centred on the box that holds it: centre and half side.
+    pub fn cube(&self) -> (DVec3, f64) {
+        let half = (self.max - self.min) * 0.5;
+        (
+            (self.min + self.max) * 0.5,
+            half.x.max(half.y).max(half.z).max(1e-6),
+        )
+    }
+}
+
+/// The scene's depth range along the viewing axis: [`NEAR_MARGIN`] times the nearest camera's
+/// near bound to the farthest camera's far bound; `None` when no camera gives bounds.
+pub fn scene_depth_range(cameras: &[Camera]) -> Option<(f64, f64)> {
+    let near = cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.0))
+        .fold(f64::INFINITY, f64::min);
+    let far = cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.1))
+        .fold(0.0f64, f64::max);
+    (near.is_finite() && near > 0.0 && far > near).then_some((NEAR_MARGIN * near, far))
+}
+
+/// The rays through the four image corners of `cam` (pixel-corner coordinates), in NDC with
+/// near plane 1, as the kernels make them: origin and direction.
+fn ndc_corner_rays(cam: &Camera) -> [([f64; 3], [f64; 3]); 4] {
+    let (w, h) = (cam.width as f64, cam.height as f64);
+    [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)].map(|(x, y)| {
+        let (o, d) = cam.ray(x, y);
+        crate::reference::ndc_ray(cam, o.to_array(), d.to_array(), 1.0)
+    })
+}
+
+/// Where the samples of a forward-facing scene lie in NDC. The t range runs from the nearest
+/// point at [`NEAR_MARGIN`] times a camera's near bound to the farthest at a camera's far bound
+/// (each camera's own bounds, over its image corners: depth along its axis is affine across
+/// the image, so the corners bound it); 0 to 1 (the near plane to infinity) when no camera
+/// gives bounds. The box holds the samples of every camera of `scene` and of `extra` (virtual
+/// views): NDC positions are affine in t along a ray, and at a given t (a plane of world z)
+/// the image maps projectively onto a convex quad whose vertices are the corner rays' points
+/// (for rays that run toward -z, as a forward-facing camera's do), so the corner rays at both
+/// ends of the range bound them. A corner ray that never reaches the plane has no NDC point
+/// and is left out; [`MAX_BOX_HALF`] caps what such views would do to the box.
+pub fn ndc_extent(scene: &[Camera], extra: &[Camera], range: SampleRange) -> NdcExtent {
+    let bounds = match range {
+        SampleRange::Bounds => scene_depth_range(scene),
+        SampleRange::Full => None,
+    };
+    let t = match bounds {
+        Some(whole) => {
+            let (mut t0, mut t1) = (1.0f64, 0.0f64);
+            for c in scene {
+                // Each camera's own bounds (those of the points it sees); the scene's where it
+                // has none.
+                let (near, far) = c.bounds.map(|(n, f)| (NEAR_MARGIN * n, f)).unwrap_or(whole);
+                let (w, h) = (c.width as f64, c.height as f64);
+                for (x, y) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)] {
+                    let (o, d) = c.ray(x, y);
+                    // NDC t of world depth z (< 0, near plane z = -1): 1 + 1/z. Nearer than
+                    // the near plane: 0; at or behind z = 0: infinity, 1.
+                    let zn = (o + d * near).z;
+                    t0 = t0.min(if zn <= -1.0 { 1.0 + 1.0 / zn } else { 0.0 });
+                    let zf = (o + d * far).z;
+                    t1 = t1.max(if zf < 0.0 {
+                        (1.0 + 1.0 / zf).max(0.0)
+                    } else {
+                        1.0
+                    });
+                }
+            }
+            if t1 - t0 >= 1e-3 {
+                (t0, t1)
+            } else {
+                (0.0, 1.0)
+            }
+        }
+        None => (0.0, 1.0),
+    };
+    let (mut min, mut max) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for c in scene.iter().chain(extra) {
+        for (o, d) in ndc_corner_rays(c) {
+            for s in [t.0, t.1] {
+                let p = DVec3::from(o) + DVec3::from(d) * s;
+                if p.is_finite() {
+                    min = min.min(p);
+                    max = max.max(p);
+                }
+            }
+        }
+    }
+    if !(min.is_finite() && max.is_finite()) {
+        (min, max) = (DVec3::splat(-1.0), DVec3::splat(1.0));
+    }
+    NdcExtent { t, min, max }
+}
+
+/// For each pixel of `cam` (row-major), whether its point at NDC t `depth` lies inside the cube
+/// of `centre` and half side `half` (NDC, near plane 1). A pixel whose depth is not finite counts
+/// as outside.
+pub fn ndc_pixels_in_cube(cam: &Camera, depth: &[f32], centre: DVec3, half: f64) -> Vec<bool> {
+    let w = cam.width.max(1) as usize;
+    depth
+        .iter()
+        .enumerate()
+        .map(|(i, &t)| {
+            let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+            let (o, d) = cam.ray(x, y);
+            let (no, nd) = crate::reference::ndc_ray(cam, o.to_array(), d.to_array(), 1.0);
+            let p = DVec3::from(no) + DVec3::from(nd) * t as f64;
+            p.is_finite() && (p - centre).abs().max_element() <= half
+        })
+        .collect()
+}
+
+/// The largest half side of an NDC grid box: 4 times the unit cube's, at 4 times its
+/// resolution per axis. Views turned far from the NDC axis (a `rotate` trajectory's far end)
+/// could otherwise ask for a box no grid resolves.
+pub const MAX_BOX_HALF: f64 = 4.0;
+
+/// A cube's half side grows by this factor over the samples' extent, so that rounding in the
+/// kernels' f32 arithmetic never puts a sample on the far side of a face.
+const BOX_SLACK: f64 = 1.001;
+
+/// The model configuration a scene needs: NDC for forward-facing captures, sampled between the
+/// scene's bounds, its grid box the cube that holds every sample of the scene's cameras and of
+/// `extra` ([`ndc_extent`]), with the default grid's resolutions scaled by the cube's half side
+/// (the same cell size as over NDC's unit cube); otherwise world space with the L2
+/// contraction around the rig's centre ([`rig_centre`]) with the farthest camera on the inner
+/// ball's surface, sampled between the cameras' bounds.
+pub fn model_covering(scene: &Scene, extra: &[Camera], fit: NdcFit) -> ModelConfig {
     if scene.forward_facing {
-        return ModelConfig::default();
+        let e = ndc_extent(&scene.cameras, extra, fit.range);
+        let (centre, radius) = match fit.grid_box {
+            GridBox::Cameras => {
+                let (centre, half) = e.cube();
+                (centre, (half * BOX_SLACK).min(MAX_BOX_HALF))
+            }
+            GridBox::Unit => (DVec3::ZERO, 1.0),
+        };
+        let d = ModelConfig::default();
+        return ModelConfig {
+            near: e.t.0 as f32,
+            far: e.t.1 as f32,
+            center: centre.as_vec3().to_array(),
+            radius: radius as f32,
+            min_res: scaled_res(d.min_res, radius),
+            max_res: scaled_res(d.max_res, radius),
+            ..d
+        };
     }
     let (centre, _) = rig_centre(&scene.cameras);
     let radius = scene
@@ -137,6 +331,16 @@ pub fn model_for_scene(scene: &Scene) -> ModelConfig {
     }
 }
 
+/// [`model_covering`] with no extra cameras and the default fit.
+pub fn model_for_scene(scene: &Scene) -> ModelConfig {
+    model_covering(scene, &[], NdcFit::default())
+}
+
+/// A resolution over NDC's unit cube, for a cube of half side `radius` at the same cell size.
+fn scaled_res(res: u32, radius: f64) -> u32 {
+    ((res as f64 * radius).round() as u32).clamp(1, 1 << 20)
+}
+
 /// Near and far bounds for an object on a transparent background: the sphere around `centre`
 /// that the farthest camera's view frames (its distance times the tangent of its widest
 /// half-angle, the image diagonal), seen from the nearest and the farthest camera; nothing
@@ -156,7 +360,18 @@ fn object_bounds(scene: &Scene, centre: DVec3) -> (f64, f64) {
 
 /// Chooses the model for `scene` trained on the cameras `train` (indices).
 pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
-    let mut model = model_for_scene(scene);
+    auto_model_covering(scene, train, &[], NdcFit::default())
+}
+
+/// Chooses the model for `scene` trained on the cameras `train` (indices), its grid box also
+/// holding the samples of `extra` (the virtual views to be rendered), fitted as `fit` says.
+pub fn auto_model_covering(
+    scene: &Scene,
+    train: &[usize],
+    extra: &[Camera],
+    fit: NdcFit,
+) -> AutoModel {
+    let mut model = model_covering(scene, extra, fit);
     let mut reasons = Vec::new();
     let cams: Vec<&Camera> = train.iter().filter_map(|&i| scene.cameras.get(i)).collect();
     let cams: Vec<&Camera> = if cams.is_empty() {
@@ -173,10 +388,55 @@ pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
         reasons.push(
             "space: NDC (a forward-facing capture: the frustum, out to infinity, maps to a cube), no contraction".into(),
         );
-        // NDC x and y span the image: one finest cell per pixel.
-        let res = widest.next_power_of_two();
+        let e = ndc_extent(&scene.cameras, extra, fit.range);
         reasons.push(format!(
-            "finest resolution {res}: one cell per pixel across the {widest}-pixel image side (NDC spans the image)"
+            "samples: NDC t {:.3} to {:.3}, linear in disparity ({})",
+            e.t.0,
+            e.t.1,
+            match (fit.range, scene_depth_range(&scene.cameras)) {
+                (SampleRange::Full, _) => "asked for: the near plane to infinity".into(),
+                (SampleRange::Bounds, Some((n, f))) => format!(
+                    "from {NEAR_MARGIN} x each camera's near bound to its far bound, the nearest and farthest points over the cameras; depth {n:.3} to {f:.3} in all"
+                ),
+                (SampleRange::Bounds, None) =>
+                    "no depth bounds: the near plane to infinity".into(),
+            }
+        ));
+        let what = format!(
+            "the scene's {} cameras{} (x {:.3}..{:.3}, y {:.3}..{:.3}, z {:.3}..{:.3})",
+            scene.cameras.len(),
+            if extra.is_empty() {
+                String::new()
+            } else {
+                format!(" and {} virtual views", extra.len())
+            },
+            e.min.x,
+            e.max.x,
+            e.min.y,
+            e.max.y,
+            e.min.z,
+            e.max.z
+        );
+        reasons.push(match fit.grid_box {
+            GridBox::Cameras if model.radius as f64 >= MAX_BOX_HALF => format!(
+                "grid box: centre {:?}, half side {:.3}: capped, it does not hold every sample of {what}",
+                model.center, model.radius
+            ),
+            GridBox::Cameras => format!(
+                "grid box: centre {:?}, half side {:.3}, holding every sample of {what}",
+                model.center, model.radius
+            ),
+            GridBox::Unit => {
+                format!("grid box: NDC's unit cube, as asked for; the samples of {what}")
+            }
+        });
+        // NDC x and y span the image: one finest cell per pixel over the unit cube, and the
+        // same cell size over the box.
+        let pixels = widest.next_power_of_two();
+        let res = scaled_res(pixels, model.radius as f64);
+        reasons.push(format!(
+            "finest resolution {res}: one cell per pixel across the {widest}-pixel image side ({pixels} over NDC's unit cube, which spans the image; x {:.3} for the box)",
+            model.radius
         ));
         reasons.push("occupancy: 1 cascade (NDC is bounded)".into());
         (res, 1)
@@ -222,9 +482,15 @@ pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
         ));
         (res, c)
     };
-    model.max_res = max_res.max(MIN_RES * 2);
-    model.min_res = MIN_RES;
-    let span = (model.max_res as f64 / MIN_RES as f64).ln();
+    // In NDC every level keeps the cell size it has over the unit cube.
+    let box_scale = match model.space {
+        Space::Ndc => model.radius as f64,
+        Space::World => 1.0,
+    };
+    let min_res = scaled_res(MIN_RES, box_scale);
+    model.max_res = max_res.max(min_res * 2);
+    model.min_res = min_res;
+    let span = (model.max_res as f64 / min_res as f64).ln();
     let aimed = ((1.0 + span / GROWTH.ln()).ceil() as u32).clamp(4, 16);
     // The fused training step, march and visibility read the encoding in vec4 rows: levels x
     // features must be a multiple of 4 (13 levels of 2 features fell back to the slower
@@ -243,15 +509,17 @@ pub fn auto_model(scene: &Scene, train: &[usize]) -> AutoModel {
         String::new()
     };
     reasons.push(format!(
-        "levels {levels}: N {MIN_RES}..{} with growth {b:.2} per level (aim {GROWTH}){rounded}",
+        "levels {levels}: N {min_res}..{} with growth {b:.2} per level (aim {GROWTH}){rounded}",
         model.max_res
     ));
-    // Surfaces are 2-D: about N^2 / 2 occupied cells at the finest level.
-    let want = (model.max_res as u64 * model.max_res as u64 / 2).max(1);
+    // Surfaces are 2-D: about N^2 / 2 occupied cells at the finest level. In NDC the surfaces
+    // the cameras see span about the image, not the box around every camera's frustum.
+    let surface_res = (model.max_res as f64 / box_scale).round() as u64;
+    let want = (surface_res * surface_res / 2).max(1);
     let log2 = (64 - (want - 1).leading_zeros()).clamp(14, 19);
     model.log2_table = log2;
     reasons.push(format!(
-        "table 2^{log2}: about N^2/2 = {want} surface cells at the finest level (clamped to 2^14..2^19)"
+        "table 2^{log2}: about N^2/2 = {want} surface cells at the finest level, N = {surface_res} across the image (clamped to 2^14..2^19)"
     ));
     AutoModel {
         model,
@@ -292,19 +560,43 @@ mod tests {
         let a = auto_model(&scene, &[0, 1, 2]);
         assert_eq!(a.model.space, Space::Ndc);
         assert_eq!(a.model.contraction, Contraction::None);
-        assert_eq!(a.model.max_res, 512);
+        // The cameras run from x = 0 to 0.3; the box holds their frusta from the near plane
+        // (the near bound 0.9 lies before it, so t starts at 0): NDC x from -1 to
+        // (0.3 + 252 / 400) x 2 x 400 / 504 = 1.476, y -1 to 1, z -1 to 0.8 (depth 10).
+        let r = a.model.radius as f64;
+        let half = (0.93 * 800.0 / 504.0 + 1.0) / 2.0;
+        assert!((r - half * BOX_SLACK).abs() < 1e-5, "{r}");
+        assert!((a.model.center[0] as f64 - (half - 1.0)).abs() < 1e-5);
+        assert!(a.model.near == 0.0 && (a.model.far - 0.9).abs() < 1e-6);
+        // One finest cell per pixel: 512 cells over the unit cube, the same size over the box.
+        assert_eq!(a.model.max_res, (512.0 * r).round() as u32);
+        assert_eq!(a.model.min_res, (16.0 * r).round() as u32);
         assert_eq!(a.model.levels, 10);
         assert_eq!(a.model.log2_table, 17);
         assert_eq!(a.cascades, 1);
         assert!(a.model.validate().is_ok());
-        assert_eq!(a.reasons.len(), 5, "{:?}", a.reasons);
+        assert_eq!(a.reasons.len(), 7, "{:?}", a.reasons);
+        // The unit cube and the whole of t: the model before the box was fitted.
+        let before = NdcFit {
+            grid_box: GridBox::Unit,
+            range: SampleRange::Full,
+        };
+        let old = auto_model_covering(&scene, &[0, 1, 2], &[], before).model;
+        assert_eq!(
+            (old.center, old.radius, old.near, old.far),
+            ([0.0; 3], 1.0, 0.0, 1.0)
+        );
+        assert_eq!(
+            (old.min_res, old.max_res, old.levels, old.log2_table),
+            (16, 512, 10, 17)
+        );
         // A 4x larger image needs a 4x finer grid.
         let big = Scene {
             cameras: (0..4).map(|i| cam(i as f64 * 0.1, 2016, 1600.0)).collect(),
             ..scene
         };
         let b = auto_model(&big, &[0, 1, 2]);
-        assert_eq!(b.model.max_res, 2048);
+        assert_eq!(b.model.max_res, (2048.0 * r).round() as u32);
         assert!(b.model.levels > a.model.levels);
         assert_eq!(b.model.log2_table, 19);
         // 2048 aims at 13 levels; rounded up to 14 so that the fused kernels take the model.
@@ -331,6 +623,133 @@ mod tests {
                 "{w} px"
             );
         }
+    }
+
+    /// A single camera at the origin looking down -z sees NDC's unit square at every t; with
+    /// bounds 2 and 8 its samples run from t = 1 - 1 / (0.9 x 2) to 1 - 1 / 8.
+    #[test]
+    fn a_centred_camera_samples_between_its_bounds_in_the_unit_square() {
+        let mut c = cam(0.0, 400, 300.0);
+        c.bounds = Some((2.0, 8.0));
+        let e = ndc_extent(std::slice::from_ref(&c), &[], SampleRange::Bounds);
+        let (t0, t1) = (1.0 - 1.0 / 1.8, 1.0 - 1.0 / 8.0);
+        assert!(
+            (e.t.0 - t0).abs() < 1e-12 && (e.t.1 - t1).abs() < 1e-12,
+            "{:?}",
+            e.t
+        );
+        // NDC x and y of the image edges are +-1 at every t (f32 focal lengths, as the kernels).
+        for v in [e.min.x, e.min.y] {
+            assert!((v + 1.0).abs() < 1e-6, "{e:?}");
+        }
+        for v in [e.max.x, e.max.y] {
+            assert!((v - 1.0).abs() < 1e-6, "{e:?}");
+        }
+        assert!((e.min.z - (2.0 * t0 - 1.0)).abs() < 1e-9, "{e:?}");
+        assert!((e.max.z - (2.0 * t1 - 1.0)).abs() < 1e-9, "{e:?}");
+        let (centre, half) = e.cube();
+        assert!(
+            (half - 1.0).abs() < 1e-6 && centre.x.abs() < 1e-6,
+            "{centre} {half}"
+        );
+        // Without bounds: the near plane to infinity.
+        c.bounds = None;
+        assert_eq!(
+            ndc_extent(&[c.clone()], &[], SampleRange::Bounds).t,
+            (0.0, 1.0)
+        );
+        c.bounds = Some((2.0, 8.0));
+        assert_eq!(ndc_extent(&[c], &[], SampleRange::Full).t, (0.0, 1.0));
+    }
+
+    /// A camera moved 0.5 right of the NDC axis sees, on the near plane (t = 0), NDC x =
+    /// 1 + 2 dx for a pixel at dx = (x - cx) / fx: its left half lies in the unit cube.
+    #[test]
+    fn pixels_in_the_cube_follow_from_their_depth() {
+        let c = cam(0.5, 40, 40.0);
+        let n = (c.width * c.height) as usize;
+        let inside = ndc_pixels_in_cube(&c, &vec![0.0; n], DVec3::ZERO, 1.0);
+        for (i, &v) in inside.iter().enumerate() {
+            assert_eq!(v, i % 40 < 20, "pixel {i}");
+        }
+        // Farther away (t = 0.5: world depth 2), NDC x = 0.5 + 2 dx: the columns left of
+        // x = 30 are inside. A depth that is not finite is outside. A cube centred on x = 1
+        // holds every pixel at t = 0.
+        let mut depth = vec![0.5f32; n];
+        depth[7] = f32::NAN;
+        let inside = ndc_pixels_in_cube(&c, &depth, DVec3::ZERO, 1.0);
+        for (i, &v) in inside.iter().enumerate() {
+            assert_eq!(v, i % 40 < 30 && i != 7, "pixel {i}");
+        }
+        let shifted = ndc_pixels_in_cube(&c, &vec![0.0; n], DVec3::new(1.0, 0.0, 0.0), 1.0);
+        assert!(shifted.iter().all(|&v| v));
+    }
+
+    /// Every sample of every pixel of every camera, a rig moved and turned off the NDC axis and
+    /// virtual views beyond it, lies in the box; the range starts at the nearest point of the
+    /// near bound and ends at the farthest of the far bound.
+    #[test]
+    fn the_ndc_box_holds_every_sample_of_every_camera() {
+        let mut cams: Vec<Camera> = (0..6)
+            .map(|i| {
+                let mut c = cam(0.0, 40, 36.0);
+                let a = i as f64;
+                c.c2w = DMat4::from_translation(DVec3::new(
+                    0.4 * (a * 1.3).sin(),
+                    0.2 * (a * 0.7).cos(),
+                    0.1 * (a * 2.1).sin(),
+                )) * DMat4::from_rotation_y(0.08 * (a - 2.5))
+                    * DMat4::from_rotation_x(0.05 * (a * 1.9).cos());
+                c.bounds = Some((1.5 + 0.1 * a, 6.0 + a));
+                c
+            })
+            .collect();
+        let virt: Vec<Camera> = (0..3)
+            .map(|i| {
+                let mut c = cams[i].clone();
+                c.c2w = DMat4::from_translation(DVec3::new(1.2 - 0.8 * i as f64, 0.5, 0.0));
+                c
+            })
+            .collect();
+        let e = ndc_extent(&cams, &virt, SampleRange::Bounds);
+        // Depth 0.9 x 1.5 and 11 along an unturned axis would be t 0.26 and 0.91; the turned
+        // corners reach nearer and farther.
+        assert!(e.t.0 > 0.0 && e.t.0 < 0.26, "{:?}", e.t);
+        assert!(e.t.1 > 0.85 && e.t.1 < 1.0, "{:?}", e.t);
+        let (centre, half) = e.cube();
+        // (lowest t of a near-bound point, highest t of a far-bound point) over every pixel.
+        let mut scene_t = (f64::INFINITY, f64::NEG_INFINITY);
+        let mut reach = 0.0f64;
+        let t_of = |z: f64| 1.0 + 1.0 / z;
+        cams.extend(virt);
+        for (k, c) in cams.iter().enumerate() {
+            for py in 0..=c.height {
+                for px in 0..=c.width {
+                    let (o, d) = c.ray(px as f64, py as f64);
+                    let (no, nd) = crate::reference::ndc_ray(c, o.to_array(), d.to_array(), 1.0);
+                    for s in [e.t.0, e.t.1] {
+                        let p = DVec3::from(no) + DVec3::from(nd) * s;
+                        let off = (p - centre).abs().max_element();
+                        assert!(
+                            off <= half * (1.0 + 1e-9),
+                            "camera {k} ({px}, {py}) t {s}: {p}"
+                        );
+                        reach = reach.max(off / half);
+                    }
+                    if k < 6 {
+                        let (n, f) = c.bounds.unwrap();
+                        scene_t.0 = scene_t.0.min(t_of((o + d * NEAR_MARGIN * n).z));
+                        scene_t.1 = scene_t.1.max(t_of((o + d * f).z));
+                    }
+                }
+            }
+        }
+        // The box is tight: some sample touches a face.
+        assert!(reach > 1.0 - 1e-9, "{reach}");
+        // The samples span exactly the depths between the bounds (in the NDC frame's depth):
+        // none nearer than the nearest near-bound point, none beyond the farthest far one.
+        assert!((e.t.0 - scene_t.0).abs() < 1e-12, "{:?} {scene_t:?}", e.t);
+        assert!((e.t.1 - scene_t.1).abs() < 1e-12, "{:?} {scene_t:?}", e.t);
     }
 
     /// A camera at `eye` looking at `target` (OpenGL convention: it looks down -z).

@@ -44,7 +44,9 @@ pub struct ModelConfig {
     pub color_layers: u32,
     /// Ray space: NDC (forward-facing captures) or world.
     pub space: Space,
-    /// Sampling range along each ray (NDC: 0 to 1; world: depth along the viewing axis).
+    /// Sampling range along each ray (NDC: t from 0, the near plane, to at most 1, infinity;
+    /// auto-config samples between the scene's depth bounds; world: depth along the viewing
+    /// axis).
     pub near: f32,
     /// See `near`.
     pub far: f32,
@@ -193,6 +195,12 @@ impl ModelConfig {
         {
             return Err(GpuError::Usage(format!(
                 "sampling range {}..{} must satisfy 0 <= near < far",
+                self.near, self.far
+            )));
+        }
+        if self.space == Space::Ndc && self.far > 1.0 {
+            return Err(GpuError::Usage(format!(
+                "NDC sampling range {}..{}: NDC t ends at 1 (infinity)",
                 self.near, self.far
             )));
         }

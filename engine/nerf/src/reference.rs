@@ -1117,7 +1117,8 @@ fn visibility_march(
 
 /// Multi-view transmittance visibility (`render/visibility.wgsl`, no cuts, no occupancy) of
 /// one pixel in f64, for a density given in the field's space: each segment from the previous
-/// sample to a camera (clipped at the NDC near plane, or `near` before a world-space camera)
+/// sample to a camera (clipped where the sampled range starts in NDC, at t = `near`, or `near`
+/// before a world-space camera)
 /// marched with `vis_samples` midpoints. Returns (visibility, opacity, depth).
 pub fn visibility_pixel(
     density: &dyn Fn([f64; 3]) -> f64,
@@ -1134,10 +1135,12 @@ pub fn visibility_pixel(
         }
         let centre = c.centre();
         let end = if s.ndc {
+            // The plane where the sampled range starts: NDC t = near, world z = -1 / (1 - near).
+            let zn = -1.0 / (1.0 - s.near);
             let mut e = centre;
-            if centre.z > -1.0 {
-                e = ps + (-1.0 - ps.z) / (centre.z - ps.z) * (centre - ps);
-                e.z = -1.0;
+            if centre.z > zn {
+                e = ps + (zn - ps.z) / (centre.z - ps.z) * (centre - ps);
+                e.z = zn;
             }
             frame.to_field(e)
         } else {

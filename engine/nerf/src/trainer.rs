@@ -12,7 +12,7 @@ use extranerf_gpu::{Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Resul
 use extranerf_prims::{Prims, ReducePlan};
 
 use crate::field::mlp::{MlpMode, MlpPath};
-use crate::model::{mark, Profiler};
+use crate::model::{mark, Profiler, Space};
 use crate::optim::{Adam, AdamConfig, TableDecay};
 use crate::render::composite::{Background, RayGrads};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
@@ -47,7 +47,8 @@ pub struct TrainConfig {
     pub distortion_lambda: f32,
     /// Hash decay weight (Zip-NeRF).
     pub hash_decay_lambda: f32,
-    /// Scale sample gradients by min(1, t^2) (Floaters No More).
+    /// Scale sample gradients by min(1, t^2), t the sample's depth (Floaters No More);
+    /// world-space fields only (refused in NDC, where it would change nothing).
     pub grad_scaling: bool,
     /// Learning rate at the first step.
     pub lr_start: f32,
@@ -190,6 +191,12 @@ impl TrainConfig {
     pub fn loss(&self) -> Result<LossConfig> {
         let rgb = match self.rgb_loss {
             RgbLossKind::L2 => RgbLoss::L2,
+            RgbLossKind::Huber if !(self.huber_delta.is_finite() && self.huber_delta > 0.0) => {
+                return Err(GpuError::Usage(format!(
+                    "the Huber loss needs a finite, positive threshold, not {}",
+                    self.huber_delta
+                )))
+            }
             RgbLossKind::Huber => RgbLoss::Huber(self.huber_delta),
         };
         Ok(LossConfig {
@@ -306,6 +313,14 @@ impl Trainer {
         moments: Option<(&[f32], &[f32])>,
     ) -> Result<Trainer> {
         cfg.validate()?;
+        if cfg.grad_scaling && nerf.field.config().space == Space::Ndc {
+            // Floaters No More scales by min(1, d^2) for a sample at distance d from the
+            // camera, in scene units; NDC's near plane lies at depth 1, so no sample is nearer
+            // and the scaling would change nothing (NDC t in its place weakened every sample).
+            return Err(GpuError::Usage(
+                "gradient scaling applies to world-space fields: in NDC every sample lies at least the near plane's depth 1 from the camera, where min(1, d^2) is 1".into(),
+            ));
+        }
         let mut nerf = nerf;
         let mlp_path = nerf.set_mlp(ctx, cfg.mlp)?;
         let total = nerf.field.layout().total;

@@ -19,9 +19,10 @@
 // The cut `min_transmittance` then applies to the ratio, so its bound stays the same.
 //
 // The segment toward a camera starts at the previous sample's position (the near end for the
-// first sample), for every camera, and ends at the camera centre, or where it crosses the NDC
-// near plane (z = -ndc_near, beyond which an NDC field is not defined) for forward-facing
-// scenes, or `near` before the camera centre for world-space scenes. Starting there, a surface
+// first sample), for every camera, and ends at the camera centre, or where it crosses the plane
+// where the sampled range starts (NDC t = near; for near 0 the NDC near plane z = -ndc_near,
+// beyond which an NDC field is not defined) for forward-facing scenes, or `near` before the
+// camera centre for world-space scenes. Starting there, a surface
 // that begins between two samples (which the ray's quadrature puts into the second sample's
 // alpha, not into its transmittance) does not hide the sample from the cameras: a camera
 // identical to the pixel's sees what the ray stops at. The frustum test uses the sample itself.
@@ -259,8 +260,11 @@ fn transmittance(x: vec3<f32>, p: vec3<f32>, c: GpuCamera, frame: GpuCamera, flo
     var end = centre;
     var scale = 1.0;
     if in_ndc() {
-        // Clip at the NDC near plane z = -ndc_near (the camera centres lie behind it).
-        let zn = -params.ndc_near;
+        // Clip where the sampled range starts, the plane of NDC t = near: world z =
+        // -ndc_near / (1 - near), the NDC near plane itself for near 0 (the camera centres
+        // lie behind it). Nearer than that no training ray has a sample, so the field there
+        // is untrained.
+        let zn = -params.ndc_near / (1.0 - params.near);
         if centre.z > zn {
             let s = (zn - p.z) / (centre.z - p.z);
             end = p + s * (centre - p);

@@ -26,6 +26,14 @@ pub enum MetricsError {
     /// An image has no values.
     #[error("the images are empty")]
     Empty,
+    /// A pixel mask does not have one entry per RGB pixel.
+    #[error("a mask of {mask} pixels does not fit an RGB image of {len} values")]
+    MaskMismatch {
+        /// Values in the image.
+        len: usize,
+        /// Entries in the mask.
+        mask: usize,
+    },
     /// The values do not make an RGB image of the stated size.
     #[error("{len} values do not make a {width}x{height} RGB image ({} expected)", 3 * *width as u64 * *height as u64)]
     SizeMismatch {
@@ -136,6 +144,48 @@ pub fn psnr(a: &[f32], b: &[f32]) -> Result<f64> {
     })
 }
 
+/// Squared error summed over chosen pixels of any number of image pairs, for the PSNR of a
+/// region pooled over views (every value of a chosen pixel counts once).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PooledError {
+    /// Sum of squared differences.
+    pub sum: f64,
+    /// Values summed.
+    pub values: u64,
+}
+
+impl PooledError {
+    /// Adds the pixels `i` of RGB images `a` and `b` where `chosen[i]`.
+    pub fn add(&mut self, a: &[f32], b: &[f32], chosen: &[bool]) -> Result<()> {
+        check_pair(a, b)?;
+        if a.len() != 3 * chosen.len() {
+            return Err(MetricsError::MaskMismatch {
+                len: a.len(),
+                mask: chosen.len(),
+            });
+        }
+        for (i, _) in chosen.iter().enumerate().filter(|(_, &c)| c) {
+            for c in 0..3 {
+                self.sum += (a[3 * i + c] as f64 - b[3 * i + c] as f64).powi(2);
+            }
+            self.values += 3;
+        }
+        Ok(())
+    }
+
+    /// The PSNR of the pooled error (data range 1); `None` when no pixel was chosen.
+    pub fn psnr(&self) -> Option<f64> {
+        (self.values > 0).then(|| {
+            let mse = self.sum / self.values as f64;
+            if mse == 0.0 {
+                f64::INFINITY
+            } else {
+                -10.0 * mse.log10()
+            }
+        })
+    }
+}
+
 /// Window size of [`ssim`].
 pub const SSIM_WINDOW: usize = 11;
 const SSIM_SIGMA: f64 = 1.5;
@@ -221,6 +271,27 @@ mod tests {
                 (s >> 40) as f32 / (1u64 << 24) as f32
             })
             .collect()
+    }
+
+    #[test]
+    fn pooled_error_counts_only_chosen_pixels() {
+        let a = [0.0f32, 0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5];
+        let b = [0.1f32, 0.1, 0.1, 0.0, 0.0, 0.0, 0.5, 0.5, 0.5];
+        let mut e = PooledError::default();
+        assert_eq!(e.psnr(), None);
+        e.add(&a, &b, &[true, false, true]).unwrap();
+        // Squared error 0.01 in 3 of the 6 values chosen (the third pixel's are 0): 0.005.
+        let want = -10.0 * (3.0 * (0.1f32 as f64).powi(2) / 6.0).log10();
+        assert!((e.psnr().unwrap() - want).abs() < 1e-9);
+        e.add(&a, &a, &[true; 3]).unwrap();
+        assert_eq!(e.values, 15);
+        assert!(matches!(
+            e.add(&a, &b, &[true]),
+            Err(MetricsError::MaskMismatch { len: 9, mask: 1 })
+        ));
+        let mut same = PooledError::default();
+        same.add(&a, &a, &[true; 3]).unwrap();
+        assert_eq!(same.psnr(), Some(f64::INFINITY));
     }
 
     #[test]

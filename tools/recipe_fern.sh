@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# Issue 48's second deliverable: the training recipe on fern few-shot 17 at equal compute, that
+# is equal samples processed (steps x rays x samples per ray), so the machine's speed does not
+# enter. Each variant changes one setting of the defaults and trains for BUDGET million samples
+# (default 49.152: 6,000 steps of 256 x 32), evaluated 6 times along the way (tools/curve.sh),
+# then `eval --views all --lpips-nets alex` scores the held-out and the training views.
+# Results: results/curves/fern17/recipe_VARIANT_mBUDGET.* and recipe_mBUDGET.md (a table);
+# plots with tools/plot_curves.py fern17 ... --x samples.
+#
+# Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EXTRANERF_BIN=...] tools/recipe_fern.sh
+# Variants (the first word of each line below); `base` is the defaults.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
+[ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
+export EXTRANERF_BIN="$bin"
+budget="${BUDGET:-49.152}"
+# name | rays | samples | other flags
+variants="base 256 32
+s64 256 64
+s128 256 128
+r1024 1024 32
+r4096 4096 32
+lrend3e-4 256 32 --lr-end 3e-4
+lrend1e-3 256 32 --lr-end 1e-3
+lrconst1e-2 256 32 --lr-end 1e-2
+lr2e-2 256 32 --lr-start 2e-2
+lr3e-2 256 32 --lr-start 3e-2
+huber 256 32 --rgb-loss huber
+t19 256 32 --log2-table 19"
+only="${ONLY:-$(echo "$variants" | cut -d' ' -f1 | tr '\n' ' ')}"
+tag="m$budget"
+out=results/curves/fern17
+for v in $only; do
+    line=$(echo "$variants" | awk -v v="$v" '$1 == v')
+    [ -n "$line" ] || { echo "unknown variant $v" >&2; exit 2; }
+    read -r _ rays samples flags <<<"$line"
+    steps=$(python3 -c "print(round($budget * 1e6 / ($rays * $samples)))")
+    every=$(( (steps + 5) / 6 ))
+    name="recipe_${v}_$tag"
+    # shellcheck disable=SC2086 # the flags are words
+    tools/curve.sh fern17 "$name" "$every" --steps "$steps" --rays "$rays" --samples "$samples" $flags
+    "$bin" eval "runs/curve_fern17_$name" --views all --lpips-nets alex \
+        --out "$out/$name.metrics.json" 2>&1 | tail -1
+done
+python3 - "$out" "$tag" $only <<'PY'
+import json, sys
+out, tag, names = sys.argv[1], sys.argv[2], sys.argv[3:]
+rows = ["| variant | steps | rays x samples | held-out PSNR | SSIM | LPIPS-alex | training views PSNR | train s |",
+        "|---|---|---|---|---|---|---|---|"]
+for n in names:
+    base = f"{out}/recipe_{n}_{tag}"
+    try:
+        m = json.load(open(base + ".metrics.json"))
+    except FileNotFoundError:
+        continue
+    c = json.load(open(base + ".config.json"))["train"]
+    last = [json.loads(l) for l in open(base + ".jsonl") if l.strip()][-1]
+    t = m["test"]
+    rows.append(f"| {n} | {last['step']} | {c['rays']} x {c['samples']} | {t['psnr']:.2f} | {t['ssim']:.3f} | {t['lpips_alex']:.3f} | {m['train']['psnr']:.2f} | {last['train_seconds']:.0f} |")
+open(f"{out}/recipe_{tag}.md", "w").write("\n".join(rows) + "\n")
+print("\n".join(rows))
+PY
