@@ -704,6 +704,11 @@ pub struct EvalArgs {
     /// Also save the rendered test views as PNG into RUN/eval.
     #[arg(long)]
     save_images: bool,
+    /// A folder of visibility masks named as the views' images (`../shared/data/synth2/
+    /// gt_visibility`: image000.png, white where training views see the surface): each held-out
+    /// view that has one is also scored over its visible and its not-visible pixels.
+    #[arg(long, value_name = "DIR")]
+    visibility_masks: Option<PathBuf>,
     /// Which views: all (held-out and training), test, train, or indices such as 0,4,9.
     #[arg(long, default_value = "all")]
     views: ViewSet,
@@ -784,6 +789,32 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
             e.0.add(&r.rgb, &r.truth, &inside)?;
             e.1.add(&r.rgb, &r.truth, &outside)?;
         }
+        if let (Some(dir), "test") = (&a.visibility_masks, r.role) {
+            let stem = r.camera.image.file_stem().unwrap_or_default().to_owned();
+            let path = dir.join(stem).with_extension("png");
+            if path.exists() {
+                let mask = extranerf_nerf::data::load_image(&path)?;
+                if (mask.width, mask.height) != (r.width, r.height) {
+                    bail!(
+                        "{}: a {}x{} mask for a {}x{} view",
+                        path.display(),
+                        mask.width,
+                        mask.height,
+                        r.width,
+                        r.height
+                    );
+                }
+                let seen: Vec<bool> = mask.rgb.chunks(3).map(|c| c[0] > 0.5).collect();
+                let unseen: Vec<bool> = seen.iter().map(|&v| !v).collect();
+                for (key, chosen) in [("psnr_visible", &seen), ("psnr_not_visible", &unseen)] {
+                    let mut e = PooledError::default();
+                    e.add(&r.rgb, &r.truth, chosen)?;
+                    m[key] = e.psnr().into();
+                }
+                m["visible_fraction"] =
+                    (seen.iter().filter(|&&v| v).count() as f64 / seen.len() as f64).into();
+            }
+        }
         if r.role == "test" {
             m["ssim"] = ssim(&r.rgb, &r.truth, r.width, r.height)?.into();
             for (key, net) in &nets {
@@ -818,6 +849,9 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
             "ssim": mean("test", "ssim"),
             "lpips_alex": mean("test", "lpips_alex"),
             "lpips_vgg": mean("test", "lpips_vgg"),
+            // With --visibility-masks: the mean over the views that have a mask.
+            "psnr_visible": mean("test", "psnr_visible"),
+            "psnr_not_visible": mean("test", "psnr_not_visible"),
         },
         "train": {"psnr": mean("train", "psnr")},
         // NDC fields: PSNR of the (not transparent) pixels whose rendered point lies inside
@@ -1225,6 +1259,7 @@ pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
             samples: None,
             chunk: 8192,
             save_images: true,
+            visibility_masks: None,
             views: ViewSet::All,
             lpips_nets: nets,
             march: MarchArgs::default(),

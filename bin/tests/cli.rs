@@ -410,6 +410,58 @@ fn train_resume_render_eval_on_fern() {
         m["views"][0]["render_seconds"].as_f64().unwrap() > 0.0,
         "{m}"
     );
+    // Visibility masks named as the images: view 0 is scored over its left half (white) and
+    // its right half; a mask of another size is an error naming it.
+    let masks = dir.join("masks");
+    std::fs::create_dir_all(&masks).unwrap();
+    let mask = image::GrayImage::from_fn(504, 378, |x, _| {
+        image::Luma([if x < 252 { 255 } else { 0 }])
+    });
+    mask.save(masks.join("image000.png")).unwrap();
+    let eval_masked = |out: &str| {
+        extranerf(&[
+            "eval",
+            run_s,
+            "--views",
+            "0",
+            "--samples",
+            "4",
+            "--lpips-nets",
+            "alex",
+            "--lpips",
+            lpips.to_str().unwrap(),
+            "--visibility-masks",
+            masks.to_str().unwrap(),
+            "--out",
+            out,
+        ])
+    };
+    let masked_json = dir.join("masked.json");
+    let (ok, _, err) = eval_masked(masked_json.to_str().unwrap());
+    assert!(ok, "{err}");
+    let mm: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&masked_json).unwrap()).unwrap();
+    let v = &mm["views"][0];
+    assert_eq!(v["visible_fraction"].as_f64(), Some(0.5), "{v}");
+    // The halves' mean squared errors average to the whole view's.
+    let mse = |db: f64| 10f64.powf(-db / 10.0);
+    let (a, b) = (
+        v["psnr_visible"].as_f64().unwrap(),
+        v["psnr_not_visible"].as_f64().unwrap(),
+    );
+    assert!(
+        ((mse(a) + mse(b)) / 2.0 / mse(psnr) - 1.0).abs() < 1e-6,
+        "{v}"
+    );
+    assert_eq!(mm["test"]["psnr_visible"].as_f64(), Some(a), "{mm}");
+    image::GrayImage::new(10, 10)
+        .save(masks.join("image000.png"))
+        .unwrap();
+    let (ok, _, err) = eval_masked(masked_json.to_str().unwrap());
+    assert!(
+        !ok && err.contains("image000.png") && err.contains("10x10 mask"),
+        "{err}"
+    );
     // Visibility of a held-out view and of virtual cameras, and the training views' masks.
     let cams = dir.join("outward.json");
     let (ok, _, err) = extranerf(&[
