@@ -11,8 +11,10 @@
 #   The flags go to `extranerf train` after the scene's own (for example --budget 900, or
 #   --steps 3000 --rays 256). tools/curves.sh runs the committed set.
 set -euo pipefail
+# One brace group, read whole before it runs: editing this file during a run cannot change it.
+{
 cd "$(dirname "$0")/.."
-[ $# -ge 3 ] || { sed -n 2,13p "$0"; exit 2; }
+[ $# -ge 3 ] || { sed -n 2,15p "$0"; exit 2; }
 scene="$1"; name="$2"; every="$3"; shift 3
 data="${EXTRANERF_DATA:-../shared/data}"
 # EXTRANERF_BIN: a binary to use instead of building the release one.
@@ -21,13 +23,14 @@ bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
 case "$scene" in
     fern17) args=(--scene "$data/llff/fern" --split fewshot --fewshot-views 17) ;;
     fernx) args=(--scene "$data/llff/fern" --split extrapolation) ;;
+    synth2) args=(--scene "$data/synth2" --split extrapolation) ;;
     demo)
         # The demo writes its scene (ray traced in code) under runs/curve_demo_scene/scene.
         if [ ! -f runs/curve_demo_scene/scene/poses_bounds.npy ]; then
             "$bin" demo --out runs/curve_demo_scene --steps 1 >&2
         fi
         args=(--scene runs/curve_demo_scene/scene --split extrapolation --factor 1) ;;
-    *) echo "unknown scene $scene: use fern17, fernx or demo" >&2; exit 2 ;;
+    *) echo "unknown scene $scene: use fern17, fernx, synth2 or demo" >&2; exit 2 ;;
 esac
 run="runs/curve_${scene}_${name}"
 rm -rf "$run"
@@ -36,3 +39,5 @@ mkdir -p runs "results/curves/$scene"
 cp "$run/curve.jsonl" "results/curves/$scene/$name.jsonl"
 cp "$run/config.json" "results/curves/$scene/$name.config.json"
 cp "$run.log" "results/curves/$scene/$name.log"
+exit
+}

@@ -10,6 +10,8 @@
 # Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EXTRANERF_BIN=...] tools/recipe_fern.sh
 # Variants (the first word of each line below); `base` is the defaults.
 set -euo pipefail
+# One brace group, read whole before it runs: editing this file during a run cannot change it.
+{
 cd "$(dirname "$0")/.."
 bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
 [ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
@@ -61,3 +63,5 @@ for n in names:
 open(f"{out}/recipe_{tag}.md", "w").write("\n".join(rows) + "\n")
 print("\n".join(rows))
 PY
+exit
+}
