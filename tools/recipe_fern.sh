@@ -2,12 +2,14 @@
 # Issue 48's second deliverable: the training recipe on fern few-shot 17 at equal compute, that
 # is equal samples processed (steps x rays x samples per ray), so the machine's speed does not
 # enter. Each variant changes one setting of the defaults and trains for BUDGET million samples
-# (default 49.152: 6,000 steps of 256 x 32), evaluated 6 times along the way (tools/curve.sh),
-# then `eval --views all --lpips-nets alex` scores the held-out and the training views.
+# (default 49.152: 6,000 steps of 256 x 32), evaluated 6 times along the way (tools/curve.sh:
+# the held-out views' PSNR, SSIM, LPIPS-alex); the training rays' PSNR is that of the last 10
+# logged windows of 50 steps (RUN/progress.jsonl, copied beside the curve); EVAL=1 also runs
+# `eval --views all --lpips-nets alex` (the training views' PSNR; about 3.5 minutes a run).
 # Results: results/curves/fern17/recipe_VARIANT_mBUDGET.* and recipe_mBUDGET.md (a table);
 # plots with tools/plot_curves.py fern17 ... --x samples.
 #
-# Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EXTRANERF_BIN=...] tools/recipe_fern.sh
+# Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EVAL=1] [EXTRANERF_BIN=...] tools/recipe_fern.sh
 # Variants (the first word of each line below); `base` is the defaults.
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
@@ -42,26 +44,47 @@ for v in $only; do
     name="recipe_${v}_$tag"
     # shellcheck disable=SC2086 # the flags are words
     tools/curve.sh fern17 "$name" "$every" --steps "$steps" --rays "$rays" --samples "$samples" $flags
-    "$bin" eval "runs/curve_fern17_$name" --views all --lpips-nets alex \
-        --out "$out/$name.metrics.json" 2>&1 | tail -1
+    # The training rays' PSNR: the last 10 logged windows of 50 steps (RUN/progress.jsonl).
+    cp "runs/curve_fern17_$name/progress.jsonl" "$out/$name.progress.jsonl"
+    if [ "${EVAL:-0}" = 1 ]; then
+        "$bin" eval "runs/curve_fern17_$name" --views all --lpips-nets alex \
+            --out "$out/$name.metrics.json" 2>&1 | tail -1
+    fi
 done
 python3 - "$out" "$tag" $only <<'PY'
 import json, sys
 out, tag, names = sys.argv[1], sys.argv[2], sys.argv[3:]
-rows = ["| variant | steps | rays x samples | held-out PSNR | SSIM | LPIPS-alex | training views PSNR | train s |",
-        "|---|---|---|---|---|---|---|---|"]
+import math
+rows = ["| variant | steps | rays x samples | held-out PSNR | SSIM | LPIPS-alex | training rays PSNR (last 10 windows of 50 steps) | training views PSNR (EVAL=1) | train s |",
+        "|---|---|---|---|---|---|---|---|---|"]
 for n in names:
     base = f"{out}/recipe_{n}_{tag}"
     try:
-        m = json.load(open(base + ".metrics.json"))
+        c = json.load(open(base + ".config.json"))["train"]
     except FileNotFoundError:
         continue
-    c = json.load(open(base + ".config.json"))["train"]
     last = [json.loads(l) for l in open(base + ".jsonl") if l.strip()][-1]
-    t = m["test"]
-    rows.append(f"| {n} | {last['step']} | {c['rays']} x {c['samples']} | {t['psnr']:.2f} | {t['ssim']:.3f} | {t['lpips_alex']:.3f} | {m['train']['psnr']:.2f} | {last['train_seconds']:.0f} |")
+    prog = [json.loads(l) for l in open(base + ".progress.jsonl") if l.strip()][-10:]
+    rays = -10 * math.log10(sum(p["mse"] for p in prog) / len(prog))
+    try:
+        views = f"{json.load(open(base + '.metrics.json'))['train']['psnr']:.2f}"
+    except FileNotFoundError:
+        views = "-"
+    rows.append(f"| {n} | {last['step']} | {c['rays']} x {c['samples']} | {last['test_psnr']:.2f} | {last['test_ssim']:.3f} | {last['test_lpips_alex']:.3f} | {rays:.2f} | {views} | {last['train_seconds']:.0f} |")
 open(f"{out}/recipe_{tag}.md", "w").write("\n".join(rows) + "\n")
 print("\n".join(rows))
 PY
+# One plot per question against samples processed, for the questions whose curves all exist:
+# results/curves/fern17_recipe_QUESTION_mBUDGET.svg.
+for q in "samples:base s64 s128" "rays:base r1024 r4096" "lr_end:base lrend3e-4 lrend1e-3 lrconst1e-2" \
+         "lr_start:base lr2e-2 lr3e-2" "loss:base huber" "table:base t19"; do
+    names=()
+    for v in ${q#*:}; do
+        [ -f "$out/recipe_${v}_$tag.jsonl" ] && names+=("recipe_${v}_$tag")
+    done
+    [ "${#names[@]}" -gt 1 ] || continue
+    python3 tools/plot_curves.py fern17 "${names[@]}" --x samples \
+        --out "fern17_recipe_${q%%:*}_$tag" >/dev/null
+done
 exit
 }
