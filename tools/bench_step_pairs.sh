@@ -42,7 +42,7 @@ for r in $(seq "$rounds"); do
             echo "== round $r build $which rays $1 table 2^$2" | tee -a "$out/bench.txt"
             "$bin" bench train --step fused --rays "$1" --samples 32 --log2-table "$2" \
                 --steps 12 2>&1 \
-                | grep -E "^device:|fused step:|^fused step \(|^MLP weight|^adam" \
+                | grep -E "^device:|^fused step|^MLP weight|^adam" \
                 | tee -a "$out/bench.txt"
         done
         if [ -n "$run" ]; then
@@ -76,7 +76,7 @@ for line in open(path):
     if key is None:
         continue
     cur = runs[key][-1]
-    m = re.search(r"fused step: [\d.]+ ms wall per step.*?([\d.e+]+) samples/s", line)
+    m = re.search(r"^fused step[^:]*: [\d.]+ ms wall per step.*?([\d.e+]+) samples/s", line)
     if m:
         cur["samples/s"] = float(m.group(1))
     for stage, pat in [("fused kernel ms", r"^fused step \("), ("weight gradients ms", r"^MLP weight"),
