@@ -158,25 +158,18 @@ impl NdcExtent {
 /// The scene's depth range along the viewing axis: [`NEAR_MARGIN`] times the nearest camera's
 /// near bound to the farthest camera's far bound; `None` when no camera gives bounds.
 pub fn scene_depth_range(cameras: &[Camera]) -> Option<(f64, f64)> {
-    let near = cameras
-        .iter()
-        .filter_map(|c| c.bounds.map(|b| b.0))
-        .fold(f64::INFINITY, f64::min);
-    let far = cameras
-        .iter()
-        .filter_map(|c| c.bounds.map(|b| b.1))
-        .fold(0.0f64, f64::max);
-    (near.is_finite() && near > 0.0 && far > near).then_some((NEAR_MARGIN * near, far))
+    crate::data::depth_bounds(cameras).map(|(near, far)| (NEAR_MARGIN * near, far))
 }
 
-/// The rays through the four image corners of `cam` (pixel-corner coordinates), in NDC with
-/// near plane 1, as the kernels make them: origin and direction.
-fn ndc_corner_rays(cam: &Camera) -> [([f64; 3], [f64; 3]); 4] {
+/// The world rays through the four image corners of `cam` (pixel-corner coordinates).
+fn corner_rays(cam: &Camera) -> [(DVec3, DVec3); 4] {
     let (w, h) = (cam.width as f64, cam.height as f64);
-    [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)].map(|(x, y)| {
-        let (o, d) = cam.ray(x, y);
-        crate::reference::ndc_ray(cam, o.to_array(), d.to_array(), 1.0)
-    })
+    [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)].map(|(x, y)| cam.ray(x, y))
+}
+
+/// [`corner_rays`] in NDC with near plane 1, as the kernels make them: origin and direction.
+fn ndc_corner_rays(cam: &Camera) -> [([f64; 3], [f64; 3]); 4] {
+    corner_rays(cam).map(|(o, d)| crate::reference::ndc_ray(cam, o.to_array(), d.to_array(), 1.0))
 }
 
 /// Where the samples of a forward-facing scene lie in NDC. The t range runs from the nearest
@@ -201,9 +194,7 @@ pub fn ndc_extent(scene: &[Camera], extra: &[Camera], range: SampleRange) -> Ndc
                 // Each camera's own bounds (those of the points it sees); the scene's where it
                 // has none.
                 let (near, far) = c.bounds.map(|(n, f)| (NEAR_MARGIN * n, f)).unwrap_or(whole);
-                let (w, h) = (c.width as f64, c.height as f64);
-                for (x, y) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)] {
-                    let (o, d) = c.ray(x, y);
+                for (o, d) in corner_rays(c) {
                     // NDC t of world depth z (< 0, near plane z = -1): 1 + 1/z. Nearer than
                     // the near plane: 0; at or behind z = 0: infinity, 1.
                     let zn = (o + d * near).z;
@@ -277,24 +268,7 @@ const BOX_SLACK: f64 = 1.001;
 /// ball's surface, sampled between the cameras' bounds.
 pub fn model_covering(scene: &Scene, extra: &[Camera], fit: NdcFit) -> ModelConfig {
     if scene.forward_facing {
-        let e = ndc_extent(&scene.cameras, extra, fit.range);
-        let (centre, radius) = match fit.grid_box {
-            GridBox::Cameras => {
-                let (centre, half) = e.cube();
-                (centre, (half * BOX_SLACK).min(MAX_BOX_HALF))
-            }
-            GridBox::Unit => (DVec3::ZERO, 1.0),
-        };
-        let d = ModelConfig::default();
-        return ModelConfig {
-            near: e.t.0 as f32,
-            far: e.t.1 as f32,
-            center: centre.as_vec3().to_array(),
-            radius: radius as f32,
-            min_res: scaled_res(d.min_res, radius),
-            max_res: scaled_res(d.max_res, radius),
-            ..d
-        };
+        return ndc_model(scene, extra, fit).0;
     }
     let (centre, _) = rig_centre(&scene.cameras);
     let radius = scene
@@ -329,6 +303,29 @@ pub fn model_covering(scene: &Scene, extra: &[Camera], fit: NdcFit) -> ModelConf
         contraction: Contraction::L2,
         ..ModelConfig::default()
     }
+}
+
+/// [`model_covering`] of a forward-facing scene, with the extent it was fitted to.
+fn ndc_model(scene: &Scene, extra: &[Camera], fit: NdcFit) -> (ModelConfig, NdcExtent) {
+    let e = ndc_extent(&scene.cameras, extra, fit.range);
+    let (centre, radius) = match fit.grid_box {
+        GridBox::Cameras => {
+            let (centre, half) = e.cube();
+            (centre, (half * BOX_SLACK).min(MAX_BOX_HALF))
+        }
+        GridBox::Unit => (DVec3::ZERO, 1.0),
+    };
+    let d = ModelConfig::default();
+    let model = ModelConfig {
+        near: e.t.0 as f32,
+        far: e.t.1 as f32,
+        center: centre.as_vec3().to_array(),
+        radius: radius as f32,
+        min_res: scaled_res(d.min_res, radius),
+        max_res: scaled_res(d.max_res, radius),
+        ..d
+    };
+    (model, e)
 }
 
 /// [`model_covering`] with no extra cameras and the default fit.
@@ -371,7 +368,12 @@ pub fn auto_model_covering(
     extra: &[Camera],
     fit: NdcFit,
 ) -> AutoModel {
-    let mut model = model_covering(scene, extra, fit);
+    let (mut model, extent) = if scene.forward_facing {
+        let (m, e) = ndc_model(scene, extra, fit);
+        (m, Some(e))
+    } else {
+        (model_covering(scene, extra, fit), None)
+    };
     let mut reasons = Vec::new();
     let cams: Vec<&Camera> = train.iter().filter_map(|&i| scene.cameras.get(i)).collect();
     let cams: Vec<&Camera> = if cams.is_empty() {
@@ -384,11 +386,10 @@ pub fn auto_model_covering(
         .map(|c| c.width.max(c.height))
         .max()
         .unwrap_or(512);
-    let (max_res, cascades) = if scene.forward_facing {
+    let (max_res, cascades) = if let Some(e) = extent {
         reasons.push(
             "space: NDC (a forward-facing capture: the frustum, out to infinity, maps to a cube), no contraction".into(),
         );
-        let e = ndc_extent(&scene.cameras, extra, fit.range);
         reasons.push(format!(
             "samples: NDC t {:.3} to {:.3}, linear in disparity ({})",
             e.t.0,

@@ -156,19 +156,11 @@ fn look_at(p: DVec3, target: DVec3, up: DVec3) -> DMat4 {
 
 /// LLFF's focus depth: `1 / ((1 - 0.75) / near + 0.75 / far)` over the rig's bounds.
 fn focus_depth(train: &[Camera]) -> Result<f64, CameraError> {
-    let near = train
-        .iter()
-        .filter_map(|c| c.bounds.map(|b| b.0))
-        .fold(f64::INFINITY, f64::min);
-    let far = train
-        .iter()
-        .filter_map(|c| c.bounds.map(|b| b.1))
-        .fold(0.0, f64::max);
-    if !(near.is_finite() && near > 0.0 && far > near) {
-        return Err(CameraError(
+    let (near, far) = crate::data::depth_bounds(train).ok_or_else(|| {
+        CameraError(
             "a spiral needs the cameras' near/far bounds (LLFF poses_bounds.npy) to place its focus point".into(),
-        ));
-    }
+        )
+    })?;
     Ok(1.0 / (0.25 / near + 0.75 / far))
 }
 

@@ -151,6 +151,20 @@ impl Camera {
     }
 }
 
+/// The nearest near bound and the farthest far bound of `cameras` (those that give bounds);
+/// `None` when none does, or they do not satisfy 0 < near < far.
+pub fn depth_bounds(cameras: &[Camera]) -> Option<(f64, f64)> {
+    let near = cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.0))
+        .fold(f64::INFINITY, f64::min);
+    let far = cameras
+        .iter()
+        .filter_map(|c| c.bounds.map(|b| b.1))
+        .fold(0.0f64, f64::max);
+    (near.is_finite() && near > 0.0 && far > near).then_some((near, far))
+}
+
 /// A loaded scene: cameras in file order plus how the world was transformed on load.
 #[derive(Clone, Debug)]
 pub struct Scene {
