@@ -9,8 +9,16 @@
 # Results: results/curves/fern17/recipe_VARIANT_mBUDGET.* and recipe_mBUDGET.md (a table);
 # plots with tools/plot_curves.py fern17 ... --x samples.
 #
-# Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EVAL=1] [EXTRANERF_BIN=...] tools/recipe_fern.sh
-# Variants (the first word of each line below); `base` is the defaults.
+# Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EVAL=1] [TABLE_ONLY=1] [BASE_FROM=NAME]
+#        [EXTRANERF_BIN=...] tools/recipe_fern.sh
+# Variants (the first word of each line below); `base` is the defaults. The r1024_* variants ask
+# the learning-rate, loss and table questions again at 1,024 rays per step (the batch that
+# processes samples fastest here, tools/bench_recipe.sh).
+# TABLE_ONLY=1 trains nothing: it writes the table and plots of the ONLY variants already run.
+# BASE_FROM=NAME takes `base` from results/curves/fern17/NAME.* and runs/curve_fern17_NAME
+# (a curve that tools/curve.sh already ran with the same settings, for example
+# ndc_cameras_bounds_steps6000 of tools/ndc_fit_fern.sh) instead of training it again; its
+# config must match the defaults at this budget (checked) and the table says where it came from.
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
 {
@@ -32,11 +40,47 @@ lrconst1e-2 256 32 --lr-end 1e-2
 lr2e-2 256 32 --lr-start 2e-2
 lr3e-2 256 32 --lr-start 3e-2
 huber 256 32 --rgb-loss huber
-t19 256 32 --log2-table 19"
+t19 256 32 --log2-table 19
+r1024_lrend3e-4 1024 32 --lr-end 3e-4
+r1024_lrend1e-3 1024 32 --lr-end 1e-3
+r1024_lrconst1e-2 1024 32 --lr-end 1e-2
+r1024_lr2e-2 1024 32 --lr-start 2e-2
+r1024_lr3e-2 1024 32 --lr-start 3e-2
+r1024_huber 1024 32 --rgb-loss huber
+r1024_t19 1024 32 --log2-table 19"
 only="${ONLY:-$(echo "$variants" | cut -d' ' -f1 | tr '\n' ' ')}"
 tag="m$budget"
 out=results/curves/fern17
 for v in $only; do
+    [ "${TABLE_ONLY:-0}" = 1 ] && break
+    if [ "$v" = base ] && [ -n "${BASE_FROM:-}" ]; then
+        # The scene and model must be those of a variant trained here with the default table
+        # (the model depends on the scene only), the training settings the defaults.
+        python3 - "$out/$BASE_FROM.config.json" "$budget" "$out" "$tag" <<'PY'
+import glob, json, sys
+c = json.load(open(sys.argv[1]))
+t = c["train"]
+want = {"rays": 256, "samples": 32, "steps": round(float(sys.argv[2]) * 1e6 / 8192),
+        "lr_start": 0.01, "lr_end": 0.003, "rgb_loss": "l2"}
+bad = {k: (t[k], v) for k, v in want.items() if t[k] != v}
+if bad:
+    sys.exit(f"BASE_FROM {sys.argv[1]}: not the base training settings (found, wanted): {bad}")
+refs = [json.load(open(f)) for f in sorted(glob.glob(f"{sys.argv[3]}/recipe_*_{sys.argv[4]}.config.json"))
+        if "recipe_base_" not in f]
+refs = [r for r in refs if r["model"]["log2_table"] == 17]
+if not refs:
+    sys.exit("BASE_FROM: run a variant with the default table first (its model is the reference)")
+if (c["model"], c["scene"]) != (refs[0]["model"], refs[0]["scene"]):
+    sys.exit(f"BASE_FROM {sys.argv[1]}: its scene or model differs from this build's defaults: "
+             f"{c['model']} against {refs[0]['model']}")
+PY
+        for ext in jsonl config.json log; do
+            cp "$out/$BASE_FROM.$ext" "$out/recipe_base_$tag.$ext"
+        done
+        cp "runs/curve_fern17_$BASE_FROM/progress.jsonl" "$out/recipe_base_$tag.progress.jsonl"
+        echo "$BASE_FROM" > "$out/recipe_base_$tag.from"
+        continue
+    fi
     line=$(echo "$variants" | awk -v v="$v" '$1 == v')
     [ -n "$line" ] || { echo "unknown variant $v" >&2; exit 2; }
     read -r _ rays samples flags <<<"$line"
@@ -76,14 +120,21 @@ for n in names:
         views = f"{json.load(open(base + '.metrics.json'))['train']['psnr']:.2f}"
     except FileNotFoundError:
         views = "-"
-    rows.append(f"| {n} | {last['step']} | {c['rays']} x {c['samples']} | {last['test_psnr']:.2f} | {last['test_ssim']:.3f} | {last['test_lpips_alex']:.3f} | {rays:.2f} | {views} | {last['train_seconds']:.0f} |")
+    try:
+        n_shown = f"{n} (the run {open(base + '.from').read().strip()})"
+    except FileNotFoundError:
+        n_shown = n
+    rows.append(f"| {n_shown} | {last['step']} | {c['rays']} x {c['samples']} | {last['test_psnr']:.2f} | {last['test_ssim']:.3f} | {last['test_lpips_alex']:.3f} | {rays:.2f} | {views} | {last['train_seconds']:.0f} |")
 open(f"{out}/recipe_{tag}.md", "w").write("\n".join(rows) + "\n")
 print("\n".join(rows))
 PY
 # One plot per question against samples processed, for the questions whose curves all exist:
 # results/curves/fern17_recipe_QUESTION_mBUDGET.svg.
 for q in "samples:base s64 s128" "rays:base r1024 r2048 r4096" "lr_end:base lrend3e-4 lrend1e-3 lrconst1e-2" \
-         "lr_start:base lr2e-2 lr3e-2" "loss:base huber" "table:base t19"; do
+         "lr_start:base lr2e-2 lr3e-2" "loss:base huber" "table:base t19" \
+         "r1024_lr_end:r1024 r1024_lrend3e-4 r1024_lrend1e-3 r1024_lrconst1e-2" \
+         "r1024_lr_start:r1024 r1024_lr2e-2 r1024_lr3e-2" "r1024_loss:r1024 r1024_huber" \
+         "r1024_table:r1024 r1024_t19"; do
     names=()
     for v in ${q#*:}; do
         [ -f "$out/recipe_${v}_$tag.jsonl" ] && names+=("recipe_${v}_$tag")
