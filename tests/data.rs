@@ -732,7 +732,7 @@ fn bad_split_files_give_errors_naming_the_file() {
 /// about 13 of 32 fern samples outside the bounds.
 #[test]
 fn the_grid_box_holds_every_camera_and_samples_span_the_bounds() {
-    use extranerf_nerf::autoconfig::{auto_model_covering, scene_depth_range, NdcFit};
+    use extranerf_nerf::autoconfig::{auto_model_covering, scene_depth_range, GridBox, NdcFit};
     use extranerf_nerf::cameras::{virtual_cameras, Trajectory};
     use extranerf_nerf::reference::ndc_ray;
     for (name, dir) in [("fern", fern()), ("synth2", shared_data().join("synth2"))] {
@@ -827,6 +827,38 @@ fn the_grid_box_holds_every_camera_and_samples_span_the_bounds() {
                 32.0 * (1.0 - inside),
                 100.0 * outside_unit as f64 / pixels as f64
             );
+        }
+        // `--grid-box training`: the same range, a cube no larger holding every sample of the
+        // cameras trained on and of the virtual views.
+        let fit = NdcFit {
+            grid_box: GridBox::Training,
+            ..NdcFit::default()
+        };
+        let mt = auto_model_covering(&scene, &train, &virt, fit).model;
+        mt.validate().unwrap();
+        assert_eq!((mt.near, mt.far), (m.near, m.far), "{name}");
+        assert!(
+            mt.radius <= m.radius,
+            "{name}: {} > {}",
+            mt.radius,
+            m.radius
+        );
+        let centre_t = DVec3::from(mt.center.map(f64::from));
+        for (k, c) in train_cams.iter().chain(&virt).enumerate() {
+            for py in 0..=c.height {
+                for px in 0..=c.width {
+                    let (o, d) = c.ray(px as f64, py as f64);
+                    let (no, nd) = ndc_ray(c, o.to_array(), d.to_array(), 1.0);
+                    for s in [t0, t1] {
+                        let p = DVec3::from(no) + DVec3::from(nd) * s;
+                        let off = (p - centre_t).abs().max_element();
+                        assert!(
+                            off <= mt.radius as f64,
+                            "{name} training/virtual camera {k}: {p}"
+                        );
+                    }
+                }
+            }
         }
     }
 }

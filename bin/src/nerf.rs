@@ -103,8 +103,10 @@ pub struct TrainArgs {
     #[arg(long)]
     seed: Option<u64>,
     /// NDC scenes: the hash grid's box. cameras: the cube holding every sample of every
-    /// camera, at the unit cube's cell size; unit: NDC's unit cube, where samples outside take
-    /// a face's features (the model before 2026-12, for comparisons) [default: cameras].
+    /// camera, at the unit cube's cell size; training: the same for the cameras trained on
+    /// only (held-out views' samples beyond it take a face's features); unit: NDC's unit cube,
+    /// where samples outside take a face's features (the model before 2026-12, for
+    /// comparisons) [default: cameras].
     #[arg(long, value_enum, value_name = "BOX")]
     grid_box: Option<GridBox>,
     /// NDC scenes: the sampled range of NDC t. bounds: between the cameras' depth bounds (0.9 x
@@ -323,7 +325,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             }
             choice.model
         } else {
-            model_covering(&loaded.scene, &[], fit)
+            model_covering(&loaded.scene, &loaded.split.train, &[], fit)
         };
         apply(&mut model.log2_table, a.log2_table);
         apply(&mut model.levels, a.levels);

@@ -108,6 +108,9 @@ pub enum GridBox {
     /// scaled to keep the unit cube's cell size.
     #[default]
     Cameras,
+    /// The cube that holds every sample of the cameras trained on and of the virtual views,
+    /// scaled in the same way; a held-out view's samples beyond it take a face's features.
+    Training,
     /// NDC's unit cube [-1, 1]^3 (before 2026-12: what lies outside takes a face's features).
     Unit,
 }
@@ -176,13 +179,18 @@ fn ndc_corner_rays(cam: &Camera) -> [([f64; 3], [f64; 3]); 4] {
 /// point at [`NEAR_MARGIN`] times a camera's near bound to the farthest at a camera's far bound
 /// (each camera's own bounds, over its image corners: depth along its axis is affine across
 /// the image, so the corners bound it); 0 to 1 (the near plane to infinity) when no camera
-/// gives bounds. The box holds the samples of every camera of `scene` and of `extra` (virtual
-/// views): NDC positions are affine in t along a ray, and at a given t (a plane of world z)
+/// gives bounds. The box holds the samples of the cameras of `scene` that `boxed` lists (indices;
+/// all of them when `None`) and of `extra` (virtual views): NDC positions are affine in t along a ray, and at a given t (a plane of world z)
 /// the image maps projectively onto a convex quad whose vertices are the corner rays' points
 /// (for rays that run toward -z, as a forward-facing camera's do), so the corner rays at both
 /// ends of the range bound them. A corner ray that never reaches the plane has no NDC point
 /// and is left out; [`MAX_BOX_HALF`] caps what such views would do to the box.
-pub fn ndc_extent(scene: &[Camera], extra: &[Camera], range: SampleRange) -> NdcExtent {
+pub fn ndc_extent(
+    scene: &[Camera],
+    boxed: Option<&[usize]>,
+    extra: &[Camera],
+    range: SampleRange,
+) -> NdcExtent {
     let bounds = match range {
         SampleRange::Bounds => scene_depth_range(scene),
         SampleRange::Full => None,
@@ -216,7 +224,11 @@ pub fn ndc_extent(scene: &[Camera], extra: &[Camera], range: SampleRange) -> Ndc
         None => (0.0, 1.0),
     };
     let (mut min, mut max) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-    for c in scene.iter().chain(extra) {
+    let held: Vec<&Camera> = match boxed {
+        Some(ix) => ix.iter().filter_map(|&i| scene.get(i)).collect(),
+        None => scene.iter().collect(),
+    };
+    for c in held.into_iter().chain(extra) {
         for (o, d) in ndc_corner_rays(c) {
             for s in [t.0, t.1] {
                 let p = DVec3::from(o) + DVec3::from(d) * s;
@@ -261,14 +273,20 @@ pub const MAX_BOX_HALF: f64 = 4.0;
 const BOX_SLACK: f64 = 1.001;
 
 /// The model configuration a scene needs: NDC for forward-facing captures, sampled between the
-/// scene's bounds, its grid box the cube that holds every sample of the scene's cameras and of
-/// `extra` ([`ndc_extent`]), with the default grid's resolutions scaled by the cube's half side
+/// scene's bounds, its grid box the cube that holds every sample of the scene's cameras (of
+/// those trained on, `train`, with [`GridBox::Training`]; all of them when `train` is empty)
+/// and of `extra` ([`ndc_extent`]), with the default grid's resolutions scaled by the cube's half side
 /// (the same cell size as over NDC's unit cube); otherwise world space with the L2
 /// contraction around the rig's centre ([`rig_centre`]) with the farthest camera on the inner
 /// ball's surface, sampled between the cameras' bounds.
-pub fn model_covering(scene: &Scene, extra: &[Camera], fit: NdcFit) -> ModelConfig {
+pub fn model_covering(
+    scene: &Scene,
+    train: &[usize],
+    extra: &[Camera],
+    fit: NdcFit,
+) -> ModelConfig {
     if scene.forward_facing {
-        return ndc_model(scene, extra, fit).0;
+        return ndc_model(scene, train, extra, fit).0;
     }
     let (centre, _) = rig_centre(&scene.cameras);
     let radius = scene
@@ -306,10 +324,16 @@ pub fn model_covering(scene: &Scene, extra: &[Camera], fit: NdcFit) -> ModelConf
 }
 
 /// [`model_covering`] of a forward-facing scene, with the extent it was fitted to.
-fn ndc_model(scene: &Scene, extra: &[Camera], fit: NdcFit) -> (ModelConfig, NdcExtent) {
-    let e = ndc_extent(&scene.cameras, extra, fit.range);
+fn ndc_model(
+    scene: &Scene,
+    train: &[usize],
+    extra: &[Camera],
+    fit: NdcFit,
+) -> (ModelConfig, NdcExtent) {
+    let boxed = (fit.grid_box == GridBox::Training && !train.is_empty()).then_some(train);
+    let e = ndc_extent(&scene.cameras, boxed, extra, fit.range);
     let (centre, radius) = match fit.grid_box {
-        GridBox::Cameras => {
+        GridBox::Cameras | GridBox::Training => {
             let (centre, half) = e.cube();
             (centre, (half * BOX_SLACK).min(MAX_BOX_HALF))
         }
@@ -330,7 +354,7 @@ fn ndc_model(scene: &Scene, extra: &[Camera], fit: NdcFit) -> (ModelConfig, NdcE
 
 /// [`model_covering`] with no extra cameras and the default fit.
 pub fn model_for_scene(scene: &Scene) -> ModelConfig {
-    model_covering(scene, &[], NdcFit::default())
+    model_covering(scene, &[], &[], NdcFit::default())
 }
 
 /// A resolution over NDC's unit cube, for a cube of half side `radius` at the same cell size.
@@ -369,10 +393,10 @@ pub fn auto_model_covering(
     fit: NdcFit,
 ) -> AutoModel {
     let (mut model, extent) = if scene.forward_facing {
-        let (m, e) = ndc_model(scene, extra, fit);
+        let (m, e) = ndc_model(scene, train, extra, fit);
         (m, Some(e))
     } else {
-        (model_covering(scene, extra, fit), None)
+        (model_covering(scene, train, extra, fit), None)
     };
     let mut reasons = Vec::new();
     let cams: Vec<&Camera> = train.iter().filter_map(|&i| scene.cameras.get(i)).collect();
@@ -404,8 +428,12 @@ pub fn auto_model_covering(
             }
         ));
         let what = format!(
-            "the scene's {} cameras{} (x {:.3}..{:.3}, y {:.3}..{:.3}, z {:.3}..{:.3})",
-            scene.cameras.len(),
+            "{}{} (x {:.3}..{:.3}, y {:.3}..{:.3}, z {:.3}..{:.3})",
+            if fit.grid_box == GridBox::Training && !train.is_empty() {
+                format!("the {} training cameras", train.len())
+            } else {
+                format!("the scene's {} cameras", scene.cameras.len())
+            },
             if extra.is_empty() {
                 String::new()
             } else {
@@ -419,11 +447,11 @@ pub fn auto_model_covering(
             e.max.z
         );
         reasons.push(match fit.grid_box {
-            GridBox::Cameras if model.radius as f64 >= MAX_BOX_HALF => format!(
+            GridBox::Cameras | GridBox::Training if model.radius as f64 >= MAX_BOX_HALF => format!(
                 "grid box: centre {:?}, half side {:.3}: capped, it does not hold every sample of {what}",
                 model.center, model.radius
             ),
-            GridBox::Cameras => format!(
+            GridBox::Cameras | GridBox::Training => format!(
                 "grid box: centre {:?}, half side {:.3}, holding every sample of {what}",
                 model.center, model.radius
             ),
@@ -632,7 +660,7 @@ mod tests {
     fn a_centred_camera_samples_between_its_bounds_in_the_unit_square() {
         let mut c = cam(0.0, 400, 300.0);
         c.bounds = Some((2.0, 8.0));
-        let e = ndc_extent(std::slice::from_ref(&c), &[], SampleRange::Bounds);
+        let e = ndc_extent(std::slice::from_ref(&c), None, &[], SampleRange::Bounds);
         let (t0, t1) = (1.0 - 1.0 / 1.8, 1.0 - 1.0 / 8.0);
         assert!(
             (e.t.0 - t0).abs() < 1e-12 && (e.t.1 - t1).abs() < 1e-12,
@@ -656,11 +684,11 @@ mod tests {
         // Without bounds: the near plane to infinity.
         c.bounds = None;
         assert_eq!(
-            ndc_extent(&[c.clone()], &[], SampleRange::Bounds).t,
+            ndc_extent(&[c.clone()], None, &[], SampleRange::Bounds).t,
             (0.0, 1.0)
         );
         c.bounds = Some((2.0, 8.0));
-        assert_eq!(ndc_extent(&[c], &[], SampleRange::Full).t, (0.0, 1.0));
+        assert_eq!(ndc_extent(&[c], None, &[], SampleRange::Full).t, (0.0, 1.0));
     }
 
     /// A camera moved 0.5 right of the NDC axis sees, on the near plane (t = 0), NDC x =
@@ -712,7 +740,7 @@ mod tests {
                 c
             })
             .collect();
-        let e = ndc_extent(&cams, &virt, SampleRange::Bounds);
+        let e = ndc_extent(&cams, None, &virt, SampleRange::Bounds);
         // Depth 0.9 x 1.5 and 11 along an unturned axis would be t 0.26 and 0.91; the turned
         // corners reach nearer and farther.
         assert!(e.t.0 > 0.0 && e.t.0 < 0.26, "{:?}", e.t);
@@ -751,6 +779,32 @@ mod tests {
         // none nearer than the nearest near-bound point, none beyond the farthest far one.
         assert!((e.t.0 - scene_t.0).abs() < 1e-12, "{:?} {scene_t:?}", e.t);
         assert!((e.t.1 - scene_t.1).abs() < 1e-12, "{:?} {scene_t:?}", e.t);
+        // The box of the cameras trained on (0, 2, 4) and the virtual views (now 6..9): the
+        // same range, a cube no larger that holds their samples.
+        let trained = [0, 2, 4];
+        let et = ndc_extent(&cams[..6], Some(&trained), &cams[6..], SampleRange::Bounds);
+        assert_eq!(et.t, e.t);
+        let (centre_t, half_t) = et.cube();
+        assert!(half_t <= half, "{half_t} > {half}");
+        for (k, c) in cams.iter().enumerate() {
+            if k < 6 && !trained.contains(&k) {
+                continue;
+            }
+            for (px, py) in [
+                (0, 0),
+                (c.width, 0),
+                (0, c.height),
+                (c.width / 2, c.height / 3),
+            ] {
+                let (o, d) = c.ray(px as f64, py as f64);
+                let (no, nd) = crate::reference::ndc_ray(c, o.to_array(), d.to_array(), 1.0);
+                for s in [e.t.0, 0.5 * (e.t.0 + e.t.1), e.t.1] {
+                    let p = DVec3::from(no) + DVec3::from(nd) * s;
+                    let off = (p - centre_t).abs().max_element();
+                    assert!(off <= half_t * (1.0 + 1e-9), "camera {k} t {s}: {p}");
+                }
+            }
+        }
     }
 
     /// A camera at `eye` looking at `target` (OpenGL convention: it looks down -z).
