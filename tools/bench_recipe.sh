@@ -34,9 +34,10 @@ mkdir -p "$out"
 : > "$out/bench.txt"
 for r in $(seq "$rounds"); do
     while read -r name rays samples table; do
-        # About the same samples per timed run: 12 steps of 8192 samples, fewer of more.
-        steps=$(( 12 * 8192 / (rays * samples) ))
-        [ "$steps" -ge 3 ] || steps=3
+        # About the same samples per timed run: 48 steps of 8192 samples, fewer of more (at
+        # least 12: a few steps of a large batch measured 1.1-1.4x apart from round to round).
+        steps=$(( 48 * 8192 / (rays * samples) ))
+        [ "$steps" -ge 12 ] || steps=12
         echo "== round $r setting $name rays $rays samples $samples table 2^$table" | tee -a "$out/bench.txt"
         "$bin" bench train --step fused --rays "$rays" --samples "$samples" --log2-table "$table" \
             --levels 10 --max-res 687 --steps "$steps" 2>&1 \
