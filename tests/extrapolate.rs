@@ -203,6 +203,8 @@ fn small_base(
         train: TrainConfig {
             steps: 300,
             decay_steps: 300,
+            // The batch this test's thresholds were set with (the default is now 1024).
+            rays: 256,
             samples: 16,
             ..TrainConfig::default()
         },

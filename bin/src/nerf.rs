@@ -58,7 +58,7 @@ pub struct TrainArgs {
     /// --steps wins.
     #[arg(long, value_name = "SECONDS")]
     budget: Option<f64>,
-    /// Rays per step [default: 256].
+    /// Rays per step [default: 1024].
     #[arg(long)]
     rays: Option<u32>,
     /// Samples per ray [default: 32].

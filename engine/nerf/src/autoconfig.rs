@@ -541,14 +541,17 @@ pub fn auto_model_covering(
         "levels {levels}: N {min_res}..{} with growth {b:.2} per level (aim {GROWTH}){rounded}",
         model.max_res
     ));
-    // Surfaces are 2-D: about N^2 / 2 occupied cells at the finest level. In NDC the surfaces
-    // the cameras see span about the image, not the box around every camera's frustum.
+    // Surfaces are 2-D: N^2 cells at the finest level for each layer of surface across the
+    // image, and a scene has a few layers (fern's leaves). In NDC the surfaces the cameras see
+    // span about the image, not the box around every camera's frustum. 2 N^2 entries: on fern
+    // few-shot 17 at 1024 rays per step 2^19 fitted better than N^2/2 = 2^17 per sample
+    // (+0.21 dB at 49 M samples) and per second (tools/recipe_fern.sh, tools/bench_recipe.sh).
     let surface_res = (model.max_res as f64 / box_scale).round() as u64;
-    let want = (surface_res * surface_res / 2).max(1);
+    let want = (2 * surface_res * surface_res).max(1);
     let log2 = (64 - (want - 1).leading_zeros()).clamp(14, 19);
     model.log2_table = log2;
     reasons.push(format!(
-        "table 2^{log2}: about N^2/2 = {want} surface cells at the finest level, N = {surface_res} across the image (clamped to 2^14..2^19)"
+        "table 2^{log2}: 2 N^2 = {want} entries, a few layers of surface cells at the finest level, N = {surface_res} across the image (clamped to 2^14..2^19)"
     ));
     AutoModel {
         model,
@@ -601,7 +604,8 @@ mod tests {
         assert_eq!(a.model.max_res, (512.0 * r).round() as u32);
         assert_eq!(a.model.min_res, (16.0 * r).round() as u32);
         assert_eq!(a.model.levels, 10);
-        assert_eq!(a.model.log2_table, 17);
+        // 2 x 512^2 entries.
+        assert_eq!(a.model.log2_table, 19);
         assert_eq!(a.cascades, 1);
         assert!(a.model.validate().is_ok());
         assert_eq!(a.reasons.len(), 7, "{:?}", a.reasons);
@@ -617,7 +621,7 @@ mod tests {
         );
         assert_eq!(
             (old.min_res, old.max_res, old.levels, old.log2_table),
-            (16, 512, 10, 17)
+            (16, 512, 10, 19)
         );
         // A 4x larger image needs a 4x finer grid.
         let big = Scene {

@@ -152,10 +152,11 @@ impl Default for TrainConfig {
     fn default() -> Self {
         TrainConfig {
             steps: 5000,
-            // Measured on fern few-shot 17 (results/curves/README.md): 256 rays x 32 samples
-            // beat 128 x 64 and 512 x 16 at the same samples per step, and at a time budget
-            // more steps of a smaller batch beat fewer of 1024 rays.
-            rays: 256,
+            // Measured on fern few-shot 17 at equal samples processed (results/curves/README.md,
+            // tools/recipe_fern.sh): 1024 x 32 fits within 0.1 dB of 256 x 32, and on lavapipe
+            // processes samples faster (tools/bench_recipe.sh); 2048 rays, or 128 samples per
+            // ray, fit worse.
+            rays: 1024,
             samples: 32,
             rgb_loss: RgbLossKind::L2,
             huber_delta: 0.1,
