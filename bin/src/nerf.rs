@@ -52,10 +52,10 @@ pub struct TrainArgs {
     #[arg(long)]
     no_auto: bool,
     /// Training time budget in seconds (held-out evaluations not counted): a 20-step probe
-    /// measures samples/s and sets the steps that fit (at most 50000; when fewer than 3.3 M samples
-    /// fit, 400 steps of 256 x 32, the table and levels are reduced first), and the steps and the learning-rate schedule are
-    /// re-fitted to the clock as the run goes, so it ends when the budget is spent. Explicit
-    /// --steps wins.
+    /// measures samples/s and sets the steps that fit (at most 50000; when fewer than 3.3 M
+    /// samples fit, 400 steps of 256 x 32, the table and levels are reduced first), and the
+    /// steps and the learning-rate schedule are re-fitted to the clock as the run goes, so it
+    /// ends when the budget is spent. Explicit --steps wins.
     #[arg(long, value_name = "SECONDS")]
     budget: Option<f64>,
     /// Rays per step [default: 1024].

@@ -179,11 +179,11 @@ fn ndc_corner_rays(cam: &Camera) -> [([f64; 3], [f64; 3]); 4] {
 /// point at [`NEAR_MARGIN`] times a camera's near bound to the farthest at a camera's far bound
 /// (each camera's own bounds, over its image corners: depth along its axis is affine across
 /// the image, so the corners bound it); 0 to 1 (the near plane to infinity) when no camera
-/// gives bounds. The box holds the samples of the cameras of `scene` that `boxed` lists (indices;
-/// all of them when `None`) and of `extra` (virtual views): NDC positions are affine in t along a ray, and at a given t (a plane of world z)
-/// the image maps projectively onto a convex quad whose vertices are the corner rays' points
-/// (for rays that run toward -z, as a forward-facing camera's do), so the corner rays at both
-/// ends of the range bound them. A corner ray that never reaches the plane has no NDC point
+/// gives bounds. The box holds the samples of the cameras of `scene` that `boxed` lists
+/// (indices; all of them when `None`) and of `extra` (virtual views): NDC positions are affine
+/// in t along a ray, and at a given t (a plane of world z) the image maps projectively onto a
+/// convex quad whose vertices are the corner rays' points (for rays that run toward -z, as a
+/// forward-facing camera's do), so the corner rays at both ends of the range bound them. A corner ray that never reaches the plane has no NDC point
 /// and is left out; [`MAX_BOX_HALF`] caps what such views would do to the box.
 pub fn ndc_extent(
     scene: &[Camera],
@@ -275,8 +275,8 @@ const BOX_SLACK: f64 = 1.001;
 /// The model configuration a scene needs: NDC for forward-facing captures, sampled between the
 /// scene's bounds, its grid box the cube that holds every sample of the scene's cameras (of
 /// those trained on, `train`, with [`GridBox::Training`]; all of them when `train` is empty)
-/// and of `extra` ([`ndc_extent`]), with the default grid's resolutions scaled by the cube's half side
-/// (the same cell size as over NDC's unit cube); otherwise world space with the L2
+/// and of `extra` ([`ndc_extent`]), with the default grid's resolutions scaled by the cube's
+/// half side (the same cell size as over NDC's unit cube); otherwise world space with the L2
 /// contraction around the rig's centre ([`rig_centre`]) with the farthest camera on the inner
 /// ball's surface, sampled between the cameras' bounds.
 pub fn model_covering(
@@ -323,6 +323,12 @@ pub fn model_covering(
     }
 }
 
+/// The scene cameras (indices) an NDC box holds, all of them when `None`: those trained on
+/// with [`GridBox::Training`] (all when `train` is empty).
+fn boxed_cameras(fit: NdcFit, train: &[usize]) -> Option<&[usize]> {
+    (fit.grid_box == GridBox::Training && !train.is_empty()).then_some(train)
+}
+
 /// [`model_covering`] of a forward-facing scene, with the extent it was fitted to.
 fn ndc_model(
     scene: &Scene,
@@ -330,8 +336,7 @@ fn ndc_model(
     extra: &[Camera],
     fit: NdcFit,
 ) -> (ModelConfig, NdcExtent) {
-    let boxed = (fit.grid_box == GridBox::Training && !train.is_empty()).then_some(train);
-    let e = ndc_extent(&scene.cameras, boxed, extra, fit.range);
+    let e = ndc_extent(&scene.cameras, boxed_cameras(fit, train), extra, fit.range);
     let (centre, radius) = match fit.grid_box {
         GridBox::Cameras | GridBox::Training => {
             let (centre, half) = e.cube();
@@ -429,10 +434,9 @@ pub fn auto_model_covering(
         ));
         let what = format!(
             "{}{} (x {:.3}..{:.3}, y {:.3}..{:.3}, z {:.3}..{:.3})",
-            if fit.grid_box == GridBox::Training && !train.is_empty() {
-                format!("the {} training cameras", train.len())
-            } else {
-                format!("the scene's {} cameras", scene.cameras.len())
+            match boxed_cameras(fit, train) {
+                Some(t) => format!("the {} training cameras", t.len()),
+                None => format!("the scene's {} cameras", scene.cameras.len()),
             },
             if extra.is_empty() {
                 String::new()
