@@ -430,13 +430,60 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     assert!(e4.contains("visibility.settings.threshold"), "{e4}");
 
     // `eval` on the run: a row per variant.
-    let t = extranerf_extrapolate::eval::compare(&a, None, None, &mut Record::default()).unwrap();
+    let t =
+        extranerf_extrapolate::eval::compare(&a, None, None, None, &mut Record::default()).unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic"]);
     assert!(t
         .rows
         .iter()
         .all(|r| r.psnr.is_finite() && r.psnr_visible.is_some()));
+    assert!(t.truth_masks.is_none() && t.rows[0].psnr_not_visible_exact.is_none());
+    // With the scene's exact visibility: both regions scored for every variant, the masks'
+    // share as the generator's own visibility gives it.
+    let gt = scene_dir.join(extranerf_nerf::demo::GT_VISIBILITY_DIR);
+    let t = extranerf_extrapolate::eval::compare(&a, None, None, Some(&gt), &mut Record::default())
+        .unwrap();
+    let m = t.truth_masks.as_ref().unwrap();
+    assert_eq!(m.views, (6..14).collect::<Vec<_>>());
+    let unseen: f64 = (6..14)
+        .map(|i| {
+            let s = extranerf_nerf::demo::demo_seen(i, 48, 36, 2);
+            s.iter().filter(|&&v| !v).count() as f64 / s.len() as f64
+        })
+        .sum::<f64>()
+        / 8.0;
+    assert!(
+        (m.not_visible_fraction - unseen).abs() < 1e-9,
+        "{m:?} against {unseen}"
+    );
+    assert!(unseen > 0.01 && unseen < 0.99, "{unseen}");
+    assert!(t
+        .rows
+        .iter()
+        .all(|r| r.psnr_not_visible_exact.is_some_and(f64::is_finite)
+            && r.psnr_visible_exact.is_some_and(f64::is_finite)));
+    assert!(t.markdown().contains("PSNR not visible (exact)"));
+    // A folder that is missing, or holds no mask of a held-out view, or a mask of the wrong
+    // size: clear errors naming it.
+    let e = |d: &Path| {
+        format!(
+            "{:#}",
+            extranerf_extrapolate::eval::compare(&a, None, None, Some(d), &mut Record::default())
+                .unwrap_err()
+        )
+    };
+    let missing = dir.join("no-such-masks");
+    assert!(e(&missing).contains("no such folder"), "{}", e(&missing));
+    let empty = dir.join("empty-masks");
+    std::fs::create_dir_all(&empty).unwrap();
+    assert!(e(&empty).contains("view_06.png"), "{}", e(&empty));
+    extranerf_nerf::run::write_png(&empty.join("view_06.png"), 8, 8, &[1.0; 8 * 8 * 3]).unwrap();
+    assert!(
+        e(&empty).contains("a 8x8 visibility mask for a 48x36 view"),
+        "{}",
+        e(&empty)
+    );
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -790,7 +837,8 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     };
     let kid = extranerf_extrapolate::eval::KidEval { net: &net, spec };
     let t =
-        extranerf_extrapolate::eval::compare(&a, None, Some(&kid), &mut Record::default()).unwrap();
+        extranerf_extrapolate::eval::compare(&a, None, Some(&kid), None, &mut Record::default())
+            .unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic", "stage3-harmonic"]);
     assert!(t.notes.is_empty(), "{:?}", t.notes);
@@ -863,8 +911,8 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     let outcome = |report: &serde_json::Value, notes: &[String], check: &EnhancerCheck| {
         assert_eq!(report["check"], serde_json::to_value(check).unwrap());
         let stage3 = g.join("stage3-harmonic");
-        let t =
-            extranerf_extrapolate::eval::compare(&g, None, None, &mut Record::default()).unwrap();
+        let t = extranerf_extrapolate::eval::compare(&g, None, None, None, &mut Record::default())
+            .unwrap();
         let row = |v: &str| t.rows.iter().find(|r| r.variant == v).unwrap().psnr;
         if check.helps() {
             assert!(report["skipped"].is_null(), "{report}");

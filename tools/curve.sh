@@ -25,9 +25,9 @@ case "$scene" in
     fernx) args=(--scene "$data/llff/fern" --split extrapolation) ;;
     synth2) args=(--scene "$data/synth2" --split extrapolation) ;;
     demo)
-        # The demo writes its scene (ray traced in code) under runs/curve_demo_scene/scene.
+        # The demo writes its scene (ray traced in code, 96x72) under runs/curve_demo_scene/scene.
         if [ ! -f runs/curve_demo_scene/scene/poses_bounds.npy ]; then
-            "$bin" demo --out runs/curve_demo_scene --steps 1 >&2
+            "$bin" demo --out runs/curve_demo_scene --width 96 --stop-after scene >&2
         fi
         args=(--scene runs/curve_demo_scene/scene --split extrapolation --factor 1) ;;
     *) echo "unknown scene $scene: use fern17, fernx, synth2 or demo" >&2; exit 2 ;;

@@ -11,14 +11,16 @@
 #
 # Usage: [BUDGET=49.152] [ONLY="base s64 ..."] [EVAL=1] [TABLE_ONLY=1] [BASE_FROM=NAME]
 #        [EXTRANERF_BIN=...] tools/recipe_fern.sh
-# Variants (the first word of each line below); `base` is the defaults. The r1024_* variants ask
+# Variants (the first word of each line below); `base` is the recipe before issue 48's new defaults
+# (256 x 32, a 2^17 table, which every variant names so that it does not depend on this build's
+# auto-config), and each variant changes one setting of it. The r1024_* variants ask
 # the learning-rate, loss and table questions again at 1,024 rays per step (the batch that
 # processes samples fastest here, tools/bench_recipe.sh).
 # TABLE_ONLY=1 trains nothing: it writes the table and plots of the ONLY variants already run.
 # BASE_FROM=NAME takes `base` from results/curves/fern17/NAME.* and runs/curve_fern17_NAME
 # (a curve that tools/curve.sh already ran with the same settings, for example
 # ndc_cameras_bounds_steps6000 of tools/ndc_fit_fern.sh) instead of training it again; its
-# config must match the defaults at this budget (checked) and the table says where it came from.
+# config must match `base` at this budget (checked) and the table says where it came from.
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
 {
@@ -28,25 +30,25 @@ bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
 export EXTRANERF_BIN="$bin"
 budget="${BUDGET:-49.152}"
 # name | rays | samples | other flags
-variants="base 256 32
-s64 256 64
-s128 256 128
-r1024 1024 32
-r2048 2048 32
-r4096 4096 32
-lrend3e-4 256 32 --lr-end 3e-4
-lrend1e-3 256 32 --lr-end 1e-3
-lrconst1e-2 256 32 --lr-end 1e-2
-lr2e-2 256 32 --lr-start 2e-2
-lr3e-2 256 32 --lr-start 3e-2
-huber 256 32 --rgb-loss huber
+variants="base 256 32 --log2-table 17
+s64 256 64 --log2-table 17
+s128 256 128 --log2-table 17
+r1024 1024 32 --log2-table 17
+r2048 2048 32 --log2-table 17
+r4096 4096 32 --log2-table 17
+lrend3e-4 256 32 --lr-end 3e-4 --log2-table 17
+lrend1e-3 256 32 --lr-end 1e-3 --log2-table 17
+lrconst1e-2 256 32 --lr-end 1e-2 --log2-table 17
+lr2e-2 256 32 --lr-start 2e-2 --log2-table 17
+lr3e-2 256 32 --lr-start 3e-2 --log2-table 17
+huber 256 32 --rgb-loss huber --log2-table 17
 t19 256 32 --log2-table 19
-r1024_lrend3e-4 1024 32 --lr-end 3e-4
-r1024_lrend1e-3 1024 32 --lr-end 1e-3
-r1024_lrconst1e-2 1024 32 --lr-end 1e-2
-r1024_lr2e-2 1024 32 --lr-start 2e-2
-r1024_lr3e-2 1024 32 --lr-start 3e-2
-r1024_huber 1024 32 --rgb-loss huber
+r1024_lrend3e-4 1024 32 --lr-end 3e-4 --log2-table 17
+r1024_lrend1e-3 1024 32 --lr-end 1e-3 --log2-table 17
+r1024_lrconst1e-2 1024 32 --lr-end 1e-2 --log2-table 17
+r1024_lr2e-2 1024 32 --lr-start 2e-2 --log2-table 17
+r1024_lr3e-2 1024 32 --lr-start 3e-2 --log2-table 17
+r1024_huber 1024 32 --rgb-loss huber --log2-table 17
 r1024_t19 1024 32 --log2-table 19"
 only="${ONLY:-$(echo "$variants" | cut -d' ' -f1 | tr '\n' ' ')}"
 tag="m$budget"

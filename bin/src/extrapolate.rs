@@ -17,6 +17,7 @@ use extranerf_extrapolate::stage3::{Stage3Enhancer, Stage3Gate, Stage3Spec};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
+use extranerf_nerf::demo::GT_VISIBILITY_DIR;
 use extranerf_nerf::metrics::{Lpips, LpipsNet};
 
 use crate::nerf::SplitArgs;
@@ -473,7 +474,15 @@ pub fn eval_run(
     run: &Path,
     lpips: Option<&Path>,
     k: &KidArgs,
+    truth_masks: Option<&Path>,
 ) -> anyhow::Result<()> {
+    // Exact visibility: the flag's folder, else the scene's own where it has one.
+    let truth_masks = match truth_masks {
+        Some(d) => Some(d.to_path_buf()),
+        None => extranerf_extrapolate::manifest::Manifest::load(run)?
+            .map(|m| m.scene.dir.join(GT_VISIBILITY_DIR))
+            .filter(|d| d.is_dir()),
+    };
     let dir = lpips.map(PathBuf::from).unwrap_or_else(default_lpips_dir);
     let lp = match Lpips::load(&dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex) {
         Ok(l) => Some(l),
@@ -505,7 +514,13 @@ pub fn eval_run(
     };
     let kid = net.as_ref().map(|net| KidEval { net, spec });
     let mut rep = Console::new();
-    let t = compare(run, lp.as_ref(), kid.as_ref(), &mut rep)?;
+    let t = compare(
+        run,
+        lp.as_ref(),
+        kid.as_ref(),
+        truth_masks.as_deref(),
+        &mut rep,
+    )?;
     let md = t.markdown();
     crate::bench::write_json(&run.join("eval.json"), &serde_json::to_value(&t)?)?;
     std::fs::write(run.join("eval.md"), &md)

@@ -24,6 +24,8 @@ use extranerf_nerf::views::TrainData;
 use extranerf_prims::Prims;
 
 use crate::report::Console;
+use extranerf_extrapolate::demo::{demo as run_demo, DemoSpec, DemoStop};
+use extranerf_extrapolate::pipeline::Stage2Spec;
 
 /// Arguments of `extranerf train`.
 #[derive(clap::Args, Debug)]
@@ -708,7 +710,9 @@ pub struct EvalArgs {
     save_images: bool,
     /// A folder of visibility masks named as the views' images (`../shared/data/synth2/
     /// gt_visibility`: image000.png, white where training views see the surface): each held-out
-    /// view that has one is also scored over its visible and its not-visible pixels.
+    /// view that has one is also scored over its visible and its not-visible pixels. On an
+    /// extrapolate run the default is the scene's own `gt_visibility/` where it has one (the
+    /// demo scene and synth2 do).
     #[arg(long, value_name = "DIR")]
     visibility_masks: Option<PathBuf>,
     /// Which views: all (held-out and training), test, train, or indices such as 0,4,9.
@@ -736,7 +740,13 @@ impl EvalArgs {
 /// training views.
 pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
     if extranerf_extrapolate::manifest::Manifest::path(&a.run).exists() {
-        return crate::extrapolate::eval_run(ctx, &a.run, a.lpips.as_deref(), &a.kid);
+        return crate::extrapolate::eval_run(
+            ctx,
+            &a.run,
+            a.lpips.as_deref(),
+            &a.kid,
+            a.visibility_masks.as_deref(),
+        );
     }
     let dir = a.lpips.clone().unwrap_or_else(default_lpips_dir);
     let mut nets = Vec::new();
@@ -1115,15 +1125,97 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
 /// Arguments of `extranerf demo`.
 #[derive(clap::Args, Debug)]
 pub struct DemoArgs {
-    /// Output folder: scene/ (the generated capture), run/ (checkpoint, renders, metrics).
+    /// Output folder: scene/ (the generated capture), basenerf/ (the BaseNeRF's run),
+    /// extranerf/ (the ExtraNeRF run: report.html, eval.md, outside_views.png). A folder an
+    /// earlier demo made is replaced; any other is refused.
     #[arg(long, default_value = "runs/demo")]
     out: PathBuf,
-    /// Optimiser steps.
-    #[arg(long, default_value_t = 300)]
-    steps: u32,
     /// Image width of the generated views (height is 3/4 of it).
-    #[arg(long, default_value_t = 96)]
+    #[arg(long, default_value_t = DemoSpec::default().width)]
     width: u32,
+    /// BaseNeRF training steps (512 rays of 24 samples each).
+    #[arg(long, default_value_t = DemoSpec::default().base_steps)]
+    steps: u32,
+    /// Stage-2 rounds (render the virtual views, inpaint, train).
+    #[arg(long, default_value_t = DemoSpec::default().stage2.rounds)]
+    rounds: u32,
+    /// Stage-2 training steps per round.
+    #[arg(long, default_value_t = DemoSpec::default().stage2.steps_per_round)]
+    steps_per_round: u32,
+    /// Stop after stage 2.
+    #[arg(long)]
+    no_stage3: bool,
+    /// Stage-3 rounds (the unsharp-mask enhancer).
+    #[arg(long, default_value_t = DEMO_STAGE3.0)]
+    stage3_rounds: u32,
+    /// Stage-3 training steps per round.
+    #[arg(long, default_value_t = DEMO_STAGE3.1)]
+    stage3_steps_per_round: u32,
+    /// Divide the views' resolution by this for the virtual views and visibility maps.
+    #[arg(long, default_value_t = DemoSpec::default().virtual_downscale)]
+    virtual_downscale: u32,
+    /// Fly-through frames of each field (0: none).
+    #[arg(long, default_value_t = DemoSpec::default().flythrough)]
+    flythrough: u32,
+    /// Folder with lpips_alex_v0.1.safetensors (default: $EXTRANERF_MODELS/lpips, else
+    /// ../shared/models/lpips); without it the table has no LPIPS.
+    #[arg(long, value_name = "DIR")]
+    lpips: Option<PathBuf>,
+    /// Stop after the scene (OUT/scene) or the BaseNeRF (OUT/basenerf), for tools that train
+    /// or extrapolate on them themselves.
+    #[arg(long, value_enum, default_value_t = DemoStop::default())]
+    stop_after: DemoStop,
+}
+
+/// The demo's stage 3 (rounds, steps per round).
+const DEMO_STAGE3: (u32, u32) = match DemoSpec::DEFAULT_STAGE3 {
+    Some(s) => s,
+    None => (0, 0),
+};
+
+/// `extranerf demo`: ExtraNeRF end to end on the procedural scene.
+pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
+    let t0 = Instant::now();
+    let spec = DemoSpec {
+        out: a.out.clone(),
+        width: a.width,
+        base_steps: a.steps,
+        stage2: Stage2Spec {
+            rounds: a.rounds,
+            steps_per_round: a.steps_per_round,
+            ..DemoSpec::default().stage2
+        },
+        stage3: (!a.no_stage3).then_some((a.stage3_rounds, a.stage3_steps_per_round)),
+        virtual_downscale: a.virtual_downscale,
+        flythrough: a.flythrough,
+        lpips: a.lpips.clone().unwrap_or_else(default_lpips_dir),
+        stop_after: a.stop_after,
+    };
+    let o = run_demo(ctx, &spec, &mut Console::new())?;
+    let Some(table) = &o.table else {
+        eprintln!(
+            "demo: the scene is in {}{}",
+            o.scene.display(),
+            if a.stop_after == DemoStop::Basenerf {
+                format!(", the BaseNeRF in {}", o.basenerf.display())
+            } else {
+                String::new()
+            }
+        );
+        return Ok(());
+    };
+    println!("{}", table.markdown());
+    for (name, secs) in &o.seconds {
+        eprintln!("{name:>28}: {secs:.1} s");
+    }
+    eprintln!(
+        "demo done in {:.0} s. Open {} (the BaseNeRF beside the final field on every view outside the rig); the table is in {}, the picture {}",
+        t0.elapsed().as_secs_f64(),
+        o.report.as_deref().unwrap_or(&o.run).display(),
+        o.run.join("eval.md").display(),
+        o.picture.as_deref().unwrap_or(&o.run).display(),
+    );
+    Ok(())
 }
 
 /// Arguments of `extranerf turntable`.
@@ -1162,118 +1254,6 @@ pub fn turntable(a: &TurntableArgs) -> anyhow::Result<()> {
     );
     extranerf_nerf::demo::write_turntable_scene(&a.out, a.size, a.size, a.train, a.test)?;
     eprintln!("done in {:.1} s", t.elapsed().as_secs_f64());
-    Ok(())
-}
-
-/// `extranerf demo`: generate the procedural scene, train on its 6-camera rig, render the 8
-/// views outside the rig and score them against the ray-traced ground truth.
-pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {
-    use extranerf_nerf::demo::{write_demo_scene, RIG_VIEWS, RING_VIEWS};
-    let t0 = Instant::now();
-    let scene_dir = a.out.join("scene");
-    let run = a.out.join("run");
-    // A folder the demo made (marked) is replaced; anything else is left alone.
-    let marker = a.out.join(".extranerf-demo");
-    if a.out.exists() && std::fs::read_dir(&a.out)?.next().is_some() {
-        if !marker.exists() {
-            bail!(
-                "{} exists and was not made by `extranerf demo`; pass another --out",
-                a.out.display()
-            );
-        }
-        for d in [&scene_dir, &run] {
-            if d.exists() {
-                std::fs::remove_dir_all(d)
-                    .with_context(|| format!("replacing the previous demo in {}", d.display()))?;
-            }
-        }
-    }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    std::fs::write(
-        &marker,
-        b"made by extranerf demo; the demo replaces this folder's scene/ and run/\n",
-    )
-    .with_context(|| format!("writing {}", marker.display()))?;
-    let height = a.width * 3 / 4;
-    eprintln!(
-        "demo: ray tracing the procedural scene ({RIG_VIEWS} rig views + {RING_VIEWS} views outside the rig, {}x{height}) into {}",
-        a.width,
-        scene_dir.display()
-    );
-    write_demo_scene(&scene_dir, a.width, height)?;
-    let cfg = RunConfig {
-        scene: SceneSpec {
-            dir: scene_dir,
-            split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-            fewshot_views: 3,
-            factor: 1,
-            sparse_depth: false,
-            depth_dir: None,
-        },
-        model: extranerf_nerf::model::ModelConfig {
-            levels: 8,
-            log2_table: 15,
-            max_res: 512,
-            density_width: 32,
-            color_width: 32,
-            ..Default::default()
-        },
-        train: TrainConfig {
-            steps: a.steps,
-            decay_steps: a.steps,
-            rays: 512,
-            samples: 24,
-            ..TrainConfig::default()
-        },
-    };
-    train_loop(
-        ctx,
-        &cfg,
-        &TrainRun {
-            out: run.clone(),
-            start: 0,
-            log_every: 25,
-            checkpoint_every: a.steps.max(1),
-            eval_every: 0,
-            eval_views: ViewSet::Test,
-            budget: None,
-        },
-        None,
-        None,
-        &mut Console::new(),
-    )?;
-    let lpips_dir = default_lpips_dir();
-    let nets = if lpips_dir.join("lpips_alex_v0.1.safetensors").exists() {
-        vec!["alex".to_string(), "vgg".to_string()]
-    } else {
-        eprintln!(
-            "LPIPS weights not found in {} (set EXTRANERF_MODELS); scoring PSNR and SSIM only",
-            lpips_dir.display()
-        );
-        vec![]
-    };
-    eval(
-        ctx,
-        &EvalArgs {
-            run: run.clone(),
-            out: None,
-            lpips: Some(lpips_dir),
-            samples: None,
-            chunk: 8192,
-            save_images: true,
-            visibility_masks: None,
-            views: ViewSet::All,
-            lpips_nets: nets,
-            march: MarchArgs::default(),
-            kid: Default::default(),
-        },
-    )?;
-    eprintln!(
-        "demo done in {:.0} s: renders of the held-out views in {}, metrics in {}",
-        t0.elapsed().as_secs_f64(),
-        run.join("eval").display(),
-        run.join("metrics.json").display()
-    );
     Ok(())
 }
 

@@ -559,10 +559,12 @@ fn train_resume_render_eval_on_fern() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
-/// The demo end to end at a small size: scene, training, renders of the held-out views,
-/// metrics; a second run replaces the first; a foreign folder is refused.
+/// The demo end to end at a small size through the command line: ExtraNeRF's stages, the
+/// table (stage 2's PSNR over the exactly known not-visible pixels recomputed here from the
+/// saved renders), the report and the picture; a second run replaces the first; a foreign
+/// folder is refused; `--stop-after scene` writes only the scene.
 #[test]
-fn demo_runs_and_replaces_its_own_output() {
+fn demo_runs_extranerf_and_replaces_its_own_output() {
     let dir = std::env::temp_dir().join(format!("extranerf-cli-demo-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let out = dir.join("demo");
@@ -570,45 +572,86 @@ fn demo_runs_and_replaces_its_own_output() {
         "demo",
         "--out",
         out.to_str().unwrap(),
-        "--steps",
-        "10",
         "--width",
         "48",
+        "--steps",
+        "30",
+        "--rounds",
+        "1",
+        "--steps-per-round",
+        "10",
+        "--stage3-rounds",
+        "1",
+        "--stage3-steps-per-round",
+        "10",
+        "--flythrough",
+        "2",
     ];
     let (ok, out_text, err) = extranerf(&args);
     assert!(ok, "{err}");
-    assert!(out_text.contains("test: PSNR"), "{out_text}");
-    assert!(err.contains("step    10/10"), "{err}");
-    for k in 6..14 {
-        let p = out.join(format!("run/eval/test_{k:03}.png"));
-        let img = image::open(&p).unwrap();
-        assert_eq!((img.width(), img.height()), (48, 36), "{}", p.display());
-    }
-    assert_eq!(
-        std::fs::read_dir(out.join("scene/images")).unwrap().count(),
-        14
-    );
-    let m: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("run/metrics.json")).unwrap()).unwrap();
-    // The reported held-out PSNR is the mean over the saved renders against the scene's images
-    // (up to the PNGs' 8-bit rounding); 10 steps fit the demo a little, not well.
-    let load = |p: &std::path::Path| extranerf_nerf::data::load_image(p).unwrap().rgb;
-    let again = (6..14)
-        .map(|k| {
-            let render = load(&out.join(format!("run/eval/test_{k:03}.png")));
-            let truth = load(&out.join(format!("scene/images/view_{k:02}.png")));
-            extranerf_nerf::metrics::psnr(&render, &truth).unwrap()
-        })
-        .sum::<f64>()
-        / 8.0;
-    let test = m["test"]["psnr"].as_f64().unwrap();
+    assert!(out_text.contains("PSNR not visible (exact)"), "{out_text}");
+    assert!(err.contains("basenerf    30/30"), "{err}");
+    let run = out.join("extranerf");
     assert!(
-        (test - again).abs() < 0.05,
-        "reported {test} dB, saved renders {again} dB"
+        err.contains(&format!("Open {}", run.join("report.html").display())),
+        "{err}"
     );
-    assert!(test > 6.0 && test < 25.0, "{m}");
-    let train = m["train"]["psnr"].as_f64().unwrap();
-    assert!(train > 6.0 && train < 25.0, "{m}");
+    let t: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("eval.json")).unwrap()).unwrap();
+    let names: Vec<&str> = t["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["variant"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["base", "stage2-harmonic", "stage3-harmonic"], "{t}");
+    assert_eq!(
+        t["truth_masks"]["views"],
+        serde_json::json!([6, 7, 8, 9, 10, 11, 12, 13])
+    );
+    // Stage 2's figure over the truly unseen pixels: a number, and the one the saved renders
+    // give against the photos over the scene's exact masks (up to the PNGs' 8-bit rounding).
+    let reported = t["rows"][1]["psnr_not_visible_exact"].as_f64().unwrap();
+    let load = |p: &std::path::Path| extranerf_nerf::data::load_image(p).unwrap().rgb;
+    let mut psnrs = Vec::new();
+    for k in 6..14 {
+        let render = load(&run.join(format!("stage2-harmonic/test_{k:03}.png")));
+        let truth = load(&out.join(format!("scene/images/view_{k:02}.png")));
+        let seen = load(&out.join(format!("scene/gt_visibility/view_{k:02}.png")));
+        let (mut se, mut n) = (0.0f64, 0usize);
+        for p in 0..seen.len() / 3 {
+            if seen[3 * p] < 0.5 {
+                for c in 0..3 {
+                    se += (render[3 * p + c] as f64 - truth[3 * p + c] as f64).powi(2);
+                }
+                n += 3;
+            }
+        }
+        if n > 0 {
+            psnrs.push(-10.0 * (se / n as f64).log10());
+        }
+    }
+    assert!(
+        !psnrs.is_empty(),
+        "no view outside the rig has unseen pixels"
+    );
+    let again = psnrs.iter().sum::<f64>() / psnrs.len() as f64;
+    assert!(
+        reported.is_finite() && (reported - again).abs() < 0.05,
+        "reported {reported} dB, saved renders {again} dB"
+    );
+    let report = std::fs::read_to_string(run.join("report.html")).unwrap();
+    for k in 6..14 {
+        assert!(report.contains(&format!("<h3>view {k}</h3>")), "view {k}");
+    }
+    assert!(report.contains("BaseNeRF") && report.contains("stage3-harmonic"));
+    assert!(report.contains("PSNR not visible (exact)"));
+    // The picture: 8 views, two to a row, each as photo, BaseNeRF and final field.
+    let pic = image::open(run.join("outside_views.png")).unwrap();
+    assert_eq!(
+        (pic.width(), pic.height()),
+        (6 * 48 + 5 * 4, 4 * 36 + 3 * 4)
+    );
     let (ok, _, err) = extranerf(&args);
     assert!(ok, "second demo into its own folder: {err}");
     let foreign = dir.join("foreign");
@@ -617,6 +660,25 @@ fn demo_runs_and_replaces_its_own_output() {
     let (ok, _, err) = extranerf(&["demo", "--out", foreign.to_str().unwrap()]);
     assert!(!ok && err.contains("not made by"), "{err}");
     assert!(foreign.join("precious.txt").exists());
+    // Only the scene: the folder the demo made before now holds nothing else.
+    let (ok, _, err) = extranerf(&[
+        "demo",
+        "--out",
+        out.to_str().unwrap(),
+        "--width",
+        "48",
+        "--stop-after",
+        "scene",
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.join("scene/poses_bounds.npy").exists());
+    assert_eq!(
+        std::fs::read_dir(out.join("scene/gt_visibility"))
+            .unwrap()
+            .count(),
+        8
+    );
+    assert!(!out.join("basenerf").exists() && !run.exists());
     let _ = std::fs::remove_dir_all(dir);
 }
 

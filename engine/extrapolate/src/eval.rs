@@ -49,6 +49,11 @@ pub struct Row {
     pub kid_patch_std: Option<f64>,
     /// Mean share of each view's pixels in the mask.
     pub masked_fraction: f64,
+    /// With exact visibility masks ([`compare`]'s `truth_masks`): PSNR over the pixels that
+    /// no two training cameras truly see, and over those they do (means over the views with
+    /// a mask that has such pixels).
+    pub psnr_not_visible_exact: Option<f64>,
+    pub psnr_visible_exact: Option<f64>,
 }
 
 /// The table of an extrapolate run.
@@ -60,6 +65,51 @@ pub struct Table {
     pub kid: Option<KidReport>,
     /// What the run's stages said of a row (a stage 3 that its gate skipped).
     pub notes: Vec<String>,
+    /// The exact visibility masks the table was also scored with, if any.
+    pub truth_masks: Option<TruthMasks>,
+}
+
+/// Exact visibility masks of the held-out views (`../shared/data/synth2/gt_visibility`, or the
+/// demo scene's): where they come from and how much of the views they mark unseen.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TruthMasks {
+    pub dir: std::path::PathBuf,
+    /// Held-out views that have a mask.
+    pub views: Vec<usize>,
+    /// Mean share of those views' pixels that is not visible.
+    pub not_visible_fraction: f64,
+}
+
+impl TruthMasks {
+    /// One line for the table's readers.
+    pub fn describe(&self) -> String {
+        format!(
+            "Exact visibility from {} ({} of the held-out views; {:.1}% of their pixels not visible to two training cameras): `PSNR not visible (exact)` and `PSNR visible (exact)`.",
+            self.dir.display(),
+            self.views.len(),
+            100.0 * self.not_visible_fraction
+        )
+    }
+}
+
+/// The exact visibility mask (true: seen) of the view whose image is `image`, from `dir`
+/// (the image's stem as a PNG, white where seen); None when `dir` has none for it.
+fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> anyhow::Result<Option<Vec<bool>>> {
+    let stem = image.file_stem().unwrap_or_default();
+    let path = dir.join(stem).with_extension("png");
+    if !path.exists() {
+        return Ok(None);
+    }
+    let m = load_image(&path)?;
+    if (m.width, m.height) != (w, h) {
+        bail!(
+            "{}: a {}x{} visibility mask for a {w}x{h} view",
+            path.display(),
+            m.width,
+            m.height
+        );
+    }
+    Ok(Some(m.rgb.chunks(3).map(|c| c[0] > 0.5).collect()))
 }
 
 /// KID's protocols (`extranerf eval --kid-*`).
@@ -275,11 +325,14 @@ fn mean(v: &[f64]) -> Option<f64> {
 }
 
 /// Scores the BaseNeRF and each finished stage-2 and stage-3 variant of the run in `dir`; KID
-/// too when `kid` is given (progress goes to `rep`).
+/// too when `kid` is given, and over the exact visible and not-visible pixels when
+/// `truth_masks` names a folder of masks (see [`TruthMasks`]; an error when it holds none for
+/// the held-out views). Progress goes to `rep`.
 pub fn compare(
     dir: &Path,
     lpips: Option<&Lpips>,
     kid_eval: Option<&KidEval<'_>>,
+    truth_masks: Option<&Path>,
     rep: &mut dyn Reporter,
 ) -> anyhow::Result<Table> {
     let Some(manifest) = Manifest::load(dir)? else {
@@ -323,6 +376,49 @@ pub fn compare(
         );
         truths.push((i, cam.clone(), img, mask));
     }
+    // The exact masks (true: seen), per held-out view where the folder has one.
+    let exact: Vec<Option<Vec<bool>>> = match truth_masks {
+        None => vec![None; truths.len()],
+        Some(d) => {
+            if !d.is_dir() {
+                bail!("{}: no such folder of visibility masks", d.display());
+            }
+            truths
+                .iter()
+                .map(|(_, c, _, _)| truth_mask(d, &c.image, c.width, c.height))
+                .collect::<anyhow::Result<_>>()?
+        }
+    };
+    let truth_report = match truth_masks {
+        None => None,
+        Some(d) => {
+            let with: Vec<(usize, &Vec<bool>)> = truths
+                .iter()
+                .zip(&exact)
+                .filter_map(|(t, m)| m.as_ref().map(|m| (t.0, m)))
+                .collect();
+            if with.is_empty() {
+                bail!(
+                    "{}: no visibility mask for any held-out view (want PNGs named as their images, e.g. {})",
+                    d.display(),
+                    truths
+                        .first()
+                        .and_then(|t| t.1.image.file_stem())
+                        .map(|s| format!("{}.png", s.to_string_lossy()))
+                        .unwrap_or_default()
+                );
+            }
+            let frac: Vec<f64> = with
+                .iter()
+                .map(|(_, m)| m.iter().filter(|&&v| !v).count() as f64 / m.len() as f64)
+                .collect();
+            Some(TruthMasks {
+                dir: d.to_path_buf(),
+                views: with.iter().map(|w| w.0).collect(),
+                not_visible_fraction: mean(&frac).unwrap_or(0.0),
+            })
+        }
+    };
     let sizes: Vec<(usize, usize)> = truths
         .iter()
         .map(|(_, c, _, _)| (c.width as usize, c.height as usize))
@@ -367,8 +463,9 @@ pub fn compare(
     for (name, folder, suffix) in variants {
         let (mut p, mut s, mut l) = (vec![], vec![], vec![]);
         let (mut pm, mut sm, mut lm, mut pv, mut frac) = (vec![], vec![], vec![], vec![], vec![]);
+        let (mut pn_exact, mut pv_exact) = (vec![], vec![]);
         let mut renders = Vec::new();
-        for (i, cam, truth, mask) in &truths {
+        for ((i, cam, truth, mask), seen) in truths.iter().zip(&exact) {
             let path = folder.join(format!("test_{i:03}{suffix}.png"));
             let r = load_image(&path).with_context(|| format!("variant {name}"))?;
             if (r.width, r.height) != (cam.width, cam.height) {
@@ -381,6 +478,14 @@ pub fn compare(
                 l.push(lp.distance(&r.rgb, &truth.rgb, cam.width, cam.height)?);
             }
             frac.push(mask.iter().filter(|&&m| m).count() as f64 / mask.len() as f64);
+            if let Some(seen) = seen {
+                if let Some(m) = mse_where(&r.rgb, &truth.rgb, seen, false) {
+                    pn_exact.push(to_psnr(m));
+                }
+                if let Some(m) = mse_where(&r.rgb, &truth.rgb, seen, true) {
+                    pv_exact.push(to_psnr(m));
+                }
+            }
             if let Some(m) = mse_where(&r.rgb, &truth.rgb, mask, false) {
                 pv.push(to_psnr(m));
             }
@@ -440,6 +545,8 @@ pub fn compare(
             kid_patch: kid_patch.map(|k| k.mean),
             kid_patch_std: kid_patch.map(|k| k.std),
             masked_fraction: mean(&frac).unwrap_or(0.0),
+            psnr_not_visible_exact: mean(&pn_exact),
+            psnr_visible_exact: mean(&pv_exact),
         });
     }
     Ok(Table {
@@ -447,10 +554,12 @@ pub fn compare(
         rows,
         kid: kid_ref.map(|r| r.0),
         notes,
+        truth_masks: truth_report,
     })
 }
 
-/// The table's column headers.
+/// The table's column headers (the two exact-visibility columns only where the table was
+/// scored with exact masks, [`Table::columns`]).
 pub const COLUMNS: [&str; 11] = [
     "variant",
     "PSNR",
@@ -465,11 +574,15 @@ pub const COLUMNS: [&str; 11] = [
     "masked",
 ];
 
+/// The headers of the exact-visibility columns.
+pub const EXACT_COLUMNS: [&str; 2] = ["PSNR not visible (exact)", "PSNR visible (exact)"];
+
 impl Row {
-    /// The row's cells as the tables print them (`-` where a value is missing).
-    pub fn cells(&self) -> [String; 11] {
+    /// The row's cells as the tables print them (`-` where a value is missing); with `exact`,
+    /// the exact-visibility cells too.
+    pub fn cells(&self, exact: bool) -> Vec<String> {
         let f = |v: Option<f64>, d: usize| v.map_or("-".into(), |x| format!("{x:.d$}"));
-        [
+        let mut c = vec![
             self.variant.clone(),
             format!("{:.2}", self.psnr),
             format!("{:.3}", self.ssim),
@@ -481,20 +594,40 @@ impl Row {
             f(self.kid, 4),
             f(self.kid_patch, 4),
             format!("{:.1}%", 100.0 * self.masked_fraction),
-        ]
+        ];
+        if exact {
+            c.push(f(self.psnr_not_visible_exact, 2));
+            c.push(f(self.psnr_visible_exact, 2));
+        }
+        c
     }
 }
 
 impl Table {
+    /// The column headers of this table.
+    pub fn columns(&self) -> Vec<&'static str> {
+        let mut c = COLUMNS.to_vec();
+        if self.truth_masks.is_some() {
+            c.extend(EXACT_COLUMNS);
+        }
+        c
+    }
+
+    /// Each row's cells, as [`Table::columns`] names them.
+    pub fn cells(&self) -> Vec<Vec<String>> {
+        let exact = self.truth_masks.is_some();
+        self.rows.iter().map(|r| r.cells(exact)).collect()
+    }
+
     /// The table in Markdown.
     pub fn markdown(&self) -> String {
-        let mut s = format!(
-            "| {} |\n|{}\n",
-            COLUMNS.join(" | "),
-            "---|".repeat(COLUMNS.len())
-        );
-        for r in &self.rows {
-            s += &format!("| {} |\n", r.cells().join(" | "));
+        let cols = self.columns();
+        let mut s = format!("| {} |\n|{}\n", cols.join(" | "), "---|".repeat(cols.len()));
+        for r in self.cells() {
+            s += &format!("| {} |\n", r.join(" | "));
+        }
+        if let Some(t) = &self.truth_masks {
+            s += &format!("\n{}\n", t.describe());
         }
         if let Some(k) = &self.kid {
             s += &format!("\n{}\n", k.describe());

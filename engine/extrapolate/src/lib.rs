@@ -11,6 +11,7 @@
 //! - [`eval`]: the comparison table of an extrapolate run, with KID on [`inception`]'s
 //!   features; [`report`]: its self-contained HTML page.
 //!
+//! - [`demo`]: `extranerf demo`, the whole pipeline on the procedural demo scene;
 //! - [`anim`]: looping GIFs of rendered frames (the fly-through).
 //!
 //! - [`stage3`]: stage 3, the enhancer's training data, the enhancer and the enhancement loop.
@@ -23,6 +24,7 @@
 
 pub mod anim;
 pub mod base;
+pub mod demo;
 pub mod driver;
 pub mod eval;
 pub mod inception;

@@ -73,7 +73,7 @@ fn img(path: &Path, alt: &str) -> anyhow::Result<String> {
 
 /// The field whose renders the report calls final: the last stage-3 field, else the last
 /// stage-2 variant, else the BaseNeRF.
-fn final_field(m: &Manifest) -> Option<String> {
+pub fn final_field(m: &Manifest) -> Option<String> {
     let done = |p: &str| {
         m.stages
             .iter()
@@ -134,13 +134,16 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> anyhow::Result<PathBuf
             let _ = writeln!(
                 h,
                 "<table><tr><th>{}</th></tr>",
-                crate::eval::COLUMNS.join("</th><th>")
+                t.columns().join("</th><th>")
             );
-            for r in &t.rows {
-                let cells: Vec<String> = r.cells().iter().map(|c| escape(c)).collect();
+            for r in t.cells() {
+                let cells: Vec<String> = r.iter().map(|c| escape(c)).collect();
                 let _ = writeln!(h, "<tr><td>{}</td></tr>", cells.join("</td><td>"));
             }
             h += "</table>\n";
+            if let Some(m) = &t.truth_masks {
+                let _ = writeln!(h, "<p>{}</p>", escape(&m.describe()));
+            }
             if let Some(k) = &t.kid {
                 let _ = writeln!(h, "<p>{}</p>", escape(&k.describe()));
             }

@@ -14,6 +14,14 @@ use crate::run::{write_png, Result, RunError};
 /// The file that marks a folder as the demo scene.
 pub const DEMO_MARKER: &str = "demo_scene.json";
 
+/// The folder of the scene's exact visibility masks (the held-out views'; as
+/// `../shared/data/synth2/gt_visibility`).
+pub const GT_VISIBILITY_DIR: &str = "gt_visibility";
+
+/// How many rig cameras must see a point for [`GT_VISIBILITY_DIR`]'s masks to count it as
+/// seen (ExtraNeRF's visibility keeps the second largest transmittance).
+pub const GT_VISIBILITY_RANK: usize = 2;
+
 /// Cameras of the rig (trained on) and of the outer ring (held out).
 pub const RIG_VIEWS: usize = 6;
 /// See [`RIG_VIEWS`].
@@ -246,7 +254,8 @@ pub fn demo_cameras() -> Vec<DMat4> {
     c
 }
 
-/// Writes the scene into `dir` (`poses_bounds.npy`, `images/view_NN.png`) at `width x height`.
+/// Writes the scene into `dir` (`poses_bounds.npy`, `images/view_NN.png`, and the held-out
+/// views' exact visibility `gt_visibility/view_NN.png`) at `width x height`.
 pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
     if width < 16 || height < 16 {
         return Err(RunError::Config(format!(
@@ -302,6 +311,25 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
     }
     let flat: Vec<f64> = rows.concat();
     crate::data::npy::write_npy_f64(&dir.join("poses_bounds.npy"), &[rows.len(), 17], &flat)?;
+    // The exact visibility of the views outside the rig, in `../shared/data/synth2`'s layout
+    // (named as the view's image; white where at least two rig cameras see the surface).
+    let vis_dir = dir.join(GT_VISIBILITY_DIR);
+    std::fs::create_dir_all(&vis_dir).map_err(|e| DataError::Io {
+        path: vis_dir.clone(),
+        error: e,
+    })?;
+    for i in RIG_VIEWS..RIG_VIEWS + RING_VIEWS {
+        let grey: Vec<f32> = demo_seen(i, width, height, GT_VISIBILITY_RANK)
+            .into_iter()
+            .flat_map(|s| [if s { 1.0 } else { 0.0 }; 3])
+            .collect();
+        write_png(
+            &vis_dir.join(format!("view_{i:02}.png")),
+            width,
+            height,
+            &grey,
+        )?;
+    }
     // Marks the folder as the demo scene, whose exact visibility is known ([`demo_seen`]).
     crate::safetensors::write_atomic(
         &dir.join(DEMO_MARKER),
