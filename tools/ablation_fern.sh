@@ -55,7 +55,7 @@ if [ ! -f "$lora/pytorch_lora_weights.safetensors" ]; then
         --masks "$masks" --out "$lora" --steps "$lsteps" --diffusion-backend cpu \
         2>&1 | tee "$lora.log" >&2
 fi
-# The settings the stage-3 run in results/ was made with (README.md, "Stage 3").
+# The settings the stage-3 run in results/ was made with (docs/results.md, the first fern ablation).
 read -r -a extra <<<"${EXTRA:---diffusion-backend cpu --enhancer-steps 200 --stage3-gate off}"
 /usr/bin/time -f "extrapolate (resumed) wall %e s" \
     "$bin" extrapolate --base "$base" --out "$run" --resume \

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The quick check for work in progress: formatting, clippy, and the tests that the changed files
-# select, in the release profile the full suite and the main job share (README.md,
-# "Contributing"). The full suite stays README.md's test command; CI runs only that.
+# select, in the release profile the full suite and the main job share (docs/testing.md). The
+# full suite stays README.md's test command; CI runs only that.
 #
 # Usage: tools/check.sh [--since REV] [--no-lint] [--list] [TARGET...]
 #   TARGET      a module of the `main` test binary (gpu, prims, field, render, march, optim, train,

@@ -5,7 +5,7 @@
 # the system is replaced.
 #
 # Why binaries: Mesa 26's source files are not served by the Debian mirror these machines reach
-# (tools/build_lavapipe.sh, README "Vulkan driver"), but Debian 13's binary packages are:
+# (tools/build_lavapipe.sh, docs/drivers.md), but Debian 13's binary packages are:
 # trixie-backports' mesa-vulkan-drivers 26.1.6 (built against LLVM 19, which bookworm also has)
 # and trixie's vulkan-validationlayers 1.4.309 (bookworm's 1.3.239 predates the extension and
 # would reject its SPIR-V). They are fetched with apt-get from a private package list (the

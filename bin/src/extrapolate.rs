@@ -156,7 +156,7 @@ pub struct ExtrapolateArgs {
     enhancer_channels: Vec<usize>,
     /// Stage 3: what the from-scratch enhancer predicts: `v`, as the scene prior, or
     /// `residual`, the photo's difference from the render it is shown (an untrained enhancer
-    /// is the identity; on fern it added no pixel noise but shifted colours, see README).
+    /// is the identity; on fern it added no pixel noise but shifted colours, see docs/results.md).
     #[arg(long, value_enum, default_value_t = EnhancerOutput::default())]
     enhancer_output: EnhancerOutput,
     /// Stage 3: LoRA rank (with --enhancer-model).
@@ -476,13 +476,6 @@ pub fn eval_run(
     k: &KidArgs,
     truth_masks: Option<&Path>,
 ) -> anyhow::Result<()> {
-    // Exact visibility: the flag's folder, else the scene's own where it has one.
-    let truth_masks = match truth_masks {
-        Some(d) => Some(d.to_path_buf()),
-        None => extranerf_extrapolate::manifest::Manifest::load(run)?
-            .map(|m| m.scene.dir.join(GT_VISIBILITY_DIR))
-            .filter(|d| d.is_dir()),
-    };
     let dir = lpips.map(PathBuf::from).unwrap_or_else(default_lpips_dir);
     let lp = match Lpips::load(&dir.join("lpips_alex_v0.1.safetensors"), LpipsNet::Alex) {
         Ok(l) => Some(l),
@@ -492,6 +485,13 @@ pub fn eval_run(
         }
     };
     let spec = k.spec()?;
+    // Exact visibility: the flag's folder, else the scene's own where it has one.
+    let truth_masks = match truth_masks {
+        Some(d) => Some(d.to_path_buf()),
+        None => extranerf_extrapolate::manifest::Manifest::load(run)?
+            .map(|m| m.scene.dir.join(GT_VISIBILITY_DIR))
+            .filter(|d| d.is_dir()),
+    };
     let net = if k.no_kid {
         None
     } else {

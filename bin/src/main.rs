@@ -69,6 +69,7 @@ enum Command {
     /// enhancer); the table scores the BaseNeRF and each stage over the whole image, the
     /// estimated not-visible mask and the exact visible and not-visible pixels, and writes
     /// report.html with the BaseNeRF beside the final field on every view outside the rig.
+    /// About 3 minutes on two CPU cores with lavapipe (167 s measured, `tools/demo.sh`).
     ///
     /// Example: `extranerf demo --out runs/demo`, then open runs/demo/extranerf/report.html.
     Demo(nerf::DemoArgs),

@@ -8,8 +8,9 @@
 //! mask, and the exact visible and not-visible pixels), `report.html` and a picture of the
 //! outside views (photo, BaseNeRF, final field).
 //!
-//! The output folder holds `scene/`, `basenerf/` (the BaseNeRF's run) and `extranerf/` (the
-//! extrapolate run: `report.html`, `eval.md`, `eval.json`, `outside_views.png`). A folder the
+//! The output folder holds `scene/`, `basenerf/` (the BaseNeRF's run), `extranerf/` (the
+//! extrapolate run: `report.html`, `eval.md`, `eval.json`, `outside_views.png`) and
+//! `demo.json` (settings and seconds per part). A folder the
 //! demo made is replaced whole by the next demo into it; any other folder is refused.
 
 use std::path::{Path, PathBuf};
@@ -82,9 +83,9 @@ impl Default for DemoSpec {
         DemoSpec {
             out: PathBuf::from("runs/demo"),
             width: 192,
-            base_steps: 600,
+            base_steps: 1200,
             stage2: Stage2Spec {
-                rounds: 3,
+                rounds: 4,
                 steps_per_round: 200,
                 ..Stage2Spec::default()
             },
@@ -186,6 +187,7 @@ pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> anyhow::R
     if spec.width < 32 {
         bail!("--width {}: use at least 32 pixels", spec.width);
     }
+    let t0 = Instant::now();
     claim(&spec.out)?;
     let scene = spec.out.join("scene");
     let base = spec.out.join("basenerf");
@@ -303,8 +305,27 @@ pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> anyhow::R
         .seconds
         .push(("eval".to_string(), t.elapsed().as_secs_f64()));
     outcome.table = Some(table);
+    // What ran and how long each part took, for tools that record the demo.
+    let summary = serde_json::json!({
+        "width": spec.width,
+        "height": height,
+        "base_steps": spec.base_steps,
+        "stage2": {"rounds": spec.stage2.rounds, "steps_per_round": spec.stage2.steps_per_round},
+        "stage3": spec.stage3.map(|(r, s)| serde_json::json!({"rounds": r, "steps_per_round": s})),
+        "virtual_downscale": spec.virtual_downscale,
+        "device": ctx.info().name,
+        "seconds": outcome.seconds.iter().map(|(n, s)| serde_json::json!({"part": n, "seconds": s})).collect::<Vec<_>>(),
+        "total_seconds": t0.elapsed().as_secs_f64(),
+    });
+    write_file(
+        &spec.out.join(SUMMARY_FILE),
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
     Ok(outcome)
 }
+
+/// The demo's summary in its output folder: settings, device, seconds per part and in all.
+pub const SUMMARY_FILE: &str = "demo.json";
 
 fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))

@@ -744,8 +744,7 @@ impl Context {
     /// Sends a message through the debug messenger as the validation layer would (tests use it
     /// to show that messages reach the log). Returns false when no messenger exists. Always
     /// built, not behind a feature: a test-only feature would make the tests build every engine
-    /// crate a second time instead of sharing the release binary's build (README.md,
-    /// "Contributing").
+    /// crate a second time instead of sharing the release binary's build (docs/testing.md).
     pub fn inject_debug_message(&self, text: &str) -> bool {
         let Some(dbg) = &self.inner.debug_instance else {
             return false;
