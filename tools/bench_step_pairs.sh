@@ -6,7 +6,9 @@
 # figure per round, the medians, and the ratio of the best runs: on a shared machine noise only
 # slows a run down, by up to 2x here from one minute to the next).
 #
-# Usage: tools/bench_step_pairs.sh OLD_BIN NEW_BIN [ROUNDS] [OUT] [RUN]
+# Usage: [OLD_FLAGS=...] [NEW_FLAGS=...] tools/bench_step_pairs.sh OLD_BIN NEW_BIN [ROUNDS] [OUT] [RUN]
+#   OLD_FLAGS, NEW_FLAGS: more `bench train` flags for each side, so that one binary can be
+#   compared with itself under two settings (e.g. NEW_FLAGS="--adam sparse").
 #   ROUNDS: default 8; OUT: default results/step_pairs_lavapipe; RUN: a trained run folder
 #   (fern 8x), whose test views 4 and 15 (504x378) each build also renders every round
 #   (`render RUN --views 4,15`, the fused march at the run's samples per ray).
@@ -36,13 +38,15 @@ mkdir -p "$out"
 for r in $(seq "$rounds"); do
     for which in old new; do
         bin="$old"
-        [ "$which" = new ] && bin="$new"
+        flags="${OLD_FLAGS:-}"
+        [ "$which" = new ] && bin="$new" && flags="${NEW_FLAGS:-}"
         for cfg in "1024 19" "256 17"; do
             set -- $cfg
             echo "== round $r build $which rays $1 table 2^$2" | tee -a "$out/bench.txt"
+            # shellcheck disable=SC2086 # the flags are words
             "$bin" bench train --step fused --rays "$1" --samples 32 --log2-table "$2" \
-                --steps 12 2>&1 \
-                | grep -E "^device:|^fused step|^MLP weight|^adam" \
+                --steps 12 $flags 2>&1 \
+                | grep -E "^device:|^fused step|^MLP weight|^adam|^zero grad|^sparse Adam" \
                 | tee -a "$out/bench.txt"
         done
         if [ -n "$run" ]; then
@@ -52,9 +56,9 @@ for r in $(seq "$rounds"); do
         fi
     done
 done
-python3 - "$out/bench.txt" "$old" "$new" > "$out/summary.md" <<'PY'
+python3 - "$out/bench.txt" "$old" "$new" "${OLD_FLAGS:-}" "${NEW_FLAGS:-}" > "$out/summary.md" <<'PY'
 import re, statistics, sys
-path, old, new = sys.argv[1:4]
+path, old, new, old_flags, new_flags = sys.argv[1:6]
 runs = {}
 renders = {}
 key = None
@@ -80,17 +84,18 @@ for line in open(path):
     if m:
         cur["samples/s"] = float(m.group(1))
     for stage, pat in [("fused kernel ms", r"^fused step \("), ("weight gradients ms", r"^MLP weight"),
-                       ("adam ms", r"^adam")]:
+                       ("adam ms", r"^adam"), ("zero gradients ms", r"^zero grad")]:
         if re.match(pat, line):
             cur[stage] = float(line.split()[-3])
-print(f"old: `{old}`, new: `{new}`; alternating rounds, one session (tools/bench_step_pairs.sh)\n")
+print(f"old: `{old} {old_flags}`, new: `{new} {new_flags}`; alternating rounds, one session "
+      "(tools/bench_step_pairs.sh)\n")
 cfgs = list(dict.fromkeys(k[1] for k in runs))
 for c in cfgs:
     print(f"### {c}\n")
     print("| figure | old (each round) | new (each round) | old median | new median | new / old "
           "(medians) | new / old (best of each) |")
     print("|---|---|---|---|---|---|---|")
-    for fig in ["samples/s", "fused kernel ms", "weight gradients ms", "adam ms"]:
+    for fig in ["samples/s", "fused kernel ms", "weight gradients ms", "adam ms", "zero gradients ms"]:
         o = [r[fig] for r in runs.get(("old", c), []) if fig in r]
         n = [r[fig] for r in runs.get(("new", c), []) if fig in r]
         if not o or not n:

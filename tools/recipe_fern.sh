@@ -49,7 +49,8 @@ r1024_lrconst1e-2 1024 32 --lr-end 1e-2 --log2-table 17
 r1024_lr2e-2 1024 32 --lr-start 2e-2 --log2-table 17
 r1024_lr3e-2 1024 32 --lr-start 3e-2 --log2-table 17
 r1024_huber 1024 32 --rgb-loss huber --log2-table 17
-r1024_t19 1024 32 --log2-table 19"
+r1024_t19 1024 32 --log2-table 19
+r1024_t19_sparse 1024 32 --log2-table 19 --adam sparse"
 only="${ONLY:-$(echo "$variants" | cut -d' ' -f1 | tr '\n' ' ')}"
 tag="m$budget"
 out=results/curves/fern17
@@ -136,7 +137,7 @@ for q in "samples:base s64 s128" "rays:base r1024 r2048 r4096" "lr_end:base lren
          "lr_start:base lr2e-2 lr3e-2" "loss:base huber" "table:base t19" \
          "r1024_lr_end:r1024 r1024_lrend3e-4 r1024_lrend1e-3 r1024_lrconst1e-2" \
          "r1024_lr_start:r1024 r1024_lr2e-2 r1024_lr3e-2" "r1024_loss:r1024 r1024_huber" \
-         "r1024_table:r1024 r1024_t19"; do
+         "r1024_table:r1024 r1024_t19" "t19_adam:r1024_t19 r1024_t19_sparse"; do
     names=()
     for v in ${q#*:}; do
         [ -f "$out/recipe_${v}_$tag.jsonl" ] && names+=("recipe_${v}_$tag")

@@ -178,6 +178,11 @@ pub struct TrainArgs {
     /// The Huber loss's threshold, in colour units [default: 0.1].
     #[arg(long, value_name = "DELTA")]
     huber_delta: Option<f32>,
+    /// Which parameters Adam updates each step: dense (all) or sparse (the hash-table entries
+    /// the batch reached, tiny-cuda-nn's rule, and the MLPs; the fused step with a table in
+    /// one storage binding) [default: dense].
+    #[arg(long, value_enum, value_name = "MODE")]
+    adam: Option<extranerf_nerf::optim::AdamMode>,
     /// Every this many steps (and at the last), render the held-out views and append their
     /// mean PSNR, SSIM, LPIPS-alex (when the weights are found) and opacity to RUN/curve.jsonl
     /// with the training seconds so far, which leave out the evaluations themselves (0: off).
@@ -348,6 +353,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         apply(&mut train.lr_end, a.lr_end);
         apply(&mut train.rgb_loss, a.rgb_loss);
         apply(&mut train.huber_delta, a.huber_delta);
+        apply(&mut train.adam, a.adam);
         match a.background {
             None => {
                 // RGBA captures (NeRF-synthetic) are scored over white, as published tables
@@ -953,6 +959,10 @@ pub struct BenchTrainArgs {
     /// Steps per sweep of that grid.
     #[arg(long, default_value_t = 16, value_name = "STEPS")]
     occupancy_every: u32,
+    /// Adam: dense (every parameter) or sparse (the table entries each batch reached; with
+    /// `--step fused` only).
+    #[arg(long, value_enum, default_value_t = extranerf_nerf::optim::AdamMode::Dense)]
+    adam: extranerf_nerf::optim::AdamMode,
     /// Also write the results as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -1012,6 +1022,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             occupancy_res: a.occupancy_res,
             occupancy_every: a.occupancy_every,
             occupancy_warmup: 0,
+            adam: a.adam,
             ..TrainConfig::default()
         };
         let params = extranerf_nerf::model::init_params(&model, 0);
@@ -1022,7 +1033,14 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             Some(why) if fused => format!("standalone kernels ({why})"),
             Some(_) => "standalone kernels".to_string(),
         };
-        let label = format!("{label}, MLPs {}", t.mlp_path());
+        let label = format!(
+            "{label}, MLPs {}, Adam {}",
+            t.mlp_path(),
+            match a.adam {
+                extranerf_nerf::optim::AdamMode::Dense => "dense",
+                extranerf_nerf::optim::AdamMode::Sparse => "sparse",
+            }
+        );
         let warm = Instant::now();
         t.run_steps(ctx, &prims, &data, 2)?;
         let warm_s = warm.elapsed().as_secs_f64();
@@ -1048,6 +1066,24 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             a.samples,
             t.samples_per_step()
         );
+        // With the sparse Adam: the share of the table one step's batch reached.
+        let touched = match a.adam {
+            extranerf_nerf::optim::AdamMode::Dense => None,
+            extranerf_nerf::optim::AdamMode::Sparse => {
+                t.gradient(ctx, &prims, &data)?;
+                t.touched_mask()?.map(|m| {
+                    let bits: u64 = m.iter().map(|w| w.count_ones() as u64).sum();
+                    let vec4s = (model.grid().param_count()).div_ceil(4);
+                    (bits, vec4s)
+                })
+            }
+        };
+        if let Some((bits, vec4s)) = touched {
+            println!(
+                "sparse Adam: one step's batch reached {bits} of the table's {vec4s} vec4s ({:.1}%)",
+                100.0 * bits as f64 / vec4s as f64
+            );
+        }
         let occupied = t.occupied_fraction()?;
         if let (Some(f), Some(occ)) = (occupied, t.occupancy()) {
             let g = occ.config();

@@ -2,6 +2,7 @@
 //! learning-rate schedule (1e-2 decaying exponentially to 3e-4 over 5000 steps by default).
 
 use extranerf_gpu::kernels::optim::adam as k;
+use extranerf_gpu::kernels::optim::adam_sparse as ks;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
 /// Adam hyperparameters and the learning-rate schedule.
@@ -83,11 +84,37 @@ pub struct TableDecay<'a> {
     pub lambda: f32,
 }
 
+/// The part of the parameters that [`Adam::record_step_sparse`] updates sparsely: a hash table
+/// at float 0 of `floats` floats (within one storage binding), with its touched mask (a bit per
+/// vec4, `floats.div_ceil(128)` words, set by the step's backward pass), and the first float of
+/// the densely updated rest (the MLPs).
+#[derive(Clone, Copy, Debug)]
+pub struct SparseTable<'a> {
+    pub floats: u64,
+    pub touched: Binding<'a>,
+    pub rest: u64,
+}
+
+/// Which parameters Adam updates each step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum AdamMode {
+    /// Every parameter, every step.
+    #[default]
+    Dense,
+    /// The hash table's entries that the step's batch reached (tiny-cuda-nn's rule: an entry
+    /// without a gradient keeps its parameter and moments), the MLPs densely.
+    Sparse,
+}
+
 /// Adam state (first and second moments) for `n` parameters.
 #[derive(Debug)]
 pub struct Adam {
     config: AdamConfig,
     kernel: Kernel,
+    sparse: Kernel,
+    sparse_clear: Kernel,
     m: Buffer<f32>,
     v: Buffer<f32>,
     n: u64,
@@ -118,6 +145,8 @@ impl Adam {
         Ok(Adam {
             config,
             kernel: Kernel::new(ctx, &k::adam::DESC)?,
+            sparse: Kernel::new(ctx, &ks::adam_sparse::DESC)?,
+            sparse_clear: Kernel::new(ctx, &ks::adam_sparse_clear::DESC)?,
             m: Buffer::from_slice(ctx, "adam first moment", &zeros)?,
             v: Buffer::from_slice(ctx, "adam second moment", &zeros)?,
             n,
@@ -157,24 +186,18 @@ impl Adam {
         self.v.write(v)
     }
 
-    /// Records update number `step` (1-based) of `params` with `grads * grad_scale`, plus the
-    /// hash decay gradient when `decay` is given.
-    pub fn record_step<'a>(
+    /// The kernel parameters of update number `step` and the decay block to bind.
+    fn step_params<'a>(
         &'a self,
-        rec: &mut Recorder<'a>,
-        params: Binding<'a>,
-        grads: Binding<'a>,
         step: u32,
         grad_scale: f32,
         decay: Option<TableDecay<'a>>,
-    ) -> Result<()> {
+    ) -> Result<(k::Params, Binding<'a>)> {
         if step == 0 {
             return Err(GpuError::Usage("Adam steps count from 1".into()));
         }
-        params.check_fits(self.n, 4, "Adam parameters")?;
-        grads.check_fits(self.n, 4, "Adam gradients")?;
         let c = &self.config;
-        let p = k::Params {
+        let mut p = k::Params {
             n: count_u32(self.n, "Adam parameters")?,
             lr: c.lr_at(step),
             beta1: c.beta1,
@@ -192,7 +215,6 @@ impl Adam {
             _pad1: 0,
             _pad2: 0,
         };
-        let mut p = p;
         let mut block = self.no_block.binding();
         if let Some(d) = decay {
             if !(d.lambda >= 0.0 && d.lambda.is_finite() && (1..=64).contains(&d.levels)) {
@@ -215,9 +237,24 @@ impl Adam {
             p.decay_levels = d.levels;
             block = d.block;
         }
-        let mut first = 0;
-        while first < self.n {
-            let len = self.chunk.min(self.n - first);
+        Ok((p, block))
+    }
+
+    /// Records the dense update of floats `from..to` of `params`, range by range.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    fn record_dense<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        params: Binding<'a>,
+        grads: Binding<'a>,
+        p: &k::Params,
+        block: Binding<'a>,
+        from: u64,
+        to: u64,
+    ) -> Result<()> {
+        let mut first = from;
+        while first < to {
+            let len = self.chunk.min(to - first);
             let range = |b: Binding<'a>| -> Result<Binding<'a>> {
                 if first == 0 && len == self.n {
                     Ok(b)
@@ -235,12 +272,96 @@ impl Adam {
             let p = k::Params {
                 n: len as u32,
                 offset: first as u32,
-                ..p
+                ..*p
             };
             // 4 vec4s (16 parameters) per thread.
             rec.dispatch(&self.kernel, b.into_array(), &p, len.div_ceil(16))?;
             first += len;
         }
         Ok(())
+    }
+
+    /// Records update number `step` (1-based) of `params` with `grads * grad_scale`, plus the
+    /// hash decay gradient when `decay` is given.
+    pub fn record_step<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        params: Binding<'a>,
+        grads: Binding<'a>,
+        step: u32,
+        grad_scale: f32,
+        decay: Option<TableDecay<'a>>,
+    ) -> Result<()> {
+        params.check_fits(self.n, 4, "Adam parameters")?;
+        grads.check_fits(self.n, 4, "Adam gradients")?;
+        let (p, block) = self.step_params(step, grad_scale, decay)?;
+        self.record_dense(rec, params, grads, &p, block, 0, self.n)
+    }
+
+    /// Records update number `step` with the table's floats `0..sparse.floats` updated sparsely
+    /// (only the vec4s marked in `sparse.touched`, whose gradients are then zeroed and marks
+    /// cleared: `optim/adam_sparse.wgsl`) and floats `sparse.rest..` densely. Floats between
+    /// the two (a section's alignment gap) are not updated.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn record_step_sparse<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        params: Binding<'a>,
+        grads: Binding<'a>,
+        step: u32,
+        grad_scale: f32,
+        decay: Option<TableDecay<'a>>,
+        sparse: SparseTable<'a>,
+    ) -> Result<()> {
+        params.check_fits(self.n, 4, "Adam parameters")?;
+        grads.check_fits(self.n, 4, "Adam gradients")?;
+        let t = sparse.floats;
+        if t > self.n || sparse.rest < t || sparse.rest > self.n {
+            return Err(GpuError::Usage(format!(
+                "sparse Adam over floats 0..{t} and dense from {} of {} parameters",
+                sparse.rest, self.n
+            )));
+        }
+        if t > self.chunk {
+            return Err(GpuError::Usage(format!(
+                "sparse Adam: a table of {t} floats is larger than one storage binding ({} floats)",
+                self.chunk
+            )));
+        }
+        sparse
+            .touched
+            .check_fits(t.div_ceil(128), 4, "Adam touched mask")?;
+        let (p, block) = self.step_params(step, grad_scale, decay)?;
+        if t > 0 {
+            let whole = |b: Binding<'a>| -> Result<Binding<'a>> {
+                if t == self.n {
+                    Ok(b)
+                } else {
+                    b.sub(0, t * 4)
+                }
+            };
+            let b = ks::adam_sparse::Bindings {
+                param: whole(params)?,
+                grad: whole(grads)?,
+                m1: whole(self.m.binding())?,
+                m2: whole(self.v.binding())?,
+                decay_block: block,
+                touched: sparse.touched,
+            };
+            let ps = k::Params {
+                n: t as u32,
+                offset: 0,
+                ..p
+            };
+            // 4 vec4s per thread, as the dense kernel; then one thread per mask word.
+            rec.dispatch(&self.sparse, b.into_array(), &ps, t.div_ceil(16))?;
+            let words = t.div_ceil(128);
+            // The whole binding is the mask: all of it is cleared.
+            let clear = ks::adam_sparse_clear::Bindings {
+                touched: sparse.touched,
+            };
+            rec.dispatch(&self.sparse_clear, clear.into_array(), &ps, words)?;
+        }
+        self.record_dense(rec, params, grads, &p, block, sparse.rest, self.n)
     }
 }

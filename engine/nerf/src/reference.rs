@@ -1418,6 +1418,40 @@ pub fn mvs_consistency_pixel(
     }
 }
 
+/// One step of the sparse Adam (`optim/adam_sparse.wgsl`, tiny-cuda-nn's rule) in f64: floats
+/// `0..table` (a hash table) are updated only in the vec4s whose bit is set in `touched` (bit
+/// i of word w: vec4 32 w + i), the others keep their parameter and moments; floats `rest..`
+/// are updated densely; floats between the two are left alone. `g` holds the gradient with
+/// any decay terms already added, as [`adam_step_with`] takes it.
+#[allow(clippy::too_many_arguments)] // mirrors the kernel's operands
+pub fn adam_step_sparse(
+    p: &mut [f64],
+    m: &mut [f64],
+    v: &mut [f64],
+    g: &[f32],
+    touched: &[u32],
+    table: usize,
+    rest: usize,
+    cfg: &crate::optim::AdamConfig,
+    step: u32,
+    grad_scale: f64,
+) {
+    let on = |i: usize| touched[i / 128] >> ((i / 4) % 32) & 1 == 1;
+    let pick: Vec<usize> = (0..table).filter(|&i| on(i)).chain(rest..p.len()).collect();
+    let (mut ps, mut ms, mut vs): (Vec<f64>, Vec<f64>, Vec<f64>) = (
+        pick.iter().map(|&i| p[i]).collect(),
+        pick.iter().map(|&i| m[i]).collect(),
+        pick.iter().map(|&i| v[i]).collect(),
+    );
+    let gs: Vec<f32> = pick.iter().map(|&i| g[i]).collect();
+    adam_step_with(&mut ps, &mut ms, &mut vs, &gs, cfg, step, grad_scale);
+    for (k, &i) in pick.iter().enumerate() {
+        p[i] = ps[k];
+        m[i] = ms[k];
+        v[i] = vs[k];
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -13,7 +13,7 @@ use extranerf_prims::{Prims, ReducePlan};
 
 use crate::field::mlp::{MlpMode, MlpPath};
 use crate::model::{mark, Profiler, Space};
-use crate::optim::{Adam, AdamConfig, TableDecay};
+use crate::optim::{Adam, AdamConfig, AdamMode, SparseTable, TableDecay};
 use crate::render::composite::{Background, RayGrads};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
@@ -105,6 +105,11 @@ pub struct TrainConfig {
     /// [`crate::render::loss::LossConfig::l1_core`]).
     #[serde(default)]
     pub virtual_l1_core: f32,
+    /// Which parameters Adam updates each step ([`AdamMode`]): all (`dense`), or the hash
+    /// table's entries the batch reached and the MLPs (`sparse`; the fused step with an
+    /// unsplit table only).
+    #[serde(default)]
+    pub adam: AdamMode,
 }
 
 /// The photometric loss of captured views, as configs and the command line name it.
@@ -183,6 +188,7 @@ impl Default for TrainConfig {
             fused_step: default_fused_step(),
             mlp: MlpMode::Auto,
             virtual_l1_core: 0.0,
+            adam: AdamMode::Dense,
         }
     }
 }
@@ -297,6 +303,11 @@ pub struct Trainer {
     occupancy: Option<Occupancy>,
     /// The fused training step, when used.
     fused: Option<FusedStep>,
+    /// With the sparse Adam: the table's touched mask (empty between steps), and whether the
+    /// table's gradients may hold a step's leftovers (a step recorded without its update):
+    /// the next step then zeroes the whole gradient buffer, not only the MLPs'.
+    touched: Option<Buffer<u32>>,
+    table_grads_dirty: std::cell::Cell<bool>,
     /// Why the standalone chain trains instead, when it does.
     standalone_reason: Option<String>,
     /// The MLP path the steps take.
@@ -346,6 +357,27 @@ impl Trainer {
             fused.is_none(),
         )?;
         let adam = Adam::new(ctx, total as u64, cfg.adam())?;
+        let touched = match cfg.adam {
+            AdamMode::Dense => None,
+            AdamMode::Sparse => {
+                if fused.is_none() || nerf.field.grid().split().is_some() {
+                    return Err(GpuError::Usage(format!(
+                        "--adam sparse needs the fused step and a hash table in one storage binding; this run uses {}",
+                        match (&why_not, nerf.field.grid().split()) {
+                            (Some(w), _) => format!("the standalone chain ({w})"),
+                            _ => "a table split over two bindings".to_string(),
+                        }
+                    )));
+                }
+                let words =
+                    crate::render::train_step::touched_words(nerf.field.layout().table.1 as u64);
+                Some(Buffer::from_slice(
+                    ctx,
+                    "touched mask",
+                    &vec![0u32; words as usize],
+                )?)
+            }
+        };
         if let Some((m, v)) = moments {
             adam.load_moments(m, v)?;
         }
@@ -372,6 +404,9 @@ impl Trainer {
         Ok(Trainer {
             occupancy,
             grads: Buffer::new(ctx, "field gradients", total)?,
+            touched,
+            // Nothing is known of a new buffer's contents: the first step zeroes it whole.
+            table_grads_dirty: std::cell::Cell::new(true),
             adam,
             loss: RayLoss::new(ctx)?,
             batch: Kernel::new(ctx, &kb::sample_batch::DESC)?,
@@ -589,6 +624,8 @@ impl Trainer {
         self.record_stats(rec, prims, step)?;
         mark(prof, rec, "loss and MSE stats")?;
         if !update {
+            // The sparse Adam zeroes the table's gradient; without it the next step must.
+            self.table_grads_dirty.set(true);
             return Ok(());
         }
         self.record_adam(rec, step)?;
@@ -765,14 +802,32 @@ impl Trainer {
                 lambda: self.cfg.hash_decay_lambda,
             }
         });
-        self.adam.record_step(
-            rec,
-            nerf.params.binding(),
-            self.grads.binding(),
-            step,
-            1.0,
-            decay,
-        )
+        match &self.touched {
+            None => self.adam.record_step(
+                rec,
+                nerf.params.binding(),
+                self.grads.binding(),
+                step,
+                1.0,
+                decay,
+            ),
+            Some(touched) => {
+                let lay = nerf.field.layout();
+                self.adam.record_step_sparse(
+                    rec,
+                    nerf.params.binding(),
+                    self.grads.binding(),
+                    step,
+                    1.0,
+                    decay,
+                    SparseTable {
+                        floats: lay.table.1 as u64,
+                        touched: touched.binding(),
+                        rest: lay.density.0 as u64,
+                    },
+                )
+            }
+        }
     }
 
     /// Records the fused step's forward and backward pass after the batch is drawn and the
@@ -788,7 +843,24 @@ impl Trainer {
     ) -> Result<()> {
         let ws = &self.ws;
         let nerf = &self.nerf;
-        rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
+        match &self.touched {
+            Some(_) if !self.table_grads_dirty.get() => {
+                // The sparse Adam left the table's gradients zero and its mask empty.
+                let rest = nerf.field.layout().density.0 as u64;
+                let n = self.grads.len() as u64;
+                rec.fill_words(
+                    self.grads.binding().sub(rest * 4, (n - rest) * 4)?,
+                    n - rest,
+                    0,
+                )?;
+            }
+            Some(touched) => {
+                rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
+                rec.fill_words(touched.binding(), touched.len() as u64, 0)?;
+                self.table_grads_dirty.set(false);
+            }
+            None => rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?,
+        }
         mark(prof, rec, "zero gradients")?;
         let losses = StepLosses {
             loss: self.cfg.loss()?,
@@ -818,6 +890,7 @@ impl Trainer {
                 loss: ws.loss.binding(),
                 mse: ws.mse.binding(),
                 dist_loss: ws.dist_loss.binding(),
+                touched: self.touched.as_ref().map(|t| t.binding()),
             },
         )?;
         mark(prof, rec, "fused step (march, losses, backward)")?;
@@ -851,6 +924,12 @@ impl Trainer {
             .zip(t.windows(2))
             .map(|(&name, w)| (name, (w[1] - w[0]) * 1e-6))
             .collect())
+    }
+
+    /// With the sparse Adam: the touched mask as the last recorded step left it (empty after
+    /// an update; after [`Trainer::gradient`], the bits of the vec4s it reached).
+    pub fn touched_mask(&self) -> Result<Option<Vec<u32>>> {
+        self.touched.as_ref().map(|t| t.read()).transpose()
     }
 
     /// The gradient of the next step's batch loss with respect to every parameter (the flat

@@ -11,9 +11,9 @@ const COOP_ACC: u32 = COOP_POINTS * MLP_MAX;
 
 // Both MLPs' weights in f16, per layer [round_tile(outputs)][round_tile(inputs)], zero padded:
 // the density MLP's, then the colour MLP's at element coop_w_offset(density, layers).
-@group(0) @binding(20) var<storage, read> w16: array<f16>;
+@group(0) @binding(21) var<storage, read> w16: array<f16>;
 // w16, written by coop_fused_weights (each file's weights kernel).
-@group(0) @binding(21) var<storage, read_write> w16_out: array<f16>;
+@group(0) @binding(22) var<storage, read_write> w16_out: array<f16>;
 
 fn coop_bias(e: u32) -> f32 {
     return mlp_block_at(e);

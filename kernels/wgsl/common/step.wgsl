@@ -73,6 +73,9 @@ const STEP_RANDOM_BG: u32 = 2u;
 const STEP_NDC: u32 = 4u;
 const STEP_HUBER: u32 = 8u;
 const STEP_GRAD_SCALING: u32 = 16u;
+// Set the bit of every vec4 of the table the step adds a gradient to in `touched` (for the
+// sparse Adam, optim/adam_sparse.wgsl; unsplit tables only: the host refuses split ones).
+const STEP_TOUCHED: u32 = 32u;
 
 // The strata's spacing (render/sample.wgsl; common/field_eval.wgsl's t_of asks for it): 0
 // (linear in t) in NDC, else 1 (linear in disparity).
@@ -109,6 +112,8 @@ fn sample_spacing() -> u32 {
 // at a varying address is a loop over the lanes, and a vec4 costs about what one float does.
 @group(0) @binding(18) var<storage, read_write> saved_density: array<vec4<f32>>;
 @group(0) @binding(19) var<storage, read_write> saved_color: array<vec4<f32>>;
+// With STEP_TOUCHED: bit i of word w marks the table's vec4 32 w + i as holding a gradient.
+@group(0) @binding(20) var<storage, read_write> touched: array<atomic<u32>>;
 
 // The vec4 at float e (a multiple of 4) of the colour (or density) MLP's records; a branch, so
 // each binding is only indexed within its own range.
@@ -232,6 +237,13 @@ fn scatter(hi: bool, e: u32, v: f32) {
     atomicAdd(&d_table[e], v);
 }
 
+// Marks the vec4s holding table floats e .. e + count - 1 (an unsplit table's) in `touched`.
+fn mark_touched(e: u32, count: u32) {
+    for (var q = e / 4u; q <= (e + count - 1u) / 4u; q += 1u) {
+        atomicOr(&touched[q / 32u], 1u << (q % 32u));
+    }
+}
+
 // Adds d_enc (dL/d features, levels * features) of the contracted point x to d_table.
 fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
     if !hg_valid(x) {
@@ -245,8 +257,14 @@ fn encode_backward(x: vec3<f32>, d_enc: ptr<function, Act>) {
         for (var k = 0u; k < 8u; k += 1u) {
             let wk = hg_weight(cell.frac, k);
             let e = lv.offset + hg_index(hg_corner(cell.corner, k), lv) * F;
+            var nz = false;
             for (var f = 0u; f < F; f += 1u) {
-                scatter(hi, e + f, wk * act_get(d_enc, l * F + f));
+                let v = wk * act_get(d_enc, l * F + f);
+                scatter(hi, e + f, v);
+                nz = nz || v != 0.0;
+            }
+            if nz && (params.flags & STEP_TOUCHED) != 0u {
+                mark_touched(e, F);
             }
         }
     }

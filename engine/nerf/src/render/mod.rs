@@ -102,7 +102,7 @@ impl FusedCoop {
 }
 
 /// The bindings of a fused cooperative-matrix kernel: its scalar twin's, in the same order,
-/// then `w16` (binding 20, after every scalar one).
+/// then `w16` (binding 21, after every scalar one).
 fn with_w16<'a, const N: usize, const M: usize>(
     scalar: [Binding<'a>; N],
     w16: Binding<'a>,
@@ -154,7 +154,7 @@ mod tests {
             ),
         ] {
             let mut want = names(scalar);
-            want.push((20, "w16"));
+            want.push((21, "w16"));
             for c in coop {
                 assert_eq!(names(c), want, "{}", c.name);
             }

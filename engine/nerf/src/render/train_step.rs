@@ -40,6 +40,7 @@ const STEP_RANDOM_BG: u32 = 2;
 const STEP_NDC: u32 = 4;
 const STEP_HUBER: u32 = 8;
 const STEP_GRAD_SCALING: u32 = 16;
+const STEP_TOUCHED: u32 = 32;
 
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
 /// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
@@ -56,6 +57,15 @@ pub struct StepOutputs<'a> {
     pub mse: Binding<'a>,
     /// Distortion loss (its weight includes 1 / n), `[n]`.
     pub dist_loss: Binding<'a>,
+    /// With the sparse Adam: the touched mask the step sets a bit in for every vec4 of the
+    /// table it adds a gradient to (bit i of word w: vec4 32 w + i; at least
+    /// [`touched_words`] words; an unsplit table only). None: no mask.
+    pub touched: Option<Binding<'a>>,
+}
+
+/// Words of the touched mask of a table of `floats` floats (a bit per vec4).
+pub fn touched_words(floats: u64) -> u64 {
+    floats.div_ceil(128)
 }
 
 /// The loss terms of a fused step.
@@ -87,6 +97,8 @@ pub struct FusedStep {
     mlp_block: Buffer<f32>,
     /// Bound as the occupancy bitfield without a grid (the kernel does not read it then).
     no_bits: Buffer<u32>,
+    /// Bound as `touched` when the step marks nothing (never accessed then).
+    no_touched: Buffer<u32>,
     saved_density: Buffer<f32>,
     saved_color: Buffer<f32>,
     rays: u32,
@@ -137,6 +149,7 @@ impl FusedStep {
             coop,
             mlp_block: Buffer::new(ctx, "fused step MLP weights", BLOCK_FLOATS)?,
             no_bits: Buffer::from_slice(ctx, "fused step: no occupancy bits", &[u32::MAX])?,
+            no_touched: Buffer::from_slice(ctx, "fused step: no touched mask", &[0u32])?,
             saved_density: records(
                 field.config().density_mlp().saved_stride(),
                 "fused step density MLP records",
@@ -231,6 +244,22 @@ impl FusedStep {
                 )));
             }
         }
+        let touched = match out.touched {
+            None => None,
+            Some(t) => {
+                if field.grid().split().is_some() {
+                    return Err(GpuError::Usage(
+                        "the touched mask (sparse Adam) covers tables in one storage binding; this table is split in two".into(),
+                    ));
+                }
+                t.check_fits(
+                    touched_words(cfg.grid().param_count()),
+                    4,
+                    "fused step touched mask",
+                )?;
+                Some(t)
+            }
+        };
         let bit = |on: bool, b: u32| if on { b } else { 0 };
         let p = k::Params {
             n: self.rays,
@@ -248,7 +277,8 @@ impl FusedStep {
                 | bit(random_bg != 0, STEP_RANDOM_BG)
                 | bit(ndc, STEP_NDC)
                 | loss_flag
-                | bit(losses.grad_scaling, STEP_GRAD_SCALING),
+                | bit(losses.grad_scaling, STEP_GRAD_SCALING)
+                | bit(touched.is_some(), STEP_TOUCHED),
             n_cameras,
             color_base: base,
             dist_lambda: losses.distortion,
@@ -289,13 +319,14 @@ impl FusedStep {
             d_table_hi,
             saved_density: self.saved_density.binding(),
             saved_color: self.saved_color.binding(),
+            touched: touched.unwrap_or(self.no_touched.binding()),
         };
         let Some(coop) = &self.coop else {
             return rec.dispatch(&self.kernel, b.into_array(), &p, n);
         };
         let shapes = [b.density_shape, b.color_shape];
         let mlp = b.mlp;
-        coop.record::<_, 20, 21>(rec, field, shapes, mlp, b.into_array(), &p, n)
+        coop.record::<_, 21, 22>(rec, field, shapes, mlp, b.into_array(), &p, n)
     }
 
     /// The MLP path this step takes.
