@@ -480,7 +480,7 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     assert!(e(&empty).contains("view_06.png"), "{}", e(&empty));
     extranerf_nerf::run::write_png(&empty.join("view_06.png"), 8, 8, &[1.0; 8 * 8 * 3]).unwrap();
     assert!(
-        e(&empty).contains("a 8x8 visibility mask for a 48x36 view"),
+        e(&empty).contains("a 8x8 mask for a 48x36 view"),
         "{}",
         e(&empty)
     );

@@ -589,26 +589,9 @@ fn sparse_adam_skipped_entries_follow_the_rule() {
     assert_no_validation_messages(&e.ctx);
 }
 
-/// The model of the trainer tests below: small, with a table of 4 levels.
-fn tiny_model() -> extranerf_nerf::model::ModelConfig {
-    extranerf_nerf::model::ModelConfig {
-        levels: 4,
-        features: 2,
-        log2_table: 10,
-        min_res: 4,
-        max_res: 64,
-        density_width: 16,
-        density_layers: 1,
-        geo_dims: 8,
-        color_width: 16,
-        color_layers: 2,
-        ..Default::default()
-    }
-}
-
 /// The tiny model and the demo scene's training views for it, in scratch folder `name`.
 fn tiny_scene(name: &str) -> (extranerf_nerf::model::ModelConfig, TrainData) {
-    let model = tiny_model();
+    let model = extranerf_tests::tiny_model();
     let views = extranerf_tests::demo_training_views(name, &model);
     let data = TrainData::new(&engine().ctx, &views).unwrap();
     (model, data)

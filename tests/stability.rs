@@ -21,31 +21,15 @@ use extranerf_nerf::render::visibility::{
 use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::trainer::{TrainConfig, Trainer};
 use extranerf_nerf::views::{TrainData, View};
-use extranerf_tests::{assert_no_validation_messages, demo_training_views, engine};
-
-fn tiny() -> ModelConfig {
-    ModelConfig {
-        levels: 4,
-        features: 2,
-        log2_table: 10,
-        min_res: 4,
-        max_res: 64,
-        density_width: 16,
-        density_layers: 1,
-        geo_dims: 8,
-        color_width: 16,
-        color_layers: 2,
-        ..ModelConfig::default()
-    }
-}
+use extranerf_tests::{assert_no_validation_messages, demo_training_views, engine, tiny_model};
 
 fn demo_views(name: &str) -> Vec<View> {
-    demo_training_views(name, &tiny())
+    demo_training_views(name, &tiny_model())
 }
 
 /// Trains `steps` steps and returns (first window MSE, last window MSE, parameters).
 fn train(views: &[View], cfg: TrainConfig) -> (f64, f64, Vec<f32>, Vec<f32>) {
-    train_model(views, cfg, tiny())
+    train_model(views, cfg, tiny_model())
 }
 
 fn train_model(
@@ -119,8 +103,8 @@ fn learning_rates_at_both_ends_stay_finite() {
             lr_end: lr,
             ..base.clone()
         };
-        let p0 = init_params(&tiny(), 2);
-        let nerf = Nerf::new(&e.ctx, tiny(), &p0, cfg.background).unwrap();
+        let p0 = init_params(&tiny_model(), 2);
+        let nerf = Nerf::new(&e.ctx, tiny_model(), &p0, cfg.background).unwrap();
         let data = TrainData::new(&e.ctx, &views).unwrap();
         let mut t = Trainer::new(&e.ctx, nerf, cfg.clone(), 0, None).unwrap();
         let mut prev = p0;
@@ -256,10 +240,10 @@ fn training_with_the_f16_table_tracks_f32() {
         samples: 8,
         ..TrainConfig::default()
     };
-    let (f0, f1, _, p32) = train_model(&views, cfg.clone(), tiny());
+    let (f0, f1, _, p32) = train_model(&views, cfg.clone(), tiny_model());
     let half = ModelConfig {
         precision: extranerf_nerf::model::Precision::F16,
-        ..tiny()
+        ..tiny_model()
     };
     let (h0, h1, _, p16) = train_model(&views, cfg, half);
     assert!(h1 < h0, "f16: {h0} -> {h1}");
@@ -278,7 +262,7 @@ fn training_with_the_f16_table_tracks_f32() {
     let bad = ModelConfig {
         precision: extranerf_nerf::model::Precision::F16,
         features: 4,
-        ..tiny()
+        ..tiny_model()
     };
     assert!(bad.validate().unwrap_err().to_string().contains("f16"));
 }
@@ -311,7 +295,7 @@ fn training_with_the_occupancy_grid_tracks_plain_sampling() {
     };
     let e = engine();
     let ctx = &e.ctx;
-    let model = tiny();
+    let model = tiny_model();
     let nerf = Nerf::new(ctx, model.clone(), &init_params(&model, 2), occ.background).unwrap();
     let data = TrainData::new(ctx, &views).unwrap();
     let mut t = Trainer::new(ctx, nerf, occ, 0, None).unwrap();

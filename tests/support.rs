@@ -248,3 +248,20 @@ pub fn max_rel_err(a: &[f32], b: &[f32]) -> f64 {
         .fold(0f64, |m, (x, y)| m.max((*x as f64 - *y as f64).abs()))
         / scale
 }
+
+/// A small field for training tests: 4 levels of a 2^10 table (N 4..64), MLPs 16 wide.
+pub fn tiny_model() -> extranerf_nerf::model::ModelConfig {
+    extranerf_nerf::model::ModelConfig {
+        levels: 4,
+        features: 2,
+        log2_table: 10,
+        min_res: 4,
+        max_res: 64,
+        density_width: 16,
+        density_layers: 1,
+        geo_dims: 8,
+        color_width: 16,
+        color_layers: 2,
+        ..Default::default()
+    }
+}

@@ -521,12 +521,8 @@ pub fn eval_run(
         truth_masks.as_deref(),
         &mut rep,
     )?;
-    let md = t.markdown();
-    crate::bench::write_json(&run.join("eval.json"), &serde_json::to_value(&t)?)?;
-    std::fs::write(run.join("eval.md"), &md)
-        .with_context(|| format!("writing {}", run.join("eval.md").display()))?;
-    let report = extranerf_extrapolate::report::write_report(run, Some(&t))?;
-    println!("held-out views {:?}\n\n{md}", t.views);
+    let report = extranerf_extrapolate::eval::write_table(run, &t)?;
+    println!("held-out views {:?}\n\n{}", t.views, t.markdown());
     eprintln!(
         "wrote {}, eval.md and {}",
         run.join("eval.json").display(),

@@ -808,21 +808,9 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
             e.1.add(&r.rgb, &r.truth, &outside)?;
         }
         if let (Some(dir), "test") = (&a.visibility_masks, r.role) {
-            let stem = r.camera.image.file_stem().unwrap_or_default().to_owned();
-            let path = dir.join(stem).with_extension("png");
-            if path.exists() {
-                let mask = extranerf_nerf::data::load_image(&path)?;
-                if (mask.width, mask.height) != (r.width, r.height) {
-                    bail!(
-                        "{}: a {}x{} mask for a {}x{} view",
-                        path.display(),
-                        mask.width,
-                        mask.height,
-                        r.width,
-                        r.height
-                    );
-                }
-                let seen: Vec<bool> = mask.rgb.chunks(3).map(|c| c[0] > 0.5).collect();
+            if let Some(seen) =
+                extranerf_extrapolate::eval::truth_mask(dir, &r.camera.image, r.width, r.height)?
+            {
                 let unseen: Vec<bool> = seen.iter().map(|&v| !v).collect();
                 for (key, chosen) in [("psnr_visible", &seen), ("psnr_not_visible", &unseen)] {
                     let mut e = PooledError::default();
@@ -1182,10 +1170,10 @@ pub struct DemoArgs {
     #[arg(long)]
     no_stage3: bool,
     /// Stage-3 rounds (the unsharp-mask enhancer).
-    #[arg(long, default_value_t = DEMO_STAGE3.0)]
+    #[arg(long, default_value_t = DemoSpec::DEFAULT_STAGE3.0)]
     stage3_rounds: u32,
     /// Stage-3 training steps per round.
-    #[arg(long, default_value_t = DEMO_STAGE3.1)]
+    #[arg(long, default_value_t = DemoSpec::DEFAULT_STAGE3.1)]
     stage3_steps_per_round: u32,
     /// Divide the views' resolution by this for the virtual views and visibility maps.
     #[arg(long, default_value_t = DemoSpec::default().virtual_downscale)]
@@ -1202,12 +1190,6 @@ pub struct DemoArgs {
     #[arg(long, value_enum, default_value_t = DemoStop::default())]
     stop_after: DemoStop,
 }
-
-/// The demo's stage 3 (rounds, steps per round).
-const DEMO_STAGE3: (u32, u32) = match DemoSpec::DEFAULT_STAGE3 {
-    Some(s) => s,
-    None => (0, 0),
-};
 
 /// `extranerf demo`: ExtraNeRF end to end on the procedural scene.
 pub fn demo(ctx: &Context, a: &DemoArgs) -> anyhow::Result<()> {

@@ -24,11 +24,12 @@ use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::demo::{write_demo_scene, GT_VISIBILITY_DIR, RIG_VIEWS, RING_VIEWS};
 use extranerf_nerf::metrics::Lpips;
 use extranerf_nerf::model::ModelConfig;
-use extranerf_nerf::run::{RunConfig, SceneSpec};
+use extranerf_nerf::run::{write_png, RunConfig, SceneSpec};
+use extranerf_nerf::safetensors::write_atomic;
 use extranerf_nerf::trainer::TrainConfig;
 
 use crate::driver::{train_loop, Reporter, TrainRun, ViewSet};
-use crate::eval::{compare, Table};
+use crate::eval::{compare, write_table, Table};
 use crate::inpaint::InpainterKind;
 use crate::manifest::Manifest;
 use crate::pipeline::{extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec};
@@ -75,7 +76,7 @@ pub enum DemoStop {
 
 impl DemoSpec {
     /// The default stage 3: rounds and steps per round.
-    pub const DEFAULT_STAGE3: Option<(u32, u32)> = Some((2, 150));
+    pub const DEFAULT_STAGE3: (u32, u32) = (2, 150);
 }
 
 impl Default for DemoSpec {
@@ -89,7 +90,7 @@ impl Default for DemoSpec {
                 steps_per_round: 200,
                 ..Stage2Spec::default()
             },
-            stage3: Self::DEFAULT_STAGE3,
+            stage3: Some(Self::DEFAULT_STAGE3),
             virtual_downscale: 2,
             flythrough: FlythroughSpec::default().frames,
             lpips: crate::driver::default_lpips_dir(),
@@ -296,10 +297,7 @@ pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> anyhow::R
         Some(&scene.join(GT_VISIBILITY_DIR)),
         rep,
     )?;
-    let json = serde_json::to_string_pretty(&table)?;
-    write_file(&run.join("eval.json"), json.as_bytes())?;
-    write_file(&run.join("eval.md"), table.markdown().as_bytes())?;
-    outcome.report = Some(crate::report::write_report(&run, Some(&table))?);
+    outcome.report = Some(write_table(&run, &table)?);
     outcome.picture = Some(outside_views_picture(&run)?);
     outcome
         .seconds
@@ -317,19 +315,15 @@ pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> anyhow::R
         "seconds": outcome.seconds.iter().map(|(n, s)| serde_json::json!({"part": n, "seconds": s})).collect::<Vec<_>>(),
         "total_seconds": t0.elapsed().as_secs_f64(),
     });
-    write_file(
+    write_atomic(
         &spec.out.join(SUMMARY_FILE),
-        serde_json::to_string_pretty(&summary)?.as_bytes(),
+        (serde_json::to_string_pretty(&summary)? + "\n").as_bytes(),
     )?;
     Ok(outcome)
 }
 
 /// The demo's summary in its output folder: settings, device, seconds per part and in all.
 pub const SUMMARY_FILE: &str = "demo.json";
-
-fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
-}
 
 /// The picture's file name in the run folder.
 pub const PICTURE_FILE: &str = "outside_views.png";
@@ -356,7 +350,7 @@ pub fn outside_views_picture(run: &Path) -> anyhow::Result<PathBuf> {
     let rows = (views.len() as u32).div_ceil(per_row);
     let cols = 3 * per_row;
     let (pw, ph) = (cols * w + (cols - 1) * GAP, rows * h + (rows - 1) * GAP);
-    let mut pic = image::RgbImage::from_pixel(pw, ph, image::Rgb([255, 255, 255]));
+    let mut pic = vec![1f32; (pw * ph * 3) as usize];
     for (k, &i) in views.iter().enumerate() {
         let cam = &loaded.scene.cameras[i];
         let paths = [
@@ -376,21 +370,14 @@ pub fn outside_views_picture(run: &Path) -> anyhow::Result<PathBuf> {
                 );
             }
             let (x0, y0) = ((3 * slot + c as u32) * (w + GAP), row * (h + GAP));
-            for y in 0..h {
-                for x in 0..w {
-                    let q = 3 * (y * w + x) as usize;
-                    let px = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-                    pic.put_pixel(
-                        x0 + x,
-                        y0 + y,
-                        image::Rgb([px(img.rgb[q]), px(img.rgb[q + 1]), px(img.rgb[q + 2])]),
-                    );
-                }
+            for y in 0..h as usize {
+                let src = 3 * y * w as usize;
+                let dst = 3 * ((y0 as usize + y) * pw as usize + x0 as usize);
+                pic[dst..dst + 3 * w as usize].copy_from_slice(&img.rgb[src..src + 3 * w as usize]);
             }
         }
     }
     let path = run.join(PICTURE_FILE);
-    pic.save(&path)
-        .with_context(|| format!("writing {}", path.display()))?;
+    write_png(&path, pw, ph, &pic)?;
     Ok(path)
 }

@@ -93,8 +93,9 @@ impl TruthMasks {
 }
 
 /// The exact visibility mask (true: seen) of the view whose image is `image`, from `dir`
-/// (the image's stem as a PNG, white where seen); None when `dir` has none for it.
-fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> anyhow::Result<Option<Vec<bool>>> {
+/// (the image's stem as a PNG, white where seen, `w x h`); None when `dir` has none for it.
+/// `eval --visibility-masks` reads masks through it, for training runs and extrapolate runs.
+pub fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> anyhow::Result<Option<Vec<bool>>> {
     let stem = image.file_stem().unwrap_or_default();
     let path = dir.join(stem).with_extension("png");
     if !path.exists() {
@@ -103,13 +104,22 @@ fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> anyhow::Result<Option
     let m = load_image(&path)?;
     if (m.width, m.height) != (w, h) {
         bail!(
-            "{}: a {}x{} visibility mask for a {w}x{h} view",
+            "{}: a {}x{} mask for a {w}x{h} view",
             path.display(),
             m.width,
             m.height
         );
     }
     Ok(Some(m.rgb.chunks(3).map(|c| c[0] > 0.5).collect()))
+}
+
+/// Writes `run`'s `eval.json` and `eval.md` from `table` (atomically) and its `report.html`;
+/// returns the report's path.
+pub fn write_table(run: &Path, table: &Table) -> anyhow::Result<std::path::PathBuf> {
+    let json = serde_json::to_string_pretty(table)? + "\n";
+    extranerf_nerf::safetensors::write_atomic(&run.join("eval.json"), json.as_bytes())?;
+    extranerf_nerf::safetensors::write_atomic(&run.join("eval.md"), table.markdown().as_bytes())?;
+    crate::report::write_report(run, Some(table))
 }
 
 /// KID's protocols (`extranerf eval --kid-*`).

@@ -86,13 +86,18 @@ pub struct TableDecay<'a> {
 
 /// The part of the parameters that [`Adam::record_step_sparse`] updates sparsely: a hash table
 /// at float 0 of `floats` floats (within one storage binding), with its touched mask (a bit per
-/// vec4, `floats.div_ceil(128)` words, set by the step's backward pass), and the first float of
+/// vec4, [`touched_words`] words, set by the step's backward pass), and the first float of
 /// the densely updated rest (the MLPs).
 #[derive(Clone, Copy, Debug)]
 pub struct SparseTable<'a> {
     pub floats: u64,
     pub touched: Binding<'a>,
     pub rest: u64,
+}
+
+/// Words of the touched mask of a table of `floats` floats (a bit per vec4).
+pub fn touched_words(floats: u64) -> u64 {
+    floats.div_ceil(128)
 }
 
 /// Which parameters Adam updates each step.
@@ -114,7 +119,6 @@ pub struct Adam {
     config: AdamConfig,
     kernel: Kernel,
     sparse: Kernel,
-    sparse_clear: Kernel,
     m: Buffer<f32>,
     v: Buffer<f32>,
     n: u64,
@@ -146,7 +150,6 @@ impl Adam {
             config,
             kernel: Kernel::new(ctx, &k::adam::DESC)?,
             sparse: Kernel::new(ctx, &ks::adam_sparse::DESC)?,
-            sparse_clear: Kernel::new(ctx, &ks::adam_sparse_clear::DESC)?,
             m: Buffer::from_slice(ctx, "adam first moment", &zeros)?,
             v: Buffer::from_slice(ctx, "adam second moment", &zeros)?,
             n,
@@ -240,6 +243,16 @@ impl Adam {
         Ok((p, block))
     }
 
+    /// Floats `first..first + len` of a buffer of the `n` parameters (the whole binding when
+    /// that is all of it).
+    fn range<'a>(&self, b: Binding<'a>, first: u64, len: u64) -> Result<Binding<'a>> {
+        if first == 0 && len == self.n {
+            Ok(b)
+        } else {
+            b.sub(first * 4, len * 4)
+        }
+    }
+
     /// Records the dense update of floats `from..to` of `params`, range by range.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     fn record_dense<'a>(
@@ -255,13 +268,7 @@ impl Adam {
         let mut first = from;
         while first < to {
             let len = self.chunk.min(to - first);
-            let range = |b: Binding<'a>| -> Result<Binding<'a>> {
-                if first == 0 && len == self.n {
-                    Ok(b)
-                } else {
-                    b.sub(first * 4, len * 4)
-                }
-            };
+            let range = |b: Binding<'a>| self.range(b, first, len);
             let b = k::adam::Bindings {
                 param: range(params)?,
                 grad: range(grads)?,
@@ -330,16 +337,10 @@ impl Adam {
         }
         sparse
             .touched
-            .check_fits(t.div_ceil(128), 4, "Adam touched mask")?;
+            .check_fits(touched_words(t), 4, "Adam touched mask")?;
         let (p, block) = self.step_params(step, grad_scale, decay)?;
         if t > 0 {
-            let whole = |b: Binding<'a>| -> Result<Binding<'a>> {
-                if t == self.n {
-                    Ok(b)
-                } else {
-                    b.sub(0, t * 4)
-                }
-            };
+            let whole = |b: Binding<'a>| self.range(b, 0, t);
             let b = ks::adam_sparse::Bindings {
                 param: whole(params)?,
                 grad: whole(grads)?,
@@ -353,14 +354,10 @@ impl Adam {
                 offset: 0,
                 ..p
             };
-            // 4 vec4s per thread, as the dense kernel; then one thread per mask word.
+            // 4 vec4s per thread, as the dense kernel; then the mask is emptied (the update
+            // reads each word from 32 threads, so none of them may clear it).
             rec.dispatch(&self.sparse, b.into_array(), &ps, t.div_ceil(16))?;
-            let words = t.div_ceil(128);
-            // The whole binding is the mask: all of it is cleared.
-            let clear = ks::adam_sparse_clear::Bindings {
-                touched: sparse.touched,
-            };
-            rec.dispatch(&self.sparse_clear, clear.into_array(), &ps, words)?;
+            rec.fill_words(sparse.touched, touched_words(t), 0)?;
         }
         self.record_dense(rec, params, grads, &p, block, sparse.rest, self.n)
     }

@@ -369,8 +369,7 @@ impl Trainer {
                         }
                     )));
                 }
-                let words =
-                    crate::render::train_step::touched_words(nerf.field.layout().table.1 as u64);
+                let words = crate::optim::touched_words(nerf.field.layout().table.1 as u64);
                 Some(Buffer::from_slice(
                     ctx,
                     "touched mask",
@@ -843,23 +842,22 @@ impl Trainer {
     ) -> Result<()> {
         let ws = &self.ws;
         let nerf = &self.nerf;
+        // After a sparse update the table's gradients are zero and its mask empty: only the
+        // MLPs' gradients need zeroing. Otherwise everything (and the mask) does.
+        let n = self.grads.len() as u64;
         match &self.touched {
             Some(_) if !self.table_grads_dirty.get() => {
-                // The sparse Adam left the table's gradients zero and its mask empty.
                 let rest = nerf.field.layout().density.0 as u64;
-                let n = self.grads.len() as u64;
-                rec.fill_words(
-                    self.grads.binding().sub(rest * 4, (n - rest) * 4)?,
-                    n - rest,
-                    0,
-                )?;
+                let grads = self.grads.binding().sub(rest * 4, (n - rest) * 4)?;
+                rec.fill_words(grads, n - rest, 0)?;
             }
-            Some(touched) => {
-                rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?;
-                rec.fill_words(touched.binding(), touched.len() as u64, 0)?;
-                self.table_grads_dirty.set(false);
+            touched => {
+                rec.fill_words(self.grads.binding(), n, 0)?;
+                if let Some(t) = touched {
+                    rec.fill_words(t.binding(), t.len() as u64, 0)?;
+                    self.table_grads_dirty.set(false);
+                }
             }
-            None => rec.fill_words(self.grads.binding(), self.grads.len() as u64, 0)?,
         }
         mark(prof, rec, "zero gradients")?;
         let losses = StepLosses {

@@ -4,7 +4,7 @@
 // so an entry no sample reached stands still instead of drifting on its momentum, and gets no
 // hash decay (it does not affect any render either). The backward passes set the bits of every
 // vec4 they add a gradient to; this kernel zeroes the gradient of each vec4 it updates and
-// `adam_sparse_clear` then empties the mask, so the next step starts from a zero gradient and
+// the host then empties the mask (a buffer fill), so the next step starts from a zero gradient and
 // an empty mask without zeroing the table's gradient. Its threads still read a mask bit per
 // vec4, and on a CPU device a SIMD group pays for its lanes' scattered loads whenever one of
 // them is touched: with about half the table reached per step (fern, 1024 x 32) it costs what
@@ -40,16 +40,5 @@ fn adam_sparse(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) n
                 grad[i][c] = 0.0;
             }
         }
-    }
-}
-
-// Clears the mask after the update (one thread per word): the update reads each word from 32
-// threads, so none of them may clear it.
-@compute @workgroup_size(64)
-fn adam_sparse_clear(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-                     @builtin(local_invocation_index) lid: u32) {
-    let w = linear_group(wid, nwg) * WG + lid;
-    if w < arrayLength(&touched) {
-        touched[w] = 0u;
     }
 }

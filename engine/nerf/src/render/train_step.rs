@@ -59,13 +59,8 @@ pub struct StepOutputs<'a> {
     pub dist_loss: Binding<'a>,
     /// With the sparse Adam: the touched mask the step sets a bit in for every vec4 of the
     /// table it adds a gradient to (bit i of word w: vec4 32 w + i; at least
-    /// [`touched_words`] words; an unsplit table only). None: no mask.
+    /// [`crate::optim::touched_words`] words; an unsplit table only). None: no mask.
     pub touched: Option<Binding<'a>>,
-}
-
-/// Words of the touched mask of a table of `floats` floats (a bit per vec4).
-pub fn touched_words(floats: u64) -> u64 {
-    floats.div_ceil(128)
 }
 
 /// The loss terms of a fused step.
@@ -253,7 +248,7 @@ impl FusedStep {
                     ));
                 }
                 t.check_fits(
-                    touched_words(cfg.grid().param_count()),
+                    crate::optim::touched_words(cfg.grid().param_count()),
                     4,
                     "fused step touched mask",
                 )?;
