@@ -421,7 +421,13 @@ fn check_mlp(dims: Vec<u32>, n: usize, seed: u64, path: MlpPath, dy_scale: f32) 
     let dyb = Buffer::from_slice(&e.ctx, "dy", &dy).unwrap();
     let yb = Buffer::from_slice(&e.ctx, "y", &vec![f32::from_bits(POISON); n * n_out]).unwrap();
     let dxb = Buffer::from_slice(&e.ctx, "dx", &vec![f32::from_bits(POISON); n * n_in]).unwrap();
-    let saved = Buffer::<f32>::new(&e.ctx, "saved", n * mlp.saved_words()).unwrap();
+    // Poisoned, so that a kernel reading the records' unwritten padding shows.
+    let saved = Buffer::from_slice(
+        &e.ctx,
+        "saved",
+        &vec![f32::from_bits(POISON); n * mlp.saved_words()],
+    )
+    .unwrap();
     let dwb = Buffer::<f32>::new(&e.ctx, "dw", cfg.param_count()).unwrap();
     // A fresh weight gradient from `m`'s backward pass (its records into `saved`).
     fn backward<'a>(
@@ -573,6 +579,34 @@ fn mlp_forward_and_gradients_match_reference() {
         extranerf_nerf::field::mlp::Mlp::new(&engine().ctx, bad),
         Err(GpuError::Usage(_))
     ));
+    assert_no_validation_messages(&engine().ctx);
+}
+
+/// The tiled weight gradient (common/mlp_wgrad.wgsl) against the f64 reference where its
+/// tiles and chunks are partial: point counts of one, fewer than an unrolled iteration, one
+/// past a chunk, and several chunks with a partial last one (WGRAD_CHUNK points each); widths
+/// not multiples of 4, 8 or 16 (partial row and column tiles, the padding of the records
+/// poisoned); and the f16 record over several chunks.
+#[test]
+fn mlp_weight_gradient_tiles_and_chunks_match_reference() {
+    use extranerf_nerf::field::mlp::WGRAD_CHUNK;
+    let chunk = WGRAD_CHUNK as usize;
+    for (dims, n, seed, path) in [
+        (vec![32, 64, 16], 2 * chunk + 37, 61, MlpPath::Block),
+        (vec![32, 64, 64, 3], chunk + 1, 62, MlpPath::Block),
+        (vec![32, 64, 64, 3], 3, 63, MlpPath::Block),
+        (vec![37, 50, 19, 2], 1, 64, MlpPath::Storage),
+        (vec![37, 50, 19, 2], chunk + 3, 65, MlpPath::Storage),
+        (vec![5, 7, 6, 3], 2 * chunk + 2, 66, MlpPath::Storage),
+        (vec![64, 64, 64, 64, 64], 5, 67, MlpPath::Storage),
+        (vec![32, 64, 16], 2 * chunk + 37, 68, MlpPath::F16),
+        (vec![20, 36, 4], chunk + 3, 69, MlpPath::F16),
+    ] {
+        let err = check_mlp(dims.clone(), n, seed, path, 1.0);
+        // The f16 record rounds its values to 11 bits; f32 sums otherwise.
+        let tol = if path == MlpPath::F16 { 2e-3 } else { 1e-5 };
+        assert!(err < tol, "{dims:?}, {n} points: {err}");
+    }
     assert_no_validation_messages(&engine().ctx);
 }
 

@@ -526,9 +526,10 @@ impl Bench<'_> {
                 ));
             }
         }
-        if self.wanted("gemm") {
+        if self.wanted("gemm wgrad") {
             // An MLP layer as one matrix product: W[64, 64] times activations[64, points], the
-            // points n / 64 rounded down to a multiple of 32 (at least 32).
+            // points n / 64 rounded down to a multiple of 32 (at least 32). The same run times
+            // the MLP weight gradient (a reduction over the points) against it.
             let pts = ((n / 64) / 32 * 32).max(32) as u32;
             let (m, k) = (64u32, 64u32);
             let wa = Buffer::<f32>::from_slice(
@@ -559,9 +560,42 @@ impl Bench<'_> {
                 t,
                 copy_gbps,
             );
+            let gemm_rate = 2.0 * m as f64 * k as f64 * pts as f64 / (ms * 1e-3) / 1e9;
             self.notes.push(format!(
-                "gemm 64x64 x 64x{pts}: {:.2} GFLOP/s (an MLP layer over {pts} points; compare the mlp rows' GFLOP/s)",
-                2.0 * m as f64 * k as f64 * pts as f64 / (ms * 1e-3) / 1e9
+                "gemm 64x64 x 64x{pts}: {gemm_rate:.2} GFLOP/s (an MLP layer over {pts} points; compare the mlp rows' GFLOP/s)"
+            ));
+            // The weight gradient of the field's two MLPs (the training step's `MLP weight
+            // gradients` stage) over the same points, from records of random values.
+            let mut flops = 0u64;
+            let mut wgrad_ms = 0.0;
+            for dims in [vec![32, 64, 16], vec![32, 64, 64, 3]] {
+                let cfg = MlpConfig { dims };
+                let mlp = Mlp::new(ctx, cfg.clone())?;
+                let saved = Buffer::<f32>::from_slice(
+                    ctx,
+                    "bench wgrad records",
+                    &(0..pts as usize * cfg.saved_stride())
+                        .map(|_| rng.uniform(-1.0, 1.0))
+                        .collect::<Vec<_>>(),
+                )?;
+                let dw = Buffer::<f32>::new(ctx, "bench wgrad dw", cfg.param_count())?;
+                let t = measure(ctx, &timer, reps, none, |r| {
+                    mlp.weight_gradient(r, saved.binding(), dw.binding(), pts as u64)
+                })?;
+                wgrad_ms += median(t.clone());
+                flops += 2 * pts as u64 * cfg.param_count() as u64;
+                self.push(
+                    &format!("mlp weight gradient {:?} (tiled), points", cfg.dims),
+                    pts as u64,
+                    4 * pts as u64 * cfg.saved_stride() as u64,
+                    t,
+                    copy_gbps,
+                );
+            }
+            let wgrad_rate = flops as f64 / (wgrad_ms * 1e-3) / 1e9;
+            self.notes.push(format!(
+                "mlp weight gradient [32, 64, 16] + [32, 64, 64, 3] at {pts} points: {wgrad_ms:.3} ms, {wgrad_rate:.2} GFLOP/s = {:.2}x the gemm's rate in this run",
+                wgrad_rate / gemm_rate
             ));
         }
         if self.wanted("scatter") {

@@ -1,6 +1,7 @@
 // Standalone tiny-MLP kernels, one thread per point: forward; backward to the inputs (writing
 // each layer's input and pre-activation gradient for the weight-gradient pass); and the weight
-// gradient as a reduction over chunks of points with one f32 atomic per parameter per chunk.
+// gradient as a tiled reduction over chunks of points (common/mlp_wgrad.wgsl) with one f32
+// atomic per parameter per chunk.
 // The `_block` variants read the weights from a uniform block (common/mlp_block.wgsl), about 3x
 // faster on lavapipe, for MLPs whose widths and offsets suit it (checked on the host).
 //!include common/dispatch.wgsl
@@ -10,12 +11,12 @@
 
 struct Params {
     n: u32,
-    // Points per chunk of the weight-gradient reduction.
+    // mlp_wgrad: points per chunk of the reduction.
     chunk: u32,
     // Floats per point in `saved`: per layer its inputs then its pre-activations, each segment
     // padded to a multiple of 4 floats (so mlp_wgrad reads them as vec4s).
     saved_stride: u32,
-    // mlp_wgrad: point groups per weight block (a multiple of the subgroup size).
+    // mlp_wgrad: tiles per chunk (a workgroup each).
     groups: u32,
     // (0, 1, 2, 3): the identity table of common/mlp_block.wgsl's mlp_uni.
     lut: vec4<u32>,
@@ -145,45 +146,56 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-// Weight gradients (common/mlp_wgrad.wgsl's wide blocks): per point a thread loads one vec4 of
-// deltas and up to four vec4s of inputs for up to 64 FMAs.
-@compute @workgroup_size(64)
+// One point's contribution to a weight-gradient tile (common/mlp_wgrad.wgsl): the tile's 8
+// inputs and 16 deltas from the point's record at vec4 `base`; `dk` the deltas' vec4 offsets,
+// `xb` the second input vec4's.
+fn wgrad_point(t: WgradTile, base: u32, xk: array<u32, 4>, dk: array<u32, 4>, c: u32,
+               with_bias: bool, acc: ptr<function, array<vec4<f32>, 8>>,
+               bias: ptr<function, array<vec4<f32>, 4>>) {
+    var x: array<vec4<f32>, 4>;
+    for (var k = 0u; k < 4u; k += 1u) {
+        x[k] = saved4[base + xk[k]];
+    }
+    var d: array<vec4<f32>, 4>;
+    for (var k = 0u; k < 4u; k += 1u) {
+        d[k] = saved4[base + dk[k]];
+    }
+    wgrad_tile_add(wgrad_pick(x, c), d, 1.0, 1.0, with_bias, acc, bias);
+}
+
+// Weight gradients (common/mlp_wgrad.wgsl's tiles): workgroup = (chunk of points, tile of 16
+// rows x 8 columns); per point the threads load the tile's 8 inputs and 16 deltas, each thread
+// keeps its input and does 16 FMAs. WGRAD_UNROLL points per iteration: on lavapipe a loop's
+// own bookkeeping costs about as much as one point.
+@compute @workgroup_size(8)
 fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-             @builtin(local_invocation_index) lid: u32,
-             @builtin(subgroup_invocation_id) lane: u32) {
-    let t = linear_group(wid, nwg) * 64u + lid;
-    let blk = t / params.groups;
-    let grp = t % params.groups;
-    let b = wgrad_block_wide(shape_buf[0], blk);
-    var acc = array<vec4<f32>, 16>();
-    if b.valid {
-        let p0 = grp * params.chunk;
+             @builtin(local_invocation_index) lid: u32) {
+    let g = linear_group(wid, nwg);
+    let t = wgrad_tile(shape_buf[0], g % params.groups);
+    var acc = array<vec4<f32>, 8>();
+    var bias = array<vec4<f32>, 4>();
+    if t.valid {
+        let p0 = (g / params.groups) * params.chunk;
         let p1 = min(p0 + params.chunk, params.n);
+        let with_bias = t.j0 == 0u;
         let stride4 = params.saved_stride / 4u;
-        let d_at = (b.at + pad4(b.ni) + b.o0) / 4u;
-        let x_at = (b.at + b.j0) / 4u;
-        // Input vec4s of this block inside the layer's input segment (1 for the bias).
-        var nv = 1u;
-        if !b.bias {
-            nv = min(4u, (pad4(b.ni) - b.j0) / 4u);
+        var xk = array<u32, 4>();
+        var dk = array<u32, 4>();
+        for (var k = 0u; k < 4u; k += 1u) {
+            xk[k] = t.x_at / 4u + min(k, t.nx - 1u);
+            dk[k] = t.d_at / 4u + min(k, t.nd - 1u);
         }
-        for (var p = p0; p < p1; p += 1u) {
-            let d = saved4[p * stride4 + d_at];
-            for (var v = 0u; v < 4u; v += 1u) {
-                if v < nv {
-                    var x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
-                    if !b.bias {
-                        x = saved4[p * stride4 + x_at + v];
-                    }
-                    acc[v] += d.x * x;
-                    acc[4u + v] += d.y * x;
-                    acc[8u + v] += d.z * x;
-                    acc[12u + v] += d.w * x;
-                }
+        var p = p0;
+        for (; p + WGRAD_UNROLL <= p1; p += WGRAD_UNROLL) {
+            for (var q = 0u; q < WGRAD_UNROLL; q += 1u) {
+                wgrad_point(t, (p + q) * stride4, xk, dk, lid, with_bias, &acc, &bias);
             }
         }
+        for (; p < p1; p += 1u) {
+            wgrad_point(t, p * stride4, xk, dk, lid, with_bias, &acc, &bias);
+        }
     }
-    wgrad_flush_wide(b, blk, lane, acc);
+    wgrad_tile_flush(t, lid, &acc, &bias);
 }
 
 // mlp_fwd with the weights in the uniform block.

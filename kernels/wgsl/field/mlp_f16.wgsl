@@ -152,42 +152,59 @@ fn mlp_bwd_data_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgrou
     }
 }
 
-// mlp_wgrad on the f16 record: per point one header vec4, one vec4 of deltas and one of inputs
-// (f16), unscaled by the product of their two scales.
-@compute @workgroup_size(64)
+// One point's contribution to a weight-gradient tile on the f16 record at unit `base`: the
+// layer's two exponents from the header (unit hv, components hc and hc + 1), the tile's 16
+// inputs and 16 deltas at units xk and dk.
+fn wgrad_point_f16(base: u32, hv: u32, hc: u32, xk: array<u32, 4>, dk: array<u32, 4>, c: u32,
+                   with_bias: bool, acc: ptr<function, array<vec4<f32>, 8>>,
+                   bias: ptr<function, array<vec4<f32>, 4>>) {
+    let h = unpack4(saved[base + hv]);
+    let kx = i32(h[hc]);
+    let kd = i32(h[hc + 1u]);
+    var x: array<vec4<f32>, 4>;
+    var d: array<vec4<f32>, 4>;
+    for (var k = 0u; k < 4u; k += 1u) {
+        x[k] = unpack4(saved[base + xk[k]]);
+        d[k] = unpack4(saved[base + dk[k]]);
+    }
+    wgrad_tile_add(wgrad_pick(x, c), d, pow2_or_flush(kx + kd), pow2_or_flush(kd), with_bias, acc,
+                   bias);
+}
+
+// mlp_wgrad on the f16 record (common/mlp_wgrad.wgsl's tiles, the points unrolled as in
+// field/mlp.wgsl): per point one header vec4, the tile's inputs and deltas (f16), their
+// product unscaled by the two segments' scales.
+@compute @workgroup_size(8)
 fn mlp_wgrad_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-                 @builtin(local_invocation_index) lid: u32,
-                 @builtin(subgroup_invocation_id) lane: u32) {
-    let t = linear_group(wid, nwg) * 64u + lid;
-    let blk = t / params.groups;
-    let grp = t % params.groups;
-    let b = wgrad_block(shape_buf[0], blk);
-    var acc = array<vec4<f32>, 4>();
-    if b.valid {
-        let p0 = grp * params.chunk;
+                 @builtin(local_invocation_index) lid: u32) {
+    let g = linear_group(wid, nwg);
+    let t = wgrad_tile(shape_buf[0], g % params.groups);
+    var acc = array<vec4<f32>, 8>();
+    var bias = array<vec4<f32>, 4>();
+    if t.valid {
+        let p0 = (g / params.groups) * params.chunk;
         let p1 = min(p0 + params.chunk, params.n);
-        let d_at = HEAD + (b.at + pad4(b.ni) + b.o0) / 4u;
-        let x_at = HEAD + (b.at + b.j0) / 4u;
-        let hv = b.layer >> 1u;
-        let hc = 2u * (b.layer & 1u);
-        for (var p = p0; p < p1; p += 1u) {
-            let base = p * params.saved_stride;
-            let h = unpack4(saved[base + hv]);
-            let kd = i32(h[hc + 1u]);
-            var x = vec4<f32>(1.0, 0.0, 0.0, 0.0);
-            var k = kd;
-            if !b.bias {
-                x = unpack4(saved[base + x_at]);
-                k += i32(h[hc]);
+        let with_bias = t.j0 == 0u;
+        let hv = t.layer >> 1u;
+        let hc = 2u * (t.layer & 1u);
+        var xk = array<u32, 4>();
+        var dk = array<u32, 4>();
+        for (var k = 0u; k < 4u; k += 1u) {
+            xk[k] = HEAD + t.x_at / 4u + min(k, t.nx - 1u);
+            dk[k] = HEAD + t.d_at / 4u + min(k, t.nd - 1u);
+        }
+        let stride = params.saved_stride;
+        var p = p0;
+        for (; p + WGRAD_UNROLL <= p1; p += WGRAD_UNROLL) {
+            for (var q = 0u; q < WGRAD_UNROLL; q += 1u) {
+                wgrad_point_f16((p + q) * stride, hv, hc, xk, dk, lid, with_bias, &acc, &bias);
             }
-            let d = unpack4(saved[base + d_at]) * pow2_or_flush(k);
-            acc[0] += d.x * x;
-            acc[1] += d.y * x;
-            acc[2] += d.z * x;
-            acc[3] += d.w * x;
+        }
+        for (; p < p1; p += 1u) {
+            wgrad_point_f16(p * stride, hv, hc, xk, dk, lid, with_bias, &acc, &bias);
         }
     }
-    wgrad_flush(b, blk, lane, acc);
+    wgrad_tile_flush(t, lid, &acc, &bias);
 }
 
 // Four f16 values packed in two words, and back.

@@ -24,9 +24,15 @@ pub struct MlpConfig {
     pub dims: Vec<u32>,
 }
 
-/// Point groups per weight block in the weight-gradient pass (at least the subgroup size, so
-/// the lanes of a subgroup share a block and sum before their atomics).
-pub const WGRAD_GROUPS: u32 = 16;
+/// Fewest points per chunk of the weight-gradient pass (`common/mlp_wgrad.wgsl`): every chunk
+/// adds each gradient once with an f32 atomic, so a chunk's FMAs should outweigh them.
+pub const WGRAD_CHUNK: u32 = 4096;
+
+/// Most chunks of the weight-gradient pass: past it the chunks grow instead.
+pub const WGRAD_MAX_CHUNKS: u32 = 64;
+
+/// Threads per workgroup of the weight-gradient pass (`WGRAD_THREADS` in the kernel).
+const WGRAD_THREADS: u64 = 8;
 
 /// Floats of the uniform weight block (64 KiB, the smallest `maxUniformBufferRange` Vulkan
 /// allows); see `common/mlp_block.wgsl`.
@@ -87,21 +93,12 @@ impl MlpConfig {
             .sum()
     }
 
-    /// Weight blocks of the f16 record's weight-gradient pass: per layer 4-row blocks times
-    /// (4-column blocks + one bias column).
-    fn wgrad_blocks(&self) -> u64 {
+    /// Tiles of the weight-gradient pass per chunk of points (`common/mlp_wgrad.wgsl`): per
+    /// layer, its outputs in blocks of 16 rows times its inputs in blocks of 16 columns.
+    fn wgrad_tiles(&self) -> u64 {
         self.dims
             .windows(2)
-            .map(|w| (w[1].div_ceil(4) * (w[0].div_ceil(4) + 1)) as u64)
-            .sum()
-    }
-
-    /// Weight blocks of the f32 record's weight-gradient pass: per layer 4-row blocks times
-    /// (16-column blocks + one bias column).
-    fn wgrad_blocks_wide(&self) -> u64 {
-        self.dims
-            .windows(2)
-            .map(|w| (w[1].div_ceil(4) * (w[0].next_multiple_of(4).div_ceil(16) + 1)) as u64)
+            .map(|w| (w[1].div_ceil(16) * w[0].div_ceil(16)) as u64)
             .sum()
     }
 
@@ -212,8 +209,6 @@ pub struct Mlp {
     fwd: Kernel,
     bwd: Kernel,
     wgrad: Kernel,
-    /// Point groups per weight block of the weight-gradient pass.
-    groups: u32,
     /// The uniform-block kernels and their weight block, when the shape suits them.
     block: Option<Block>,
     /// The backward kernels with an f16 record, when enabled ([`Mlp::with_f16`]).
@@ -381,7 +376,6 @@ impl Mlp {
             block,
             f16: None,
             coop: None,
-            groups: WGRAD_GROUPS.max(ctx.info().subgroup_size),
             shape: Buffer::from_slice(ctx, "mlp shape", &[config.shape()])?,
             config,
             fwd: Kernel::new(ctx, &k::mlp_fwd::DESC)?,
@@ -513,12 +507,7 @@ impl Mlp {
             d_weights,
             saved4: saved,
         };
-        rec.dispatch(
-            &self.wgrad,
-            b.into_array(),
-            &p,
-            c.wgrad_blocks_wide() * self.groups as u64,
-        )
+        rec.dispatch(&self.wgrad, b.into_array(), &p, Self::wgrad_threads(&p))
     }
 
     /// The configuration.
@@ -526,18 +515,27 @@ impl Mlp {
         &self.config
     }
 
+    /// Threads of the weight-gradient pass: a workgroup per tile and chunk of points (one
+    /// chunk for no points, which adds zeros).
+    fn wgrad_threads(p: &k::Params) -> u64 {
+        let chunks = p.n.div_ceil(p.chunk).max(1) as u64;
+        p.groups as u64 * chunks * WGRAD_THREADS
+    }
+
     fn params(&self, n: u64) -> Result<k::Params> {
         let n32 = count_u32(n, "MLP points")?;
+        // The weight-gradient pass's chunks: at least WGRAD_CHUNK points, at most
+        // WGRAD_MAX_CHUNKS of them (the other kernels ignore chunk and groups).
         Ok(k::Params {
             n: n32,
-            chunk: n32.div_ceil(self.groups).max(1),
+            chunk: n32.div_ceil(WGRAD_MAX_CHUNKS).max(WGRAD_CHUNK),
             // In units of 4 f16 values for the f16 record (its words / 2).
             saved_stride: if self.f16.is_some() {
                 self.saved_words() as u32 / 2
             } else {
                 self.saved_words() as u32
             },
-            groups: self.groups,
+            groups: self.config.wgrad_tiles() as u32,
             lut: UNIFORM_LUT,
         })
     }
@@ -647,8 +645,7 @@ impl Mlp {
                 saved,
                 d_weights,
             };
-            let threads = c.wgrad_blocks() * self.groups as u64;
-            return rec.dispatch(&f16.wgrad, b.into_array(), &p, threads);
+            return rec.dispatch(&f16.wgrad, b.into_array(), &p, Self::wgrad_threads(&p));
         }
         if let Some(block) = &self.block {
             let block_weights = block.load(rec, weights, c)?;
@@ -677,11 +674,6 @@ impl Mlp {
             d_weights,
             saved4: saved,
         };
-        rec.dispatch(
-            &self.wgrad,
-            b.into_array(),
-            &p,
-            c.wgrad_blocks_wide() * self.groups as u64,
-        )
+        rec.dispatch(&self.wgrad, b.into_array(), &p, Self::wgrad_threads(&p))
     }
 }
