@@ -31,9 +31,6 @@ pub const WGRAD_CHUNK: u32 = 4096;
 /// Most chunks of the weight-gradient pass: past it the chunks grow instead.
 pub const WGRAD_MAX_CHUNKS: u32 = 64;
 
-/// Threads per workgroup of the weight-gradient pass (`WGRAD_THREADS` in the kernel).
-const WGRAD_THREADS: u64 = 8;
-
 /// Floats of the uniform weight block (64 KiB, the smallest `maxUniformBufferRange` Vulkan
 /// allows); see `common/mlp_block.wgsl`.
 pub const BLOCK_FLOATS: usize = 16384;
@@ -507,7 +504,12 @@ impl Mlp {
             d_weights,
             saved4: saved,
         };
-        rec.dispatch(&self.wgrad, b.into_array(), &p, Self::wgrad_threads(&p))
+        rec.dispatch(
+            &self.wgrad,
+            b.into_array(),
+            &p,
+            Self::wgrad_threads(&p, k::mlp_wgrad::WORKGROUP_SIZE),
+        )
     }
 
     /// The configuration.
@@ -515,11 +517,11 @@ impl Mlp {
         &self.config
     }
 
-    /// Threads of the weight-gradient pass: a workgroup per tile and chunk of points (one
-    /// chunk for no points, which adds zeros).
-    fn wgrad_threads(p: &k::Params) -> u64 {
+    /// Threads of the weight-gradient pass, whose workgroups hold `wg` threads: a workgroup
+    /// per tile and chunk of points (one chunk for no points, which adds zeros).
+    fn wgrad_threads(p: &k::Params, wg: [u32; 3]) -> u64 {
         let chunks = p.n.div_ceil(p.chunk).max(1) as u64;
-        p.groups as u64 * chunks * WGRAD_THREADS
+        p.groups as u64 * chunks * wg[0] as u64
     }
 
     fn params(&self, n: u64) -> Result<k::Params> {
@@ -645,7 +647,8 @@ impl Mlp {
                 saved,
                 d_weights,
             };
-            return rec.dispatch(&f16.wgrad, b.into_array(), &p, Self::wgrad_threads(&p));
+            let threads = Self::wgrad_threads(&p, k16::mlp_wgrad_f16::WORKGROUP_SIZE);
+            return rec.dispatch(&f16.wgrad, b.into_array(), &p, threads);
         }
         if let Some(block) = &self.block {
             let block_weights = block.load(rec, weights, c)?;
@@ -674,6 +677,11 @@ impl Mlp {
             d_weights,
             saved4: saved,
         };
-        rec.dispatch(&self.wgrad, b.into_array(), &p, Self::wgrad_threads(&p))
+        rec.dispatch(
+            &self.wgrad,
+            b.into_array(),
+            &p,
+            Self::wgrad_threads(&p, k::mlp_wgrad::WORKGROUP_SIZE),
+        )
     }
 }
