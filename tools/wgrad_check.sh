@@ -4,7 +4,8 @@
 #   curves:  fern few-shot 17, 6,000 steps of 256 x 32 with a 2^17 table (the recipe's `base`),
 #            held-out views every 1,000 steps, OLD and NEW side by side (quality by step count
 #            does not depend on the machine's load); curves.md compares them point by point.
-#            The curves go to results/curves/fern17/wgrad_{old,new}_steps6000.*.
+#            The curves and logs go to results/curves/fern17/wgrad_{old,new}_steps6000.*
+#            (the scripts' own output to $TMPDIR/wgrad_curve_{old,new}.out).
 #   kernels: `bench kernels --only wgrad` (the tiled GEMM and the weight gradient of the
 #            field's two MLPs in the same run) with NEW, ROUNDS times -> kernels.txt.
 #   pairs:   tools/bench_step_pairs.sh OLD NEW ROUNDS (the whole step's samples/s and the
@@ -32,10 +33,10 @@ for phase in $phases; do
     curves)
         flags=(--steps 6000 --rays 256 --samples 32 --log2-table 17)
         EXTRANERF_BIN="$old" tools/curve.sh fern17 wgrad_old_steps6000 1000 "${flags[@]}" \
-            > "$out/curve_old.out" 2>&1 &
+            > "${TMPDIR:-/tmp}/wgrad_curve_old.out" 2>&1 &
         pid_old=$!
         EXTRANERF_BIN="$new" tools/curve.sh fern17 wgrad_new_steps6000 1000 "${flags[@]}" \
-            > "$out/curve_new.out" 2>&1
+            > "${TMPDIR:-/tmp}/wgrad_curve_new.out" 2>&1
         wait "$pid_old"
         python3 - results/curves/fern17/wgrad_old_steps6000.jsonl \
             results/curves/fern17/wgrad_new_steps6000.jsonl > "$out/curves.md" <<'PY'
