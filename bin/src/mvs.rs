@@ -2,14 +2,12 @@
 //! maps `train --depth-dir` reads, and compared with the COLMAP sparse points.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::colmap::read_points3d_bin;
 use extranerf_nerf::data::depth::sparse_depth;
-use extranerf_nerf::data::load_image;
-use extranerf_nerf::mvs::{downscale_rgb, grey, Mvs, MvsConfig, MvsDepth};
+use extranerf_nerf::mvs_depth::{self, MvsDepthSettings};
 use extranerf_nerf::run::{write_depth_exr, write_png};
 
 use crate::nerf::SceneArgs;
@@ -83,69 +81,36 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         .iter()
         .map(|&i| loaded.scene.cameras[i].clone())
         .collect();
-    let bounds: Vec<(f64, f64)> = full.iter().filter_map(|c| c.bounds).collect();
-    let near = match a.near {
-        Some(v) => v,
-        None if !bounds.is_empty() => {
-            0.8 * bounds.iter().map(|b| b.0).fold(f64::INFINITY, f64::min) as f32
-        }
-        None => bail!("the scene gives no depth bounds: pass --near and --far"),
-    };
-    let far = match a.far {
-        Some(v) => v,
-        None if !bounds.is_empty() => 1.2 * bounds.iter().map(|b| b.1).fold(0.0, f64::max) as f32,
-        None => bail!("the scene gives no depth bounds: pass --near and --far"),
-    };
-    let cfg = MvsConfig {
+    let settings = MvsDepthSettings {
+        downscale: a.downscale,
         planes: a.planes,
-        near,
-        far,
+        near: a.near,
+        far: a.far,
         radius: a.radius,
         best_k: a.best_k,
         min_agree: a.min_agree,
         px_tol: a.px_tol,
         rel_tol: a.rel_tol,
     };
-    let mut cams = Vec::new();
-    let mut greys = Vec::new();
-    for c in &full {
-        let img = load_image(&c.image)?;
-        if (img.width, img.height) != (c.width, c.height) {
-            bail!(
-                "{}: {}x{} image for a {}x{} camera",
-                c.image.display(),
-                img.width,
-                img.height,
-                c.width,
-                c.height
-            );
-        }
-        let (rgb, w, h) = downscale_rgb(&img.rgb, img.width, img.height, a.downscale)
-            .with_context(|| c.image.display().to_string())?;
-        let cam = c.downscaled(a.downscale);
-        if (cam.width, cam.height) != (w, h) {
-            bail!("internal: downscaled camera and image disagree");
-        }
-        greys.push(grey(&rgb));
-        cams.push(cam);
-    }
+    let (near, far) = settings.range(&full)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     eprintln!(
-        "plane sweep over {} views at {}x{}: {} planes from {near:.3} to {far:.3}, {}x{} windows, best {} sources",
-        cams.len(),
-        cams[0].width,
-        cams[0].height,
+        "plane sweep over {} views at 1/{} of {}x{}: {} planes from {near:.3} to {far:.3}, {}x{} windows, best {} sources",
+        full.len(),
+        a.downscale,
+        full.first().map_or(0, |c| c.width),
+        full.first().map_or(0, |c| c.height),
         a.planes,
         2 * a.radius + 1,
         2 * a.radius + 1,
         a.best_k
     );
-    let t = Instant::now();
-    let maps: Vec<MvsDepth> = Mvs::new(ctx)?.run(ctx, &cams, &greys, &cfg)?;
-    let seconds = t.elapsed().as_secs_f64();
+    let scene_depth = mvs_depth::compute(ctx, &full, &settings)?;
+    let seconds = scene_depth.seconds;
+    let maps = &scene_depth.maps;
     eprintln!(
         "done in {seconds:.1} s ({:.2} s per view)",
-        seconds / cams.len() as f64
+        seconds / full.len() as f64
     );
     // Sparse points, when the scene has them.
     let points_path = a.scene.scene.join("sparse/0/points3D.bin");
@@ -159,25 +124,24 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
     let scale = loaded.scene.world_from_source.x_axis.truncate().length();
     let (mut all_kept, mut all_raw, mut all_points) = (Vec::new(), Vec::new(), 0);
     let mut rows = Vec::new();
-    for (k, (&vi, m)) in views.iter().zip(&maps).enumerate() {
+    for (k, (&vi, m)) in views.iter().zip(maps).enumerate() {
         let c = &full[k];
         let stem = c
             .image
             .file_stem()
             .map(|s| s.to_string_lossy().to_string())
             .unwrap_or_else(|| format!("view_{vi:03}"));
-        // Nearest-neighbour upsampling to the view's size.
+        // Nearest-neighbour upsampling to the view's size (the sparse comparison below).
         let at = |map: &[f32], x: u32, y: u32| {
             let sx = (x / a.downscale).min(m.width - 1);
             let sy = (y / a.downscale).min(m.height - 1);
             map[(sy * m.width + sx) as usize]
         };
-        let mut full_depth = Vec::with_capacity((c.width * c.height) as usize);
-        for y in 0..c.height {
-            for x in 0..c.width {
-                full_depth.push(at(&m.depth, x, y) / scale as f32);
-            }
-        }
+        let full_depth: Vec<f32> = scene_depth.views[k]
+            .depth
+            .iter()
+            .map(|&d| d / scale as f32)
+            .collect();
         write_depth_exr(
             &a.out.join(format!("{stem}.exr")),
             c.width,
@@ -251,8 +215,8 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         "split": a.scene.views.kind(&a.scene.scene),
         "factor": a.scene.views.factor,
         "downscale": a.downscale,
-        "width": cams[0].width,
-        "height": cams[0].height,
+        "width": scene_depth.width,
+        "height": scene_depth.height,
         "planes": a.planes,
         "near": near,
         "far": far,

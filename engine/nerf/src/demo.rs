@@ -142,6 +142,31 @@ pub fn demo_seen(view: usize, width: u32, height: u32, rank: usize) -> Vec<bool>
     seen
 }
 
+/// Exact depth of demo view `view` (an index into [`demo_cameras`]) at `width x height`: per
+/// pixel, the depth along the viewing axis of the surface its centre ray hits, in the scene
+/// file's units (what `train --depth-dir` reads); 0 where the ray hits nothing.
+pub fn demo_view_depth(view: usize, width: u32, height: u32) -> Vec<f32> {
+    let c2w = demo_cameras()[view];
+    let focal = 0.9 * width as f64;
+    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+    let mut depth = Vec::with_capacity((width * height) as usize);
+    for y in 0..height {
+        for x in 0..width {
+            let dc = DVec3::new(
+                (x as f64 + 0.5 - cx) / focal,
+                -(y as f64 + 0.5 - cy) / focal,
+                -1.0,
+            );
+            // dc has unit depth: the distance t along its unit direction is t / |dc| deep.
+            let d = c2w.transform_vector3(dc).normalize();
+            depth.push(
+                first_hit(c2w.w_axis.truncate(), d).map_or(0.0, |t| (t / dc.length()) as f32),
+            );
+        }
+    }
+    depth
+}
+
 /// The albedo of sphere texture `kind` at unit normal `n`.
 fn sphere_colour(kind: u32, n: DVec3) -> DVec3 {
     let (u, v) = (n.z.atan2(n.x), n.y.asin());

@@ -27,6 +27,7 @@ pub mod field;
 pub mod metrics;
 pub mod model;
 pub mod mvs;
+pub mod mvs_depth;
 pub mod optim;
 pub mod reference;
 pub mod render;
