@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::colmap::read_points3d_bin;
-use extranerf_nerf::data::depth::sparse_depth;
+use extranerf_nerf::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
 use extranerf_nerf::mvs_depth::{self, MvsDepthSettings};
 use extranerf_nerf::run::{write_depth_exr, write_png};
 
@@ -44,6 +44,11 @@ pub struct MvsArgs {
     /// Agreement: relative depth difference.
     #[arg(long, default_value_t = 0.01)]
     rel_tol: f32,
+    /// Exact depth maps to measure against (<image stem>.npy or .exr, view depth in the
+    /// capture's units, as `train --depth-dir` reads them; e.g. ../shared/data/synth2/depth):
+    /// the kept fraction of pixels with a true depth and the relative errors, in mvs.json.
+    #[arg(long, value_name = "DIR")]
+    truth_depth: Option<PathBuf>,
     /// Output folder: <image stem>.exr (depth along the viewing axis in the scene's source
     /// units, 0 where none; `extranerf train --depth-dir` reads these), _depth.png,
     /// _conf.png, mvs.json.
@@ -51,13 +56,14 @@ pub struct MvsArgs {
     out: PathBuf,
 }
 
-/// Agreement of depths with sparse points: relative errors |d - d_sparse| / d_sparse.
-fn agreement(errors: &mut [f64], points: usize) -> serde_json::Value {
+/// Agreement of depths with reference depths (sparse points, or exact maps): relative errors
+/// |d - d_ref| / d_ref of the `points` references (named `what` in the JSON) that have a depth.
+fn agreement(errors: &mut [f64], points: usize, what: &str) -> serde_json::Value {
     errors.sort_by(f64::total_cmp);
     let n = errors.len();
     let within = |t: f64| errors.iter().filter(|&&e| e < t).count() as f64 / n.max(1) as f64;
     serde_json::json!({
-        "sparse_points": points,
+        what: points,
         "with_depth": n,
         "coverage": n as f64 / points.max(1) as f64,
         "median_rel_error": if n > 0 { errors[n / 2] } else { f64::NAN },
@@ -123,6 +129,8 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
     // Scene units -> the source's units (what --depth-dir expects).
     let scale = loaded.scene.world_from_source.x_axis.truncate().length();
     let (mut all_kept, mut all_raw, mut all_points) = (Vec::new(), Vec::new(), 0);
+    // Against exact depth: relative errors of kept pixels, and pixels with a true depth.
+    let (mut truth_errors, mut truth_pixels) = (Vec::new(), 0usize);
     let mut rows = Vec::new();
     for (k, (&vi, m)) in views.iter().zip(maps).enumerate() {
         let c = &full[k];
@@ -189,8 +197,9 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
                 }
             }
             all_points += samples.len();
-            row["sparse_agreement"] = agreement(&mut kept.clone(), samples.len());
-            row["sparse_agreement_before_consistency"] = agreement(&mut raw.clone(), samples.len());
+            row["sparse_agreement"] = agreement(&mut kept.clone(), samples.len(), "sparse_points");
+            row["sparse_agreement_before_consistency"] =
+                agreement(&mut raw.clone(), samples.len(), "sparse_points");
             let ag = &row["sparse_agreement"];
             eprintln!(
                 "view {vi} ({stem}): {:.1}% of pixels kept; {} sparse points, {:.1}% with depth, median error {:.2}%, {:.1}% within 5%",
@@ -207,6 +216,37 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
                 "view {vi} ({stem}): {:.1}% of pixels kept",
                 100.0 * m.coverage()
             );
+        }
+        if let Some(dir) = &a.truth_depth {
+            let (npy, exr) = (
+                dir.join(format!("{stem}.npy")),
+                dir.join(format!("{stem}.exr")),
+            );
+            let truth = if npy.exists() {
+                read_depth_npy(&npy, c)?
+            } else if exr.exists() {
+                read_depth_exr(&exr, c)?
+            } else {
+                bail!(
+                    "{}: no exact depth for view {vi}: expected {} or {}",
+                    dir.display(),
+                    npy.display(),
+                    exr.display()
+                );
+            };
+            let mut errors = Vec::new();
+            let mut with_truth = 0usize;
+            for (&d, &t) in full_depth.iter().zip(&truth) {
+                if t > 0.0 {
+                    with_truth += 1;
+                    if d > 0.0 {
+                        errors.push(((d - t) / t).abs() as f64);
+                    }
+                }
+            }
+            truth_pixels += with_truth;
+            truth_errors.extend_from_slice(&errors);
+            row["truth_agreement"] = agreement(&mut errors, with_truth, "truth_pixels");
         }
         rows.push(row);
     }
@@ -230,8 +270,9 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         "views": rows,
     });
     if points.is_some() {
-        doc["sparse_agreement"] = agreement(&mut all_kept, all_points);
-        doc["sparse_agreement_before_consistency"] = agreement(&mut all_raw, all_points);
+        doc["sparse_agreement"] = agreement(&mut all_kept, all_points, "sparse_points");
+        doc["sparse_agreement_before_consistency"] =
+            agreement(&mut all_raw, all_points, "sparse_points");
         let ag = &doc["sparse_agreement"];
         eprintln!(
             "all views: {all_points} sparse points, {:.1}% with a kept depth; median error {:.2}%, within 2% / 5% / 10%: {:.1}% / {:.1}% / {:.1}%",
@@ -245,6 +286,18 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         eprintln!(
             "no sparse points ({}): agreement not measured",
             points_path.display()
+        );
+    }
+    if a.truth_depth.is_some() {
+        doc["truth_agreement"] = agreement(&mut truth_errors, truth_pixels, "truth_pixels");
+        let ag = &doc["truth_agreement"];
+        eprintln!(
+            "against the exact depth: {:.1}% of {truth_pixels} pixels kept; median error {:.2}%, within 2% / 5% / 10%: {:.1}% / {:.1}% / {:.1}%",
+            100.0 * ag["coverage"].as_f64().unwrap_or(0.0),
+            100.0 * ag["median_rel_error"].as_f64().unwrap_or(f64::NAN),
+            100.0 * ag["within_2pct"].as_f64().unwrap_or(0.0),
+            100.0 * ag["within_5pct"].as_f64().unwrap_or(0.0),
+            100.0 * ag["within_10pct"].as_f64().unwrap_or(0.0)
         );
     }
     crate::bench::write_json(&a.out.join("mvs.json"), &doc)?;

@@ -847,6 +847,43 @@ fn mvs_writes_depth_maps_training_reads() {
     );
     let med = ag["median_rel_error"].as_f64().unwrap();
     assert!(med.is_finite() && med > 0.0 && med < 0.5, "{ag}");
+    // Its own maps as the exact depth: every pixel with a depth kept, without error.
+    let mvs_args = |truth: &std::path::Path, out: &std::path::Path| {
+        extranerf(&[
+            "mvs",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--downscale",
+            "8",
+            "--planes",
+            "16",
+            "--radius",
+            "1",
+            "--truth-depth",
+            truth.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let (ok, _, err) = mvs_args(&out, &dir.join("again"));
+    assert!(ok && err.contains("against the exact depth"), "{err}");
+    let again: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("again/mvs.json")).unwrap()).unwrap();
+    let t = &again["truth_agreement"];
+    assert!(
+        t["truth_pixels"].as_u64().unwrap() > 0
+            && t["coverage"].as_f64() == Some(1.0)
+            && t["median_rel_error"].as_f64() == Some(0.0),
+        "{t}"
+    );
+    // A folder without the maps: an error naming the folder and the view.
+    let none = dir.join("no-depth");
+    std::fs::create_dir_all(&none).unwrap();
+    let (ok, _, err) = mvs_args(&none, &dir.join("again2"));
+    assert!(
+        !ok && err.contains("no exact depth for view") && err.contains("no-depth"),
+        "{err}"
+    );
     // The maps are dense depth supervision for training.
     let run = dir.join("run");
     let (ok, _, err) = extranerf(&[
