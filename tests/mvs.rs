@@ -240,19 +240,11 @@ fn bad_settings_are_errors() {
 fn mvs_depth_of_the_demo_rig_matches_its_exact_depth_and_caches() {
     use extranerf_nerf::demo::{demo_view_depth, write_demo_scene};
     use extranerf_nerf::mvs_depth::{cached, CacheUse, MvsDepthSettings};
-    use extranerf_nerf::run::SceneSpec;
     let ctx = &engine().ctx;
     let dir = extranerf_tests::scratch_dir("mvs_depth_demo");
     let (w, h) = (192, 144);
     write_demo_scene(&dir.join("scene"), w, h).unwrap();
-    let spec = SceneSpec {
-        dir: dir.join("scene"),
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-    };
+    let spec = extranerf_tests::demo_scene_spec(dir.join("scene"));
     let loaded = spec.load().unwrap();
     let cams: Vec<Camera> = loaded
         .split

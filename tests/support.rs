@@ -162,6 +162,19 @@ pub fn scratch_dir(name: &str) -> PathBuf {
     d
 }
 
+/// The demo scene written in `dir` ([`extranerf_nerf::demo::write_demo_scene`]): its
+/// extrapolation split (the rig trains) at full resolution, without depth targets.
+pub fn demo_scene_spec(dir: PathBuf) -> extranerf_nerf::run::SceneSpec {
+    extranerf_nerf::run::SceneSpec {
+        dir,
+        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: None,
+    }
+}
+
 /// The training views (extrapolation split, full resolution) of the procedural demo scene at
 /// 32x24, written into a fresh scratch folder `name`, for `model`'s ray space.
 #[track_caller]
@@ -169,18 +182,11 @@ pub fn demo_training_views(
     name: &str,
     model: &extranerf_nerf::model::ModelConfig,
 ) -> Vec<extranerf_nerf::views::View> {
-    use extranerf_nerf::run::{training_views, SceneSpec};
+    use extranerf_nerf::run::training_views;
     let dir = scratch_dir(name);
     extranerf_nerf::demo::write_demo_scene(&dir, 32, 24)
         .unwrap_or_else(|e| panic!("writing the demo scene: {e}"));
-    let spec = SceneSpec {
-        dir,
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-    };
+    let spec = demo_scene_spec(dir);
     let loaded = spec
         .load()
         .unwrap_or_else(|e| panic!("loading the demo scene: {e}"));

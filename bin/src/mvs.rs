@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::colmap::read_points3d_bin;
-use extranerf_nerf::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
+use extranerf_nerf::data::depth::{read_view_depth, sparse_depth, view_depth_paths};
 use extranerf_nerf::mvs_depth::{self, MvsDepthSettings};
 use extranerf_nerf::run::{write_depth_exr, write_png};
 
@@ -18,10 +18,10 @@ pub struct MvsArgs {
     #[command(flatten)]
     scene: SceneArgs,
     /// Match at 1/N of the images' resolution (box-filtered); maps are written at full size.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().downscale)]
     downscale: u32,
     /// Depth planes, uniform in inverse depth.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().planes)]
     planes: u32,
     /// Nearest plane in scene units (default: 0.8 x the smallest near bound of the views).
     #[arg(long)]
@@ -30,19 +30,19 @@ pub struct MvsArgs {
     #[arg(long)]
     far: Option<f32>,
     /// NCC window radius ((2r+1)^2 pixels, r <= 3).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().radius)]
     radius: u32,
     /// Sources averaged per plane (the lowest costs; robust to occlusion).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().best_k)]
     best_k: u32,
     /// Other views whose depth must agree for a pixel to be kept.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().min_agree)]
     min_agree: u32,
     /// Agreement: reprojection error in pixels (at the matching resolution).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().px_tol)]
     px_tol: f32,
     /// Agreement: relative depth difference.
-    #[arg(long, default_value_t = 0.01)]
+    #[arg(long, default_value_t = MvsDepthSettings::default().rel_tol)]
     rel_tol: f32,
     /// Exact depth maps to measure against (<image stem>.npy or .exr, view depth in the
     /// capture's units, as `train --depth-dir` reads them; e.g. ../shared/data/synth2/depth):
@@ -73,6 +73,18 @@ fn agreement(errors: &mut [f64], points: usize, what: &str) -> serde_json::Value
         "within_5pct": within(0.05),
         "within_10pct": within(0.10),
     })
+}
+
+/// An agreement's median and within-2/5/10% shares, for the summary lines.
+fn agreement_line(ag: &serde_json::Value) -> String {
+    let pct = |k: &str, or: f64| 100.0 * ag[k].as_f64().unwrap_or(or);
+    format!(
+        "median error {:.2}%, within 2% / 5% / 10%: {:.1}% / {:.1}% / {:.1}%",
+        pct("median_rel_error", f64::NAN),
+        pct("within_2pct", 0.0),
+        pct("within_5pct", 0.0),
+        pct("within_10pct", 0.0)
+    )
 }
 
 /// `extranerf mvs`.
@@ -218,15 +230,8 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
             );
         }
         if let Some(dir) = &a.truth_depth {
-            let (npy, exr) = (
-                dir.join(format!("{stem}.npy")),
-                dir.join(format!("{stem}.exr")),
-            );
-            let truth = if npy.exists() {
-                read_depth_npy(&npy, c)?
-            } else if exr.exists() {
-                read_depth_exr(&exr, c)?
-            } else {
+            let Some(truth) = read_view_depth(dir, c)? else {
+                let [npy, exr] = view_depth_paths(dir, c);
                 bail!(
                     "{}: no exact depth for view {vi}: expected {} or {}",
                     dir.display(),
@@ -275,12 +280,9 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
             agreement(&mut all_raw, all_points, "sparse_points");
         let ag = &doc["sparse_agreement"];
         eprintln!(
-            "all views: {all_points} sparse points, {:.1}% with a kept depth; median error {:.2}%, within 2% / 5% / 10%: {:.1}% / {:.1}% / {:.1}%",
+            "all views: {all_points} sparse points, {:.1}% with a kept depth; {}",
             100.0 * ag["coverage"].as_f64().unwrap_or(0.0),
-            100.0 * ag["median_rel_error"].as_f64().unwrap_or(f64::NAN),
-            100.0 * ag["within_2pct"].as_f64().unwrap_or(0.0),
-            100.0 * ag["within_5pct"].as_f64().unwrap_or(0.0),
-            100.0 * ag["within_10pct"].as_f64().unwrap_or(0.0)
+            agreement_line(ag)
         );
     } else {
         eprintln!(
@@ -292,12 +294,9 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         doc["truth_agreement"] = agreement(&mut truth_errors, truth_pixels, "truth_pixels");
         let ag = &doc["truth_agreement"];
         eprintln!(
-            "against the exact depth: {:.1}% of {truth_pixels} pixels kept; median error {:.2}%, within 2% / 5% / 10%: {:.1}% / {:.1}% / {:.1}%",
+            "against the exact depth: {:.1}% of {truth_pixels} pixels kept; {}",
             100.0 * ag["coverage"].as_f64().unwrap_or(0.0),
-            100.0 * ag["median_rel_error"].as_f64().unwrap_or(f64::NAN),
-            100.0 * ag["within_2pct"].as_f64().unwrap_or(0.0),
-            100.0 * ag["within_5pct"].as_f64().unwrap_or(0.0),
-            100.0 * ag["within_10pct"].as_f64().unwrap_or(0.0)
+            agreement_line(ag)
         );
     }
     crate::bench::write_json(&a.out.join("mvs.json"), &doc)?;

@@ -815,19 +815,27 @@ fn mvs_writes_depth_maps_training_reads() {
     let _ = std::fs::remove_dir_all(&dir);
     let out = dir.join("mvs");
     let scene = fern();
-    let (ok, _, err) = extranerf(&[
-        "mvs",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--downscale",
-        "8",
-        "--planes",
-        "16",
-        "--radius",
-        "1",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    // `mvs` at a coarse setting into `out`, measured against `truth` when given.
+    let mvs = |out: &std::path::Path, truth: Option<&std::path::Path>| {
+        let mut args = vec![
+            "mvs",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--downscale",
+            "8",
+            "--planes",
+            "16",
+            "--radius",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        if let Some(t) = truth {
+            args.extend(["--truth-depth", t.to_str().unwrap()]);
+        }
+        extranerf(&args)
+    };
+    let (ok, _, err) = mvs(&out, None);
     assert!(ok && err.contains("sparse points"), "{err}");
     for f in [
         "image002.exr",
@@ -848,24 +856,7 @@ fn mvs_writes_depth_maps_training_reads() {
     let med = ag["median_rel_error"].as_f64().unwrap();
     assert!(med.is_finite() && med > 0.0 && med < 0.5, "{ag}");
     // Its own maps as the exact depth: every pixel with a depth kept, without error.
-    let mvs_args = |truth: &std::path::Path, out: &std::path::Path| {
-        extranerf(&[
-            "mvs",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--downscale",
-            "8",
-            "--planes",
-            "16",
-            "--radius",
-            "1",
-            "--truth-depth",
-            truth.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-    };
-    let (ok, _, err) = mvs_args(&out, &dir.join("again"));
+    let (ok, _, err) = mvs(&dir.join("again"), Some(&out));
     assert!(ok && err.contains("against the exact depth"), "{err}");
     let again: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("again/mvs.json")).unwrap()).unwrap();
@@ -879,7 +870,7 @@ fn mvs_writes_depth_maps_training_reads() {
     // A folder without the maps: an error naming the folder and the view.
     let none = dir.join("no-depth");
     std::fs::create_dir_all(&none).unwrap();
-    let (ok, _, err) = mvs_args(&none, &dir.join("again2"));
+    let (ok, _, err) = mvs(&dir.join("again2"), Some(&none));
     assert!(
         !ok && err.contains("no exact depth for view") && err.contains("no-depth"),
         "{err}"

@@ -92,6 +92,35 @@ fn first_hit(o: DVec3, d: DVec3) -> Option<f64> {
     best.is_finite().then_some(best)
 }
 
+/// The demo's intrinsics at `width x height`, the same at any resolution: (focal, cx, cy),
+/// focal 0.9 x width and the principal point at the image centre.
+fn demo_intrinsics(width: u32, height: u32) -> (f64, f64, f64) {
+    (0.9 * width as f64, width as f64 / 2.0, height as f64 / 2.0)
+}
+
+/// The camera-space direction (depth 1 along -z) through image position (px, py).
+fn camera_dir(px: f64, py: f64, (focal, cx, cy): (f64, f64, f64)) -> DVec3 {
+    DVec3::new((px - cx) / focal, -(py - cy) / focal, -1.0)
+}
+
+/// For every pixel centre of view `c2w` at `width x height`, row by row: its camera-space
+/// direction (depth 1), its unit world direction, and the distance along that to the first
+/// surface.
+fn centre_hits(
+    c2w: &DMat4,
+    width: u32,
+    height: u32,
+) -> impl Iterator<Item = (DVec3, DVec3, Option<f64>)> + '_ {
+    let intr = demo_intrinsics(width, height);
+    (0..height).flat_map(move |y| {
+        (0..width).map(move |x| {
+            let dc = camera_dir(x as f64 + 0.5, y as f64 + 0.5, intr);
+            let d = c2w.transform_vector3(dc).normalize();
+            (dc, d, first_hit(c2w.w_axis.truncate(), d))
+        })
+    })
+}
+
 /// Exact visibility of demo view `view` (an index into [`demo_cameras`]) at `width x height`:
 /// per pixel, whether the surface its centre ray hits is seen by at least `rank` of the rig
 /// cameras (inside the camera's image and nothing in between). Rays that hit nothing count
@@ -99,25 +128,16 @@ fn first_hit(o: DVec3, d: DVec3) -> Option<f64> {
 pub fn demo_seen(view: usize, width: u32, height: u32, rank: usize) -> Vec<bool> {
     let cams = demo_cameras();
     let c2w = cams[view];
-    let focal = 0.9 * width as f64;
-    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+    let (focal, cx, cy) = demo_intrinsics(width, height);
     let rig: Vec<(DMat4, DVec3)> = cams[..RIG_VIEWS]
         .iter()
         .map(|m| (m.inverse(), m.w_axis.truncate()))
         .collect();
-    let mut seen = Vec::with_capacity((width * height) as usize);
-    for y in 0..height {
-        for x in 0..width {
-            let dc = DVec3::new(
-                (x as f64 + 0.5 - cx) / focal,
-                -(y as f64 + 0.5 - cy) / focal,
-                -1.0,
-            );
-            let o = c2w.w_axis.truncate();
-            let d = c2w.transform_vector3(dc).normalize();
-            let Some(t) = first_hit(o, d) else {
-                seen.push(false);
-                continue;
+    let o = c2w.w_axis.truncate();
+    centre_hits(&c2w, width, height)
+        .map(|(_, d, hit)| {
+            let Some(t) = hit else {
+                return false;
             };
             let p = o + t * d;
             let count = rig
@@ -136,35 +156,19 @@ pub fn demo_seen(view: usize, width: u32, height: u32, rank: usize) -> Vec<bool>
                     first_hit(*eye, to / dist).is_some_and(|h| h >= dist * (1.0 - 1e-6) - 1e-6)
                 })
                 .count();
-            seen.push(count >= rank);
-        }
-    }
-    seen
+            count >= rank
+        })
+        .collect()
 }
 
 /// Exact depth of demo view `view` (an index into [`demo_cameras`]) at `width x height`: per
 /// pixel, the depth along the viewing axis of the surface its centre ray hits, in the scene
 /// file's units (what `train --depth-dir` reads); 0 where the ray hits nothing.
 pub fn demo_view_depth(view: usize, width: u32, height: u32) -> Vec<f32> {
-    let c2w = demo_cameras()[view];
-    let focal = 0.9 * width as f64;
-    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
-    let mut depth = Vec::with_capacity((width * height) as usize);
-    for y in 0..height {
-        for x in 0..width {
-            let dc = DVec3::new(
-                (x as f64 + 0.5 - cx) / focal,
-                -(y as f64 + 0.5 - cy) / focal,
-                -1.0,
-            );
-            // dc has unit depth: the distance t along its unit direction is t / |dc| deep.
-            let d = c2w.transform_vector3(dc).normalize();
-            depth.push(
-                first_hit(c2w.w_axis.truncate(), d).map_or(0.0, |t| (t / dc.length()) as f32),
-            );
-        }
-    }
-    depth
+    // dc has depth 1: a distance t along its unit direction is t / |dc| deep.
+    centre_hits(&demo_cameras()[view], width, height)
+        .map(|(dc, _, hit)| hit.map_or(0.0, |t| (t / dc.length()) as f32))
+        .collect()
 }
 
 /// The albedo of sphere texture `kind` at unit normal `n`.
@@ -292,8 +296,8 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
         path: img_dir.clone(),
         error: e,
     })?;
-    let focal = 0.9 * width as f64;
-    let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+    let intr = demo_intrinsics(width, height);
+    let focal = intr.0;
     let mut rows = Vec::new();
     for (i, c2w) in demo_cameras().iter().enumerate() {
         let mut rgb = vec![0f32; (width * height * 3) as usize];
@@ -303,7 +307,7 @@ pub fn write_demo_scene(dir: &Path, width: u32, height: u32) -> Result<()> {
                 for s in 0..4 {
                     let px = x as f64 + 0.25 + 0.5 * (s % 2) as f64;
                     let py = y as f64 + 0.25 + 0.5 * (s / 2) as f64;
-                    let dc = DVec3::new((px - cx) / focal, -(py - cy) / focal, -1.0);
+                    let dc = camera_dir(px, py, intr);
                     let d = c2w.transform_vector3(dc).normalize();
                     acc += shade(c2w.w_axis.truncate(), d);
                 }

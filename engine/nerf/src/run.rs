@@ -8,7 +8,7 @@ use glam::DVec3;
 use image::ImageEncoder;
 use serde::{Deserialize, Serialize};
 
-use crate::data::depth::{read_depth_exr, read_depth_npy, sparse_depth};
+use crate::data::depth::{read_view_depth, sparse_depth, view_depth_paths};
 use crate::data::llff::{load_llff, LlffOptions};
 use crate::data::split::{Split, SplitIndices, SplitKind};
 use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms};
@@ -159,20 +159,8 @@ pub fn training_views(
         };
         let mut d = vec![[0f32; 2]; cam.width as usize * cam.height as usize];
         let depth = if let Some(dir) = &spec.depth_dir {
-            let stem = cam
-                .image
-                .file_stem()
-                .map(|s| s.to_string_lossy().to_string())
-                .unwrap_or_default();
-            let (npy, exr) = (
-                dir.join(format!("{stem}.npy")),
-                dir.join(format!("{stem}.exr")),
-            );
-            let map = if npy.exists() {
-                read_depth_npy(&npy, &cam)?
-            } else if exr.exists() {
-                read_depth_exr(&exr, &cam)?
-            } else {
+            let Some(map) = read_view_depth(dir, &cam)? else {
+                let [npy, exr] = view_depth_paths(dir, &cam);
                 return Err(DataError::Malformed {
                     path: dir.clone(),
                     problem: format!(

@@ -85,6 +85,23 @@ fn wgrad_tile(s: MlpShape, task: u32) -> WgradTile {
     return t;
 }
 
+// The record units (vec4s of the f32 record, groups of 4 f16 values of the f16 one) of the
+// tile's 16 inputs (`x`) and 16 deltas (`d`), after `head` header units; units past t.nx and
+// t.nd repeat the last one (their columns and rows are never written).
+struct WgradUnits {
+    x: array<u32, 4>,
+    d: array<u32, 4>,
+}
+
+fn wgrad_units(t: WgradTile, head: u32) -> WgradUnits {
+    var u: WgradUnits;
+    for (var k = 0u; k < 4u; k += 1u) {
+        u.x[k] = head + t.x_at / 4u + min(k, t.nx - 1u);
+        u.d[k] = head + t.d_at / 4u + min(k, t.nd - 1u);
+    }
+    return u;
+}
+
 // Thread c's values of the tile's inputs x (columns j0 .. j0 + 15): columns j0 + c and
 // j0 + 8 + c.
 fn wgrad_pick(x: array<vec4<f32>, 4>, c: u32) -> vec2<f32> {

@@ -146,27 +146,26 @@ fn mlp_bwd_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-// One point's contribution to a weight-gradient tile (common/mlp_wgrad.wgsl): the tile's 8
-// inputs and 16 deltas from the point's record at vec4 `base`; `dk` the deltas' vec4 offsets,
-// `xb` the second input vec4's.
-fn wgrad_point(t: WgradTile, base: u32, xk: array<u32, 4>, dk: array<u32, 4>, c: u32,
-               with_bias: bool, acc: ptr<function, array<vec4<f32>, 8>>,
+// One point's contribution to a weight-gradient tile (common/mlp_wgrad.wgsl): the tile's 16
+// inputs and 16 deltas at units `u` of the point's record at vec4 `base`.
+fn wgrad_point(base: u32, u: WgradUnits, c: u32, with_bias: bool,
+               acc: ptr<function, array<vec4<f32>, 8>>,
                bias: ptr<function, array<vec4<f32>, 4>>) {
     var x: array<vec4<f32>, 4>;
     for (var k = 0u; k < 4u; k += 1u) {
-        x[k] = saved4[base + xk[k]];
+        x[k] = saved4[base + u.x[k]];
     }
     var d: array<vec4<f32>, 4>;
     for (var k = 0u; k < 4u; k += 1u) {
-        d[k] = saved4[base + dk[k]];
+        d[k] = saved4[base + u.d[k]];
     }
     wgrad_tile_add(wgrad_pick(x, c), d, 1.0, 1.0, with_bias, acc, bias);
 }
 
 // Weight gradients (common/mlp_wgrad.wgsl's tiles): workgroup = (chunk of points, tile of 16
-// rows x 8 columns); per point the threads load the tile's 8 inputs and 16 deltas, each thread
-// keeps its input and does 16 FMAs. WGRAD_UNROLL points per iteration: on lavapipe a loop's
-// own bookkeeping costs about as much as one point.
+// rows x 16 columns); per point the threads load the tile's 16 inputs and 16 deltas, each
+// thread keeps its two inputs and does 32 FMAs. WGRAD_UNROLL points per iteration: on
+// lavapipe a loop's own bookkeeping costs about as much as one point.
 @compute @workgroup_size(8)
 fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
              @builtin(local_invocation_index) lid: u32) {
@@ -179,20 +178,15 @@ fn mlp_wgrad(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
         let p1 = min(p0 + params.chunk, params.n);
         let with_bias = t.j0 == 0u;
         let stride4 = params.saved_stride / 4u;
-        var xk = array<u32, 4>();
-        var dk = array<u32, 4>();
-        for (var k = 0u; k < 4u; k += 1u) {
-            xk[k] = t.x_at / 4u + min(k, t.nx - 1u);
-            dk[k] = t.d_at / 4u + min(k, t.nd - 1u);
-        }
+        let u = wgrad_units(t, 0u);
         var p = p0;
         for (; p + WGRAD_UNROLL <= p1; p += WGRAD_UNROLL) {
             for (var q = 0u; q < WGRAD_UNROLL; q += 1u) {
-                wgrad_point(t, (p + q) * stride4, xk, dk, lid, with_bias, &acc, &bias);
+                wgrad_point((p + q) * stride4, u, lid, with_bias, &acc, &bias);
             }
         }
         for (; p < p1; p += 1u) {
-            wgrad_point(t, p * stride4, xk, dk, lid, with_bias, &acc, &bias);
+            wgrad_point(p * stride4, u, lid, with_bias, &acc, &bias);
         }
     }
     wgrad_tile_flush(t, lid, &acc, &bias);

@@ -154,9 +154,9 @@ fn mlp_bwd_data_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgrou
 
 // One point's contribution to a weight-gradient tile on the f16 record at unit `base`: the
 // layer's two exponents from the header (unit hv, components hc and hc + 1), the tile's 16
-// inputs and 16 deltas at units xk and dk.
-fn wgrad_point_f16(base: u32, hv: u32, hc: u32, xk: array<u32, 4>, dk: array<u32, 4>, c: u32,
-                   with_bias: bool, acc: ptr<function, array<vec4<f32>, 8>>,
+// inputs and 16 deltas at units `u`.
+fn wgrad_point_f16(base: u32, hv: u32, hc: u32, u: WgradUnits, c: u32, with_bias: bool,
+                   acc: ptr<function, array<vec4<f32>, 8>>,
                    bias: ptr<function, array<vec4<f32>, 4>>) {
     let h = unpack4(saved[base + hv]);
     let kx = i32(h[hc]);
@@ -164,8 +164,8 @@ fn wgrad_point_f16(base: u32, hv: u32, hc: u32, xk: array<u32, 4>, dk: array<u32
     var x: array<vec4<f32>, 4>;
     var d: array<vec4<f32>, 4>;
     for (var k = 0u; k < 4u; k += 1u) {
-        x[k] = unpack4(saved[base + xk[k]]);
-        d[k] = unpack4(saved[base + dk[k]]);
+        x[k] = unpack4(saved[base + u.x[k]]);
+        d[k] = unpack4(saved[base + u.d[k]]);
     }
     wgrad_tile_add(wgrad_pick(x, c), d, pow2_or_flush(kx + kd), pow2_or_flush(kd), with_bias, acc,
                    bias);
@@ -187,21 +187,16 @@ fn mlp_wgrad_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
         let with_bias = t.j0 == 0u;
         let hv = t.layer >> 1u;
         let hc = 2u * (t.layer & 1u);
-        var xk = array<u32, 4>();
-        var dk = array<u32, 4>();
-        for (var k = 0u; k < 4u; k += 1u) {
-            xk[k] = HEAD + t.x_at / 4u + min(k, t.nx - 1u);
-            dk[k] = HEAD + t.d_at / 4u + min(k, t.nd - 1u);
-        }
+        let u = wgrad_units(t, HEAD);
         let stride = params.saved_stride;
         var p = p0;
         for (; p + WGRAD_UNROLL <= p1; p += WGRAD_UNROLL) {
             for (var q = 0u; q < WGRAD_UNROLL; q += 1u) {
-                wgrad_point_f16((p + q) * stride, hv, hc, xk, dk, lid, with_bias, &acc, &bias);
+                wgrad_point_f16((p + q) * stride, hv, hc, u, lid, with_bias, &acc, &bias);
             }
         }
         for (; p < p1; p += 1u) {
-            wgrad_point_f16(p * stride, hv, hc, xk, dk, lid, with_bias, &acc, &bias);
+            wgrad_point_f16(p * stride, hv, hc, u, lid, with_bias, &acc, &bias);
         }
     }
     wgrad_tile_flush(t, lid, &acc, &bias);

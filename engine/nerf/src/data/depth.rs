@@ -1,7 +1,7 @@
 //! Depth supervision for training views: COLMAP sparse points projected into each view, and
 //! dense depth maps from `.npy` or OpenEXR files.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use super::colmap::Point3D;
 use super::npy::read_npy;
@@ -84,6 +84,33 @@ pub fn read_depth_npy(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
         }
     };
     depth_for_view(path, cam, (w, h), a.data.iter().map(|&v| v as f32))
+}
+
+/// Where a dense depth map of `cam` lies in `dir`, named as its image: `<stem>.npy` and
+/// `<stem>.exr`, in that order of preference.
+pub fn view_depth_paths(dir: &Path, cam: &Camera) -> [PathBuf; 2] {
+    let stem = cam
+        .image
+        .file_stem()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default();
+    [
+        dir.join(format!("{stem}.npy")),
+        dir.join(format!("{stem}.exr")),
+    ]
+}
+
+/// The dense depth map of `cam` in `dir` ([`view_depth_paths`]; read as [`read_depth_npy`]
+/// and [`read_depth_exr`] do), or `None` when neither file exists.
+pub fn read_view_depth(dir: &Path, cam: &Camera) -> Result<Option<Vec<f32>>> {
+    let [npy, exr] = view_depth_paths(dir, cam);
+    if npy.exists() {
+        read_depth_npy(&npy, cam).map(Some)
+    } else if exr.exists() {
+        read_depth_exr(&exr, cam).map(Some)
+    } else {
+        Ok(None)
+    }
 }
 
 /// Channel names taken as depth, in order of preference.
