@@ -100,6 +100,7 @@ fn scene(dir: &Path) -> SceneSpec {
         factor: 1,
         sparse_depth: false,
         depth_dir: None,
+        mvs_depth: None,
     }
 }
 

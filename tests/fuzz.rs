@@ -551,6 +551,7 @@ fn checkpoints_and_run_configs() {
             factor: 8,
             sparse_depth: true,
             depth_dir: None,
+            mvs_depth: None,
         },
         train: Default::default(),
         model: model.clone(),

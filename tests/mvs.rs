@@ -297,6 +297,35 @@ fn mvs_depth_of_the_demo_rig_matches_its_exact_depth_and_caches() {
     let (again, used) = cached(ctx, &spec.dir, &cams, &settings, &run).unwrap();
     assert_eq!(used, CacheUse::Reused);
     assert_eq!(again, views);
+    // Training reads the same cache: NDC targets of the maps, weighted by their confidence.
+    {
+        use extranerf_nerf::run::{training_views_from, training_views_in};
+        let mspec = extranerf_nerf::run::SceneSpec {
+            mvs_depth: Some(settings.clone()),
+            ..spec.clone()
+        };
+        let model = extranerf_nerf::model::ModelConfig::default();
+        let (tv, used) = training_views_in(ctx, &mspec, &loaded, &model, &run).unwrap();
+        assert_eq!(used, Some(CacheUse::Reused));
+        let direct = training_views_from(&mspec, &loaded, &model, Some(&views)).unwrap();
+        let (mut targets, mut kept) = (0usize, 0usize);
+        for ((a, b), m) in tv.iter().zip(&direct).zip(&views) {
+            assert_eq!(a.depth, b.depth);
+            let d = a.depth.as_ref().unwrap();
+            for (k, t) in d.iter().enumerate() {
+                let has = m.depth[k] > 0.0 && m.confidence[k] > 0.0;
+                kept += has as usize;
+                if t[1] > 0.0 {
+                    assert!(has, "pixel {k}: a target where the map has none");
+                    assert_eq!(t[1], m.confidence[k], "pixel {k}: weight");
+                    assert!(t[0] > 0.0 && t[0] < 1.0, "pixel {k}: NDC t {}", t[0]);
+                    targets += 1;
+                }
+            }
+        }
+        // Only points nearer than NDC's near plane (none on this rig) lose their target.
+        assert!(targets > 0 && targets == kept, "{targets} of {kept}");
+    }
     // Another setting: recomputed.
     let other = MvsDepthSettings {
         planes: 48,

@@ -172,6 +172,7 @@ pub fn demo_scene_spec(dir: PathBuf) -> extranerf_nerf::run::SceneSpec {
         factor: 1,
         sparse_depth: false,
         depth_dir: None,
+        mvs_depth: None,
     }
 }
 

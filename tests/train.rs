@@ -23,6 +23,7 @@ fn scene_spec(
         factor,
         sparse_depth,
         depth_dir: None,
+        mvs_depth: None,
     }
 }
 
@@ -277,6 +278,7 @@ fn checkpoints_round_trip_and_bad_ones_are_refused() {
                 factor: 8,
                 sparse_depth: false,
                 depth_dir: None,
+                mvs_depth: None,
             },
             model,
             train: TrainConfig::default(),
@@ -1223,4 +1225,191 @@ fn coop_and_scalar_mlp_paths_train_alike() {
         assert!(coop[7] < 0.7 * coop[0] && scalar[7] < 0.7 * scalar[0]);
     }
     assert_no_validation_messages(ctx);
+}
+
+/// `--depth`'s choices set the scene spec's depth fields as documented: `none` leaves the views
+/// without targets (as every run without depth trained before), `auto` takes the dense maps a
+/// scene ships, else MVS depth, else says why not; `sparse` without points and a missing folder
+/// are errors naming the file.
+#[test]
+fn depth_requests_resolve_as_documented() {
+    use extranerf_nerf::data::split::SplitKind;
+    use extranerf_nerf::demo::{write_demo_scene, write_turntable_scene};
+    use extranerf_nerf::mvs_depth::MvsDepthSettings;
+    use extranerf_nerf::run::{training_views, DepthRequest, SceneSpec};
+    let dir = scratch_dir("depth-requests");
+    let scene = dir.join("scene");
+    write_demo_scene(&scene, 32, 24).unwrap();
+    let fresh = || scene_spec(scene.clone(), SplitKind::Extrapolation, 1, true);
+    let loaded = fresh().load().unwrap();
+    let resolve = |r: &str| {
+        let mut spec = fresh();
+        let said = r
+            .parse::<DepthRequest>()
+            .unwrap()
+            .resolve(&mut spec, &loaded)
+            .map_err(|e| e.to_string());
+        (spec, said)
+    };
+    // none: nothing, and the views carry no depth, as before the option.
+    let (spec, said) = resolve("none");
+    assert_eq!(
+        spec,
+        scene_spec(scene.clone(), SplitKind::Extrapolation, 1, false)
+    );
+    assert_eq!(said.unwrap(), "depth: none");
+    let views = training_views(&spec, &loaded, &ModelConfig::default()).unwrap();
+    assert!(views.iter().all(|v| v.depth.is_none()));
+    // sparse: the demo has no COLMAP points.
+    let (_, said) = resolve("sparse");
+    let e = said.unwrap_err();
+    assert!(
+        e.contains("sparse/0/points3D.bin") && e.contains("no COLMAP"),
+        "{e}"
+    );
+    // mvs, and auto without a depth/ folder: the sweep's default settings, no points.
+    for r in ["mvs", "auto"] {
+        let (spec, said) = resolve(r);
+        assert_eq!(spec.mvs_depth, Some(MvsDepthSettings::default()), "{r}");
+        assert!(!spec.sparse_depth && spec.depth_dir.is_none(), "{r}");
+        let said = said.unwrap();
+        assert!(
+            said.contains("MVS depth (1/2 resolution, 64 planes)"),
+            "{r}: {said}"
+        );
+        // Without the device and the run folder the MVS maps cannot be had: refused.
+        let e = training_views(&spec, &loaded, &ModelConfig::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("multi-view stereo") && e.contains("run folder"),
+            "{e}"
+        );
+    }
+    // A folder that is not there, by name.
+    let missing = dir.join("no-such-depth");
+    let (_, said) = resolve(missing.to_str().unwrap());
+    let e = said.unwrap_err();
+    assert!(
+        e.contains("no-such-depth") && e.contains("not a folder"),
+        "{e}"
+    );
+    // auto takes the scene's own depth/ folder; a folder given is used as given.
+    std::fs::create_dir_all(scene.join("depth")).unwrap();
+    let (spec, said) = resolve("auto");
+    assert_eq!(spec.depth_dir, Some(scene.join("depth")));
+    assert!(spec.mvs_depth.is_none() && !spec.sparse_depth);
+    assert!(said.unwrap().contains("dense maps from"));
+    let (spec, _) = resolve(dir.to_str().unwrap());
+    assert_eq!(spec.depth_dir, Some(dir.clone()));
+    // No depth bounds (NeRF-synthetic's layout): mvs refuses, auto says why it has none.
+    let tt = dir.join("turntable");
+    write_turntable_scene(&tt, 16, 12, 3, 2).unwrap();
+    let mut spec = scene_spec(tt.clone(), SplitKind::Given, 1, false);
+    let loaded = spec.load().unwrap();
+    let e = DepthRequest::Mvs
+        .resolve(&mut spec, &loaded)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("--depth mvs") && e.contains("no depth bounds"),
+        "{e}"
+    );
+    let said = DepthRequest::Auto.resolve(&mut spec, &loaded).unwrap();
+    assert!(
+        said.starts_with("depth auto: none") && said.contains("no MVS depth"),
+        "{said}"
+    );
+    assert!(spec.mvs_depth.is_none() && !spec.sparse_depth && spec.depth_dir.is_none());
+    // A configuration from before the option reads back as it was, and writes as it was.
+    let old = r#"{"dir":"a/fern","split":"fewshot","fewshot_views":17,"factor":8,"sparse_depth":true,"depth_dir":null}"#;
+    let spec: SceneSpec = serde_json::from_str(old).unwrap();
+    assert!(spec.mvs_depth.is_none());
+    assert_eq!(serde_json::to_string(&spec).unwrap(), old);
+}
+
+/// MVS maps become depth targets weighted by their confidence, holes and zero confidence give
+/// none, and COLMAP's sparse points replace them where they fall (fern, world space, so a
+/// target is the view depth itself).
+#[test]
+fn mvs_targets_take_their_confidence_and_sparse_points_win() {
+    use extranerf_nerf::data::split::SplitKind;
+    use extranerf_nerf::model::Space;
+    use extranerf_nerf::mvs_depth::{MvsDepthSettings, ViewDepth};
+    use extranerf_nerf::run::{training_views, training_views_from};
+    let sparse = scene_spec(
+        shared_data().join("llff/fern"),
+        SplitKind::Extrapolation,
+        8,
+        true,
+    );
+    let both = extranerf_nerf::run::SceneSpec {
+        mvs_depth: Some(MvsDepthSettings::default()),
+        ..sparse.clone()
+    };
+    let loaded = both.load().unwrap();
+    let model = ModelConfig {
+        space: Space::World,
+        ..ModelConfig::default()
+    };
+    let maps: Vec<ViewDepth> = loaded
+        .split
+        .train
+        .iter()
+        .map(|&i| {
+            let c = &loaded.scene.cameras[i];
+            let n = (c.width * c.height) as usize;
+            let mut depth = vec![3.0f32; n];
+            let mut confidence = vec![0.25f32; n];
+            depth[0] = 0.0;
+            confidence[0] = 0.0;
+            confidence[1] = 0.0;
+            ViewDepth {
+                width: c.width,
+                height: c.height,
+                depth,
+                confidence,
+            }
+        })
+        .collect();
+    let points_only = training_views(&sparse, &loaded, &model).unwrap();
+    let views = training_views_from(&both, &loaded, &model, Some(&maps)).unwrap();
+    let (mut from_points, mut from_maps) = (0usize, 0usize);
+    for (v, p) in views.iter().zip(&points_only) {
+        let (d, p) = (v.depth.as_ref().unwrap(), p.depth.as_ref().unwrap());
+        for (k, (got, point)) in d.iter().zip(p).enumerate() {
+            if point[1] > 0.0 {
+                assert_eq!(got, point, "pixel {k}: the sparse point wins");
+                from_points += 1;
+            } else if k < 2 {
+                assert_eq!(*got, [0.0, 0.0], "pixel {k}: no depth or no confidence");
+            } else {
+                assert_eq!(*got, [3.0, 0.25], "pixel {k}");
+                from_maps += 1;
+            }
+        }
+    }
+    assert!(
+        from_points > 1000 && from_maps > 100_000,
+        "{from_points} {from_maps}"
+    );
+    // Without the points, the maps alone.
+    let mvs_only = extranerf_nerf::run::SceneSpec {
+        sparse_depth: false,
+        ..both.clone()
+    };
+    let views = training_views_from(&mvs_only, &loaded, &model, Some(&maps)).unwrap();
+    let d = views[0].depth.as_ref().unwrap();
+    assert!(d[2..].iter().all(|t| *t == [3.0, 0.25]) && d[0] == [0.0, 0.0]);
+    // Maps that do not fit the views: errors, not silent targets.
+    let e = training_views_from(&both, &loaded, &model, Some(&maps[1..]))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("5 MVS depth maps for 6 training views"), "{e}");
+    let mut small = maps.clone();
+    small[2].width -= 1;
+    let e = training_views_from(&both, &loaded, &model, Some(&small))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("MVS depth of training view"), "{e}");
 }

@@ -419,6 +419,7 @@ fn load_view_sets(
         factor,
         sparse_depth: false,
         depth_dir: None,
+        mvs_depth: None,
     };
     let loaded = spec
         .load()

@@ -61,6 +61,14 @@ pub struct ExtrapolateArgs {
     /// its scene and split are used.
     #[arg(long, value_name = "RUN")]
     base: Option<PathBuf>,
+    /// Depth targets of a new BaseNeRF: auto, sparse, mvs, none or a folder of dense maps, as
+    /// `train --depth` (MVS depth is cached in RUN/base/depth_mvs and read again by the stages
+    /// that train on the captured views) [default: auto].
+    #[arg(long, value_name = "auto|sparse|mvs|none|DIR", conflicts_with_all = ["depth_dir", "base"])]
+    depth: Option<extranerf_nerf::run::DepthRequest>,
+    /// The same as --depth DIR.
+    #[arg(long, value_name = "DIR", conflicts_with = "base")]
+    depth_dir: Option<PathBuf>,
     /// Training seconds of a new BaseNeRF (`train --budget`).
     #[arg(long, default_value_t = 900.0, value_name = "SECONDS")]
     base_budget: f64,
@@ -274,7 +282,18 @@ fn parse_checkpoint(s: &str) -> Result<Option<u32>, String> {
 
 /// `extranerf extrapolate`.
 pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
-    let scene = a.scene.as_ref().map(|dir| a.views.spec(dir.clone(), true));
+    let scene = match &a.scene {
+        Some(dir) if a.base.is_none() => {
+            let mut spec = a.views.spec(dir.clone(), false);
+            let loaded = spec.load()?;
+            let line =
+                crate::nerf::depth_request(&a.depth, &a.depth_dir).resolve(&mut spec, &loaded)?;
+            eprintln!("{line}");
+            Some(spec)
+        }
+        Some(dir) => Some(a.views.spec(dir.clone(), true)),
+        None => None,
+    };
     let scene = match (scene, a.resume, &a.base) {
         (None, true, None) => {
             let m =

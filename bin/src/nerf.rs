@@ -17,7 +17,8 @@ use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_nerf::run::{
-    load_checkpoint, training_views, write_png, write_ray_depth_exr, RunConfig, SceneSpec,
+    load_checkpoint, training_views, write_png, write_ray_depth_exr, DepthRequest, RunConfig,
+    SceneSpec,
 };
 use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer, STAT_SLOTS};
 use extranerf_nerf::views::TrainData;
@@ -84,8 +85,20 @@ pub struct TrainArgs {
     /// of 4, and a device with shaderFloat16 and 16-bit storage).
     #[arg(long, value_enum)]
     precision: Option<Precision>,
-    /// Dense depth maps for the training views (`<image stem>.npy` or `.exr`, view depth in the
-    /// capture's units); without it the COLMAP sparse points are used when present.
+    /// Depth targets of the training views. auto: the dense maps the scene ships (a depth/
+    /// folder), else multi-view stereo depth of the training views (`extranerf mvs` at half
+    /// resolution, 64 planes; computed once and cached in RUN/depth_mvs; its confidence weights
+    /// each pixel) plus COLMAP's sparse points where the scene has them (they win where they
+    /// fall). sparse: the COLMAP points only (the default before 2026-12-06). mvs: the MVS
+    /// depth only. none: no depth loss. DIR: dense maps `<image stem>.npy` or `.exr`, view
+    /// depth in the capture's units [default: auto].
+    #[arg(
+        long,
+        value_name = "auto|sparse|mvs|none|DIR",
+        conflicts_with = "depth_dir"
+    )]
+    depth: Option<DepthRequest>,
+    /// The same as --depth DIR.
     #[arg(long, value_name = "DIR")]
     depth_dir: Option<PathBuf>,
     /// Depth loss weight (0: off).
@@ -234,6 +247,15 @@ pub enum BackgroundArg {
     Random,
 }
 
+/// `--depth` (or its alias `--depth-dir DIR`); `auto` when neither is given.
+pub fn depth_request(depth: &Option<DepthRequest>, depth_dir: &Option<PathBuf>) -> DepthRequest {
+    match (depth, depth_dir) {
+        (Some(r), _) => r.clone(),
+        (None, Some(d)) => DepthRequest::Dir(d.clone()),
+        (None, None) => DepthRequest::Auto,
+    }
+}
+
 fn apply<T>(dst: &mut T, v: Option<T>) {
     if let Some(v) = v {
         *dst = v;
@@ -258,6 +280,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--max-res", a.max_res.is_some()),
             ("--width", a.width.is_some()),
             ("--precision", a.precision.is_some()),
+            ("--depth", a.depth.is_some()),
             ("--depth-dir", a.depth_dir.is_some()),
             ("--depth-lambda", a.depth_lambda.is_some()),
             ("--distortion-lambda", a.distortion_lambda.is_some()),
@@ -305,15 +328,20 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             );
         }
         let dir = a.scene.clone().unwrap_or_default();
-        let scene = SceneSpec {
+        let mut scene = SceneSpec {
             split: a.views.kind(&dir),
             dir,
             fewshot_views: a.views.fewshot_views,
             factor: a.views.factor,
-            sparse_depth: true,
-            depth_dir: a.depth_dir.clone(),
+            sparse_depth: false,
+            depth_dir: None,
+            mvs_depth: None,
         };
         let loaded = scene.load()?;
+        eprintln!(
+            "{}",
+            depth_request(&a.depth, &a.depth_dir).resolve(&mut scene, &loaded)?
+        );
         let auto = !a.no_auto;
         let fit = NdcFit {
             grid_box: a.grid_box.unwrap_or_default(),
@@ -408,6 +436,7 @@ pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
                 &mut cfg,
                 budget,
                 a.log2_table.is_none() && a.levels.is_none(),
+                &a.out,
                 &mut Console::new(),
             )?;
         }
@@ -876,6 +905,7 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         "split": cfg.scene.split,
         "resolution": resolution,
         "background": cfg.train.background,
+        "depth": cfg.scene.depth_label(),
     });
     let out = a.out.clone().unwrap_or_else(|| a.run.join("metrics.json"));
     extranerf_nerf::safetensors::write_atomic(
@@ -883,7 +913,7 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         serde_json::to_string_pretty(&summary)?.as_bytes(),
     )?;
     println!(
-        "test: PSNR {:.2} SSIM {:.4} LPIPS(alex) {:.4} LPIPS(vgg) {:.4}; train PSNR {:.2}; {} split, {resolution}, background {:?}; wrote {}",
+        "test: PSNR {:.2} SSIM {:.4} LPIPS(alex) {:.4} LPIPS(vgg) {:.4}; train PSNR {:.2}; {} split, {resolution}, background {:?}; depth {}; wrote {}",
         summary["test"]["psnr"].as_f64().unwrap_or(f64::NAN),
         summary["test"]["ssim"].as_f64().unwrap_or(f64::NAN),
         summary["test"]["lpips_alex"].as_f64().unwrap_or(f64::NAN),
@@ -891,6 +921,7 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         summary["train"]["psnr"].as_f64().unwrap_or(f64::NAN),
         cfg.scene.split,
         cfg.train.background,
+        cfg.scene.depth_label(),
         out.display()
     );
     Ok(())
@@ -978,6 +1009,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         factor: 8,
         sparse_depth: true,
         depth_dir: None,
+        mvs_depth: None,
     };
     let loaded = spec.load()?;
     let mut model = model_for_scene(&loaded.scene);
@@ -1460,6 +1492,7 @@ impl SplitArgs {
             factor: self.factor,
             sparse_depth,
             depth_dir: None,
+            mvs_depth: None,
         }
     }
 }

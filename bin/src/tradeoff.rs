@@ -349,6 +349,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         factor: a.factor,
         sparse_depth: true,
         depth_dir: None,
+        mvs_depth: None,
     };
     let loaded = spec.load()?;
     let lpips = extranerf_extrapolate::driver::lpips_alex(a.lpips.as_deref())?;
@@ -418,7 +419,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
                 },
             }
         );
-        let row = match run_point(ctx, &prims, &cfg, &loaded, &tests, &lpips) {
+        let row = match run_point(ctx, &prims, &cfg, &loaded, &tests, &lpips, &a.out) {
             Ok((train_s, sps, ps, ss, lp, mib)) => Row {
                 name: p.name.into(),
                 knob: p.knob.into(),
@@ -512,7 +513,7 @@ fn previous_rows(a: &TradeoffArgs, spec: &SceneSpec) -> anyhow::Result<Vec<Row>>
         .collect()
 }
 
-/// Trains one point and scores it: (train seconds, samples/s, PSNR, SSIM, LPIPS, device MiB).
+/// Trains one point (MVS depth, if its scene asked for it, cached in `out`) and scores it: (train seconds, samples/s, PSNR, SSIM, LPIPS, device MiB).
 /// Device memory is the allocator's live bytes, sampled after the trainer is set up and after
 /// each held-out render (the training step allocates nothing per step).
 fn run_point(
@@ -522,8 +523,9 @@ fn run_point(
     loaded: &extranerf_nerf::run::LoadedScene,
     tests: &[(extranerf_nerf::data::Camera, Vec<f32>, u32, u32)],
     lpips: &Lpips,
+    out: &std::path::Path,
 ) -> anyhow::Result<(f64, f64, f64, f64, f64, f64)> {
-    let (mut trainer, data) = extranerf_extrapolate::driver::fresh_trainer(ctx, cfg, loaded)?;
+    let (mut trainer, data) = extranerf_extrapolate::driver::fresh_trainer(ctx, cfg, loaded, out)?;
     let mut peak = ctx.allocated_bytes()?.0;
     let t = Instant::now();
     while trainer.step() < cfg.train.steps {

@@ -242,6 +242,14 @@ fn train_resume_render_eval_on_fern() {
             && err.contains("training step: fused kernel"),
         "{err}"
     );
+    // --depth auto (the default) on fern: MVS depth of the six training views, computed once
+    // into RUN/depth_mvs, with the COLMAP points where they fall.
+    assert!(
+        err.contains("depth auto: MVS depth (1/2 resolution, 64 planes) and COLMAP sparse points")
+            && err.contains("cached in"),
+        "{err}"
+    );
+    assert!(run.join("depth_mvs/key.json").exists());
     for f in ["config.json", "checkpoint.safetensors", "progress.jsonl"] {
         assert!(run.join(f).exists(), "{f} missing");
     }
@@ -264,6 +272,8 @@ fn train_resume_render_eval_on_fern() {
     assert!(!ok && err.contains("--resume"), "{err}");
     let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--rays", "9"]);
     assert!(!ok && err.contains("drop --rays"), "{err}");
+    let (ok, _, err) = extranerf(&["train", "--resume", "--out", run_s, "--depth", "none"]);
+    assert!(!ok && err.contains("drop --depth"), "{err}");
     // --step may change on resume: the standalone chain continues the fused run.
     let (ok, _, err) = extranerf(&[
         "train",
@@ -278,7 +288,8 @@ fn train_resume_render_eval_on_fern() {
     assert!(
         ok && err.contains("resuming")
             && err.contains("step     9/9")
-            && err.contains("training step: standalone kernels"),
+            && err.contains("training step: standalone kernels")
+            && err.contains("maps reused from"),
         "{err}"
     );
     let progress = std::fs::read_to_string(run.join("progress.jsonl")).unwrap();
@@ -406,6 +417,10 @@ fn train_resume_render_eval_on_fern() {
         "{m}"
     );
     assert_eq!(m["render"]["march"], "fused", "{m}");
+    assert_eq!(
+        m["depth"], "MVS depth (1/2 resolution, 64 planes) and COLMAP sparse points",
+        "{m}"
+    );
     assert!(
         m["views"][0]["render_seconds"].as_f64().unwrap() > 0.0,
         "{m}"
@@ -898,7 +913,68 @@ fn mvs_writes_depth_maps_training_reads() {
         "--samples",
         "4",
     ]);
-    assert!(ok && err.contains("step     2/2"), "{err}");
+    assert!(
+        ok && err.contains("step     2/2") && err.contains("depth: dense maps from"),
+        "{err}"
+    );
+    // The other --depth choices: none trains with no target, sparse with the COLMAP points
+    // only; the run folder records the choice. A folder that is not there, or --depth with
+    // --depth-dir, is refused before any work.
+    let tiny = [
+        "--steps",
+        "2",
+        "--levels",
+        "2",
+        "--log2-table",
+        "10",
+        "--width",
+        "16",
+        "--rays",
+        "32",
+        "--samples",
+        "4",
+    ];
+    for (depth, says, sparse) in [
+        ("none", "depth: none", false),
+        ("sparse", "depth: COLMAP sparse points", true),
+    ] {
+        let run = dir.join(format!("run-{depth}"));
+        let mut args = vec!["train", "--scene", scene.to_str().unwrap()];
+        args.extend(["--out", run.to_str().unwrap(), "--depth", depth]);
+        args.extend(tiny);
+        let (ok, _, err) = extranerf(&args);
+        assert!(
+            ok && err.contains(says) && err.contains("step     2/2"),
+            "{err}"
+        );
+        assert_eq!(err.contains(" 0 depth targets"), !sparse, "{depth}: {err}");
+        let cfg: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(run.join("config.json")).unwrap()).unwrap();
+        let sc = &cfg["scene"];
+        assert!(
+            sc["sparse_depth"] == sparse
+                && sc["depth_dir"].is_null()
+                && sc.get("mvs_depth").is_none(),
+            "{cfg}"
+        );
+        assert!(!run.join("depth_mvs").exists());
+    }
+    for (flags, says) in [
+        (vec!["--depth", "/no/such/depth"], "/no/such/depth"),
+        (
+            vec!["--depth", "mvs", "--depth-dir", out.to_str().unwrap()],
+            "cannot be used with",
+        ),
+    ] {
+        let run = dir.join("run-bad");
+        let mut args = vec!["train", "--scene", scene.to_str().unwrap()];
+        args.extend(["--out", run.to_str().unwrap()]);
+        args.extend(flags.iter().copied());
+        args.extend(tiny);
+        let (ok, _, err) = extranerf(&args);
+        assert!(!ok && err.contains(says), "{flags:?}: {err}");
+        assert!(!run.join("checkpoint.safetensors").exists());
+    }
     let (ok, _, err) = extranerf(&[
         "mvs",
         "--scene",

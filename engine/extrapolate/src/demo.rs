@@ -128,6 +128,7 @@ pub fn base_config(scene: &Path, steps: u32) -> RunConfig {
             factor: 1,
             sparse_depth: false,
             depth_dir: None,
+            mvs_depth: None,
         },
         model: ModelConfig {
             levels: 8,

@@ -9,9 +9,10 @@ use std::time::Instant;
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
+use extranerf_nerf::mvs_depth::CacheUse;
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::renderer::{March, Nerf};
-use extranerf_nerf::run::{save_checkpoint, training_views, Checkpoint, LoadedScene, RunConfig};
+use extranerf_nerf::run::{save_checkpoint, training_views_in, Checkpoint, LoadedScene, RunConfig};
 use extranerf_nerf::trainer::{StepStats, Trainer};
 use extranerf_nerf::views::TrainData;
 use extranerf_prims::Prims;
@@ -67,15 +68,17 @@ impl Reporter for Quiet {
 }
 
 /// A trainer for `cfg` from freshly initialised parameters, and its training views on the
-/// device (after checking the settings).
+/// device (after checking the settings); MVS depth, when the scene asks for it, is cached in
+/// `run_dir`.
 pub fn fresh_trainer(
     ctx: &Context,
     cfg: &RunConfig,
     loaded: &LoadedScene,
+    run_dir: &Path,
 ) -> anyhow::Result<(Trainer, TrainData)> {
     cfg.model.validate()?;
     cfg.train.validate()?;
-    let views = training_views(&cfg.scene, loaded, &cfg.model)?;
+    let (views, _) = training_views_in(ctx, &cfg.scene, loaded, &cfg.model, run_dir)?;
     let params = extranerf_nerf::model::init_params(&cfg.model, cfg.train.seed);
     let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
     let data = TrainData::new(ctx, &views)?;
@@ -107,10 +110,11 @@ pub fn memory_note(ctx: &Context, data: &TrainData) -> anyhow::Result<String> {
     ))
 }
 
-/// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed.
-pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig) -> anyhow::Result<f64> {
+/// Measured samples/s of `cfg`'s training step: 5 warm-up steps, then 20 timed (MVS depth
+/// cached in `run_dir`, as [`fresh_trainer`]).
+pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig, run_dir: &Path) -> anyhow::Result<f64> {
     let loaded = cfg.scene.load()?;
-    let (mut trainer, data) = fresh_trainer(ctx, cfg, &loaded)?;
+    let (mut trainer, data) = fresh_trainer(ctx, cfg, &loaded, run_dir)?;
     let prims = Prims::new(ctx)?;
     trainer.run_steps(ctx, &prims, &data, 5)?;
     let t = Instant::now();
@@ -137,13 +141,14 @@ pub fn fit_budget(
     cfg: &mut RunConfig,
     budget: f64,
     shrink: bool,
+    run_dir: &Path,
     rep: &mut dyn Reporter,
 ) -> anyhow::Result<()> {
     if !(budget > 0.0 && budget.is_finite()) {
         bail!("--budget {budget}: give a positive number of seconds");
     }
     loop {
-        let sps = probe_samples_per_s(ctx, cfg)?;
+        let sps = probe_samples_per_s(ctx, cfg, run_dir)?;
         let per_step = cfg.train.rays as f64 * cfg.train.samples as f64;
         // 5% margin: the probe's first steps run a little faster than a whole run.
         let fit = (0.95 * budget * sps / per_step).floor();
@@ -231,7 +236,23 @@ pub fn train_loop(
     cfg.model.validate()?;
     cfg.train.validate()?;
     let loaded = cfg.scene.load()?;
-    let views = training_views(&cfg.scene, &loaded, &cfg.model)?;
+    let t_depth = Instant::now();
+    let (views, cache) = training_views_in(ctx, &cfg.scene, &loaded, &cfg.model, &a.out)?;
+    let cache_dir = a.out.join(extranerf_nerf::mvs_depth::CACHE_DIR);
+    rep.note(&match cache {
+        None => format!("depth: {}", cfg.scene.depth_label()),
+        Some(CacheUse::Reused) => format!(
+            "depth: {} (maps reused from {})",
+            cfg.scene.depth_label(),
+            cache_dir.display()
+        ),
+        Some(CacheUse::Computed) => format!(
+            "depth: {} (computed in {:.1} s, cached in {})",
+            cfg.scene.depth_label(),
+            t_depth.elapsed().as_secs_f64(),
+            cache_dir.display()
+        ),
+    });
     let depth_targets: usize = views
         .iter()
         .filter_map(|v| v.depth.as_ref())

@@ -359,7 +359,10 @@ pub fn compare(
     let maps_path = dir.join("visibility").join(MAPS_FILE);
     let st = SafeTensors::read(&maps_path)?;
     let mut variants = vec![("base".to_string(), dir.join("visibility"), "_base")];
-    let mut notes = Vec::new();
+    let mut notes = vec![format!(
+        "BaseNeRF depth targets: {}",
+        manifest.scene.depth_label()
+    )];
     for s in &manifest.stages {
         if let (true, Some(why)) = (s.done, s.report["skipped"].as_str()) {
             notes.push(format!("{}: {why}", s.name));

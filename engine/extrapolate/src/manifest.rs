@@ -164,6 +164,7 @@ mod tests {
             factor: 8,
             sparse_depth: true,
             depth_dir: None,
+            mvs_depth: None,
         }
     }
 

@@ -30,7 +30,8 @@ use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::visibility::{mask_all_but, VisibilityMap};
 use extranerf_nerf::renderer::{March, Nerf};
 use extranerf_nerf::run::{
-    load_checkpoint, save_checkpoint, training_views, write_png, Checkpoint, RunConfig, SceneSpec,
+    load_checkpoint, save_checkpoint, training_views_in, write_png, Checkpoint, RunConfig,
+    SceneSpec,
 };
 use extranerf_nerf::safetensors::{SafeTensors, Tensor};
 use extranerf_nerf::trainer::{TrainConfig, Trainer};
@@ -334,7 +335,7 @@ impl Stage for BaseStage {
             }
         } else {
             let mut cfg = default_run_config(&self.scene, &self.virt, rep)?;
-            fit_budget(ctx, &mut cfg, self.spec.budget, true, rep)?;
+            fit_budget(ctx, &mut cfg, self.spec.budget, true, &dir.base, rep)?;
             run(&cfg, 0, Some(self.spec.budget), None, None, rep)?;
         }
         let ck = load_checkpoint(&dir.base)?;
@@ -934,7 +935,8 @@ impl Stage for InpaintStage {
                 Ok(self.vis.mask(&m))
             })
             .collect::<anyhow::Result<_>>()?;
-        let captured = training_views(&cfg.scene, &base.loaded, &cfg.model)?;
+        let (captured, _) =
+            training_views_in(ctx, &cfg.scene, &base.loaded, &cfg.model, &dir.base)?;
         // Exemplar sources: the training photos at the virtual views' scale, with the
         // BaseNeRF's depth.
         let mut source_imgs = Vec::new();

@@ -105,12 +105,13 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> anyhow::Result<PathBuf
     h += "</head><body>\n";
     let _ = writeln!(
         h,
-        "<h1>ExtraNeRF run</h1><p>{} &mdash; scene {} ({:?} split; {} training views, {} held out)</p>",
+        "<h1>ExtraNeRF run</h1><p>{} &mdash; scene {} ({:?} split; {} training views, {} held out; depth targets: {})</p>",
         escape(&dir.display().to_string()),
         escape(&m.scene.dir.display().to_string()),
         m.scene.split,
         loaded.split.train.len(),
-        loaded.split.test.len()
+        loaded.split.test.len(),
+        escape(&m.scene.depth_label())
     );
     h += "<h2>Stages</h2><table><tr><th>stage</th><th>done</th><th>wall seconds</th></tr>\n";
     let mut total = 0.0;

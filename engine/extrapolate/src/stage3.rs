@@ -28,7 +28,7 @@ use extranerf_nerf::data::{Camera, Image};
 use extranerf_nerf::metrics::psnr;
 use extranerf_nerf::render::visibility::mask_all_but;
 use extranerf_nerf::renderer::Nerf;
-use extranerf_nerf::run::{load_checkpoint, training_views, write_png, RunConfig};
+use extranerf_nerf::run::{load_checkpoint, training_views_in, write_png, RunConfig};
 use extranerf_nerf::safetensors::{SafeTensors, Tensor};
 use extranerf_nerf::trainer::Trainer;
 use extranerf_nerf::views::{TrainData, View, ViewKind, ViewSampling};
@@ -825,7 +825,8 @@ impl Stage for EnhancerDataStage {
         let cfg = base.ck.config.clone();
         let samples = cfg.train.samples;
         let train = base.train_cameras();
-        let captured = training_views(&cfg.scene, &base.loaded, &cfg.model)?;
+        let (captured, _) =
+            training_views_in(ctx, &cfg.scene, &base.loaded, &cfg.model, &dir.base)?;
         let cams: Vec<Camera> = train
             .iter()
             .map(|c| c.downscaled(self.virt.downscale))
@@ -900,7 +901,8 @@ impl Stage for EnhancerDataStage {
         let mut fresh_s = 0.0;
         if !self.spec.base_checkpoints.is_empty() {
             let tf = Instant::now();
-            let (mut trainer, data) = crate::driver::fresh_trainer(ctx, &cfg, &base.loaded)?;
+            let (mut trainer, data) =
+                crate::driver::fresh_trainer(ctx, &cfg, &base.loaded, &dir.base)?;
             let prims = Prims::new(ctx)?;
             let mut checkpoints = self.spec.base_checkpoints.clone();
             checkpoints.sort_unstable();
@@ -1254,7 +1256,8 @@ impl Stage for EnhanceStage {
                     .mask(&load_map(&st, &maps_path, &format!("virtual_{i:03}"))?))
             })
             .collect::<anyhow::Result<_>>()?;
-        let captured = training_views(&cfg.scene, &base.loaded, &cfg.model)?;
+        let (captured, _) =
+            training_views_in(ctx, &cfg.scene, &base.loaded, &cfg.model, &dir.base)?;
         let (start_round, mut seconds, params, moments) = match load_round(&out)? {
             Some((s, ck)) => {
                 rep.note(&format!(

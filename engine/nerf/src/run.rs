@@ -14,6 +14,7 @@ use crate::data::split::{Split, SplitIndices, SplitKind};
 use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms};
 use crate::data::{colmap, load_image, unorm8, Camera, DataError, Scene};
 use crate::model::{ModelConfig, ParamLayout};
+use crate::mvs_depth::{CacheUse, MvsDepthSettings, ViewDepth};
 use crate::safetensors::{write_atomic, SafeTensors, Tensor};
 use crate::trainer::TrainConfig;
 
@@ -49,9 +50,152 @@ pub struct SceneSpec {
     /// Supervise depth with the COLMAP sparse points when `sparse/0/points3D.bin` exists.
     pub sparse_depth: bool,
     /// Dense depth maps (`<image stem>.npy` or `.exr`, view depth in the capture's units) for
-    /// every training view; they replace the sparse targets.
+    /// every training view; they replace the sparse targets and the MVS maps.
     #[serde(default)]
     pub depth_dir: Option<PathBuf>,
+    /// Dense depth of the training views from the project's plane sweep, with these settings
+    /// (cached in the run folder, [`crate::mvs_depth::cached`]); its confidence weights each
+    /// pixel's depth loss, and the sparse points (with `sparse_depth`) replace it where they
+    /// fall. Absent in runs from before issue 52.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mvs_depth: Option<MvsDepthSettings>,
+}
+
+/// `train --depth`: where a run's depth targets come from, before it is resolved into a
+/// [`SceneSpec`]'s depth fields ([`DepthRequest::resolve`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DepthRequest {
+    /// The dense maps the scene ships (`depth/` beside its images), else MVS depth of the
+    /// training views plus COLMAP's sparse points where the scene has them, else the sparse
+    /// points alone (when the views cannot be matched: no depth bounds, or views of several
+    /// sizes).
+    Auto,
+    /// COLMAP's sparse points (`sparse/0/points3D.bin`) only.
+    Sparse,
+    /// MVS depth of the training views only.
+    Mvs,
+    /// No depth target.
+    None,
+    /// Dense maps from this folder (`<image stem>.npy` or `.exr`, view depth in the capture's
+    /// units).
+    Dir(PathBuf),
+}
+
+impl std::str::FromStr for DepthRequest {
+    type Err = std::convert::Infallible;
+
+    /// `auto`, `sparse`, `mvs`, `none`, or any other text as a folder.
+    fn from_str(s: &str) -> std::result::Result<Self, Self::Err> {
+        Ok(match s {
+            "auto" => DepthRequest::Auto,
+            "sparse" => DepthRequest::Sparse,
+            "mvs" => DepthRequest::Mvs,
+            "none" => DepthRequest::None,
+            dir => DepthRequest::Dir(PathBuf::from(dir)),
+        })
+    }
+}
+
+/// The folder of dense depth maps a scene ships: `depth/` in its folder (beside a
+/// transforms.json given as a file).
+pub fn shipped_depth_dir(scene_dir: &Path) -> PathBuf {
+    let root = if scene_dir.is_file() {
+        scene_dir.parent().unwrap_or(Path::new("."))
+    } else {
+        scene_dir
+    };
+    root.join("depth")
+}
+
+/// COLMAP's sparse points of a scene.
+fn points_path(scene_dir: &Path) -> PathBuf {
+    scene_dir.join("sparse/0/points3D.bin")
+}
+
+/// Why the training views of `loaded` cannot be matched by the plane sweep, if they cannot.
+pub fn mvs_unavailable(loaded: &LoadedScene, settings: &MvsDepthSettings) -> Option<String> {
+    let cams: Vec<&Camera> = loaded
+        .split
+        .train
+        .iter()
+        .map(|&i| &loaded.scene.cameras[i])
+        .collect();
+    if cams.len() < 2 {
+        return Some(format!("{} training view(s): it needs two", cams.len()));
+    }
+    if cams
+        .iter()
+        .any(|c| (c.width, c.height) != (cams[0].width, cams[0].height))
+    {
+        return Some("the training views are not all one size".into());
+    }
+    let owned: Vec<Camera> = cams.into_iter().cloned().collect();
+    settings.range(&owned).err().map(|e| e.to_string())
+}
+
+impl DepthRequest {
+    /// Sets `spec`'s depth fields for this request and says what was chosen (and, for `auto`,
+    /// why). `sparse` needs the scene's sparse points; `mvs` needs views the sweep can match.
+    pub fn resolve(&self, spec: &mut SceneSpec, loaded: &LoadedScene) -> Result<String> {
+        let has_points = points_path(&spec.dir).exists();
+        spec.sparse_depth = false;
+        spec.depth_dir = None;
+        spec.mvs_depth = None;
+        let settings = MvsDepthSettings::default();
+        match self {
+            DepthRequest::None => {}
+            DepthRequest::Sparse => {
+                if !has_points {
+                    return Err(DataError::Malformed {
+                        path: points_path(&spec.dir),
+                        problem: "--depth sparse: the scene has no COLMAP sparse points".into(),
+                    }
+                    .into());
+                }
+                spec.sparse_depth = true;
+            }
+            DepthRequest::Mvs => {
+                if let Some(why) = mvs_unavailable(loaded, &settings) {
+                    return Err(RunError::Config(format!(
+                        "--depth mvs on {}: {why}",
+                        spec.dir.display()
+                    )));
+                }
+                spec.mvs_depth = Some(settings);
+            }
+            DepthRequest::Dir(d) => {
+                if !d.is_dir() {
+                    return Err(DataError::Malformed {
+                        path: d.clone(),
+                        problem:
+                            "--depth: not a folder of depth maps, nor auto, sparse, mvs or none"
+                                .into(),
+                    }
+                    .into());
+                }
+                spec.depth_dir = Some(d.clone());
+            }
+            DepthRequest::Auto => {
+                let shipped = shipped_depth_dir(&spec.dir);
+                if shipped.is_dir() {
+                    spec.depth_dir = Some(shipped);
+                } else {
+                    spec.sparse_depth = has_points;
+                    match mvs_unavailable(loaded, &settings) {
+                        None => spec.mvs_depth = Some(settings),
+                        Some(why) => {
+                            return Ok(format!(
+                                "depth auto: {} (no MVS depth: {why})",
+                                spec.depth_label()
+                            ))
+                        }
+                    }
+                }
+                return Ok(format!("depth auto: {}", spec.depth_label()));
+            }
+        }
+        Ok(format!("depth: {}", spec.depth_label()))
+    }
 }
 
 /// Everything a run was trained with.
@@ -76,6 +220,26 @@ pub struct LoadedScene {
 }
 
 impl SceneSpec {
+    /// Where the run's depth targets come from, in words (reports and `eval`).
+    pub fn depth_label(&self) -> String {
+        let points = self.sparse_depth && points_path(&self.dir).exists();
+        match (&self.depth_dir, &self.mvs_depth, points) {
+            (Some(d), _, _) => format!("dense maps from {}", d.display()),
+            (None, Some(s), true) => format!(
+                "MVS depth (1/{} resolution, {} planes) and COLMAP sparse points",
+                s.downscale, s.planes
+            ),
+            (None, Some(s), false) => {
+                format!(
+                    "MVS depth (1/{} resolution, {} planes)",
+                    s.downscale, s.planes
+                )
+            }
+            (None, None, true) => "COLMAP sparse points".into(),
+            (None, None, false) => "none".into(),
+        }
+    }
+
     /// The split.
     pub fn split(&self) -> Split {
         self.split.split(self.fewshot_views)
@@ -113,14 +277,73 @@ impl SceneSpec {
 
 pub use crate::views::View;
 
-/// Loads the training views' images and, when asked and available, sparse depth targets in
-/// the model's ray space (NDC t for `space == "ndc"`, view depth otherwise).
+/// Loads the training views' images and their depth targets in the model's ray space (NDC t
+/// for `space == "ndc"`, view depth otherwise): the dense maps of `depth_dir`, else the COLMAP
+/// sparse points (with `sparse_depth`, where the scene has them). A spec with MVS depth needs
+/// its maps: use [`training_views_in`].
 pub fn training_views(
     spec: &SceneSpec,
     loaded: &LoadedScene,
     model: &ModelConfig,
 ) -> Result<Vec<View>> {
-    let points_path = spec.dir.join("sparse/0/points3D.bin");
+    if spec.mvs_depth.is_some() && spec.depth_dir.is_none() {
+        return Err(RunError::Config(format!(
+            "{}: this run's depth comes from multi-view stereo, which needs the device and the \
+             run folder that caches it (training_views_in)",
+            spec.dir.display()
+        )));
+    }
+    training_views_from(spec, loaded, model, None)
+}
+
+/// [`training_views`] for any spec: MVS depth (when the spec asks for it) is read from
+/// `run_dir`'s cache, or computed on `ctx` and cached there. Also says whether the cache was
+/// used (`None` when the spec has no MVS depth).
+pub fn training_views_in(
+    ctx: &extranerf_gpu::Context,
+    spec: &SceneSpec,
+    loaded: &LoadedScene,
+    model: &ModelConfig,
+    run_dir: &Path,
+) -> Result<(Vec<View>, Option<CacheUse>)> {
+    let (maps, used) = match (&spec.mvs_depth, &spec.depth_dir) {
+        (Some(settings), None) => {
+            let cams: Vec<Camera> = loaded
+                .split
+                .train
+                .iter()
+                .map(|&i| loaded.scene.cameras[i].clone())
+                .collect();
+            let (maps, used) = crate::mvs_depth::cached(ctx, &spec.dir, &cams, settings, run_dir)?;
+            (Some(maps), Some(used))
+        }
+        _ => (None, None),
+    };
+    Ok((
+        training_views_from(spec, loaded, model, maps.as_deref())?,
+        used,
+    ))
+}
+
+/// The training views with depth from `depth_dir`, else from `mvs` (one map per training view,
+/// view depth in scene units; the confidence is each pixel's weight) with the sparse points
+/// (when the spec asks for them) in place of the maps where they fall.
+pub fn training_views_from(
+    spec: &SceneSpec,
+    loaded: &LoadedScene,
+    model: &ModelConfig,
+    mvs: Option<&[ViewDepth]>,
+) -> Result<Vec<View>> {
+    if let Some(m) = mvs {
+        if m.len() != loaded.split.train.len() {
+            return Err(RunError::Config(format!(
+                "{} MVS depth maps for {} training views",
+                m.len(),
+                loaded.split.train.len()
+            )));
+        }
+    }
+    let points_path = points_path(&spec.dir);
     let points = if spec.sparse_depth && points_path.exists() {
         Some(colmap::read_points3d_bin(&points_path)?)
     } else {
@@ -130,7 +353,7 @@ pub fn training_views(
     // View depth in source units -> scene units (the load's uniform scale).
     let scale = loaded.scene.world_from_source.x_axis.truncate().length();
     let mut views = Vec::new();
-    for &i in &loaded.split.train {
+    for (k, &i) in loaded.split.train.iter().enumerate() {
         let cam = loaded.scene.cameras[i].clone();
         let img = load_image(&cam.image)?;
         if (img.width, img.height) != (cam.width, cam.height) {
@@ -180,10 +403,29 @@ pub fn training_views(
                 }
             }
             Some(d)
-        } else if let (Some(p), Some(w)) = (&points, &world) {
-            for s in sparse_depth(&cam, w, p) {
-                if let Some(t) = target(s.x, s.y, s.depth) {
-                    d[(s.y * cam.width + s.x) as usize] = [t, s.confidence as f32];
+        } else if mvs.is_some() || points.is_some() {
+            if let Some(m) = mvs.map(|m| &m[k]) {
+                if (m.width, m.height) != (cam.width, cam.height) {
+                    return Err(RunError::Config(format!(
+                        "the MVS depth of training view {i} is {}x{}, the view {}x{}",
+                        m.width, m.height, cam.width, cam.height
+                    )));
+                }
+                for (p, (&z, &c)) in m.depth.iter().zip(&m.confidence).enumerate() {
+                    if z > 0.0 && c > 0.0 {
+                        let (x, y) = (p as u32 % cam.width, p as u32 / cam.width);
+                        if let Some(t) = target(x, y, z as f64) {
+                            d[p] = [t, c.min(1.0)];
+                        }
+                    }
+                }
+            }
+            // The sparse points replace the MVS depth where they fall.
+            if let (Some(p), Some(w)) = (&points, &world) {
+                for s in sparse_depth(&cam, w, p) {
+                    if let Some(t) = target(s.x, s.y, s.depth) {
+                        d[(s.y * cam.width + s.x) as usize] = [t, s.confidence as f32];
+                    }
                 }
             }
             Some(d)
@@ -459,6 +701,7 @@ mod tests {
                 factor: 8,
                 sparse_depth: true,
                 depth_dir: None,
+                mvs_depth: None,
             },
             model: ModelConfig {
                 space: Space::World,
