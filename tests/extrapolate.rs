@@ -842,7 +842,8 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
             .unwrap();
     let rows: Vec<&str> = t.rows.iter().map(|r| r.variant.as_str()).collect();
     assert_eq!(rows, ["base", "stage2-harmonic", "stage3-harmonic"]);
-    assert!(t.notes.is_empty(), "{:?}", t.notes);
+    // No stage was skipped; the table says what depth the BaseNeRF trained with.
+    assert_eq!(t.notes, ["BaseNeRF depth targets: none"]);
     let report = t.kid.as_ref().unwrap();
     assert_eq!(report.crops_per_view.iter().sum::<usize>(), 8);
     assert_eq!(report.patch_subset_size, Some(4));
@@ -919,7 +920,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
             assert!(report["skipped"].is_null(), "{report}");
             assert_eq!(report["rounds"].as_array().unwrap().len(), 2);
             assert!(stage3.join("round_01").is_dir());
-            assert!(t.notes.is_empty(), "{:?}", t.notes);
+            assert_eq!(t.notes, ["BaseNeRF depth targets: none"]);
         } else {
             let why = report["skipped"].as_str().unwrap();
             assert!(
@@ -939,7 +940,13 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
             }
             assert!(g.join("flythrough/stage3-harmonic.gif").is_file());
             assert_eq!(row("stage3-harmonic"), row("stage2-harmonic"));
-            assert_eq!(t.notes, [format!("stage3-harmonic: {why}")]);
+            assert_eq!(
+                t.notes,
+                [
+                    "BaseNeRF depth targets: none".to_string(),
+                    format!("stage3-harmonic: {why}")
+                ]
+            );
             assert!(t.markdown().contains(why));
         }
     };

@@ -10,6 +10,10 @@
 #          demo   (the demo's procedural scene: 6-camera rig, 8 views outside it).
 #   The flags go to `extranerf train` after the scene's own (for example --budget 900, or
 #   --steps 3000 --rays 256). tools/curves.sh runs the committed set.
+#   Depth targets: the ones c85d100's baselines (../shared/baselines) and every curve before
+#   issue 52 trained with, unless the flags give --depth or --depth-dir: fern17 and fernx
+#   --depth sparse (COLMAP's points), synth2 and demo --depth none (train's own default, auto,
+#   would take synth2's exact depth/ and MVS depth elsewhere).
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
 {
@@ -21,16 +25,20 @@ data="${EXTRANERF_DATA:-../shared/data}"
 bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
 [ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
 case "$scene" in
-    fern17) args=(--scene "$data/llff/fern" --split fewshot --fewshot-views 17) ;;
-    fernx) args=(--scene "$data/llff/fern" --split extrapolation) ;;
-    synth2) args=(--scene "$data/synth2" --split extrapolation) ;;
+    fern17) args=(--scene "$data/llff/fern" --split fewshot --fewshot-views 17); depth=sparse ;;
+    fernx) args=(--scene "$data/llff/fern" --split extrapolation); depth=sparse ;;
+    synth2) args=(--scene "$data/synth2" --split extrapolation); depth=none ;;
     demo)
         # The demo writes its scene (ray traced in code, 96x72) under runs/curve_demo_scene/scene.
         if [ ! -f runs/curve_demo_scene/scene/poses_bounds.npy ]; then
             "$bin" demo --out runs/curve_demo_scene --width 96 --stop-after scene >&2
         fi
-        args=(--scene runs/curve_demo_scene/scene --split extrapolation --factor 1) ;;
+        args=(--scene runs/curve_demo_scene/scene --split extrapolation --factor 1); depth=none ;;
     *) echo "unknown scene $scene: use fern17, fernx, synth2 or demo" >&2; exit 2 ;;
+esac
+case " $* " in
+    *" --depth "*|*" --depth="*|*" --depth-dir "*|*" --depth-dir="*) ;;
+    *) args+=(--depth "$depth") ;;
 esac
 run="runs/curve_${scene}_${name}"
 rm -rf "$run"

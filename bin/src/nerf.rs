@@ -264,6 +264,17 @@ fn apply<T>(dst: &mut T, v: Option<T>) {
 
 /// `extranerf train`.
 pub fn train(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
+    // A new run that fails before its first checkpoint leaves no folder behind, not even the
+    // MVS depth it cached there.
+    let new_folder = !a.resume && !a.out.exists();
+    let r = train_run(ctx, a);
+    if r.is_err() && new_folder && !a.out.join(extranerf_nerf::run::CHECKPOINT_FILE).exists() {
+        let _ = std::fs::remove_dir_all(&a.out);
+    }
+    r
+}
+
+fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
     if !(1..=STAT_SLOTS).contains(&a.log_every) {
         bail!("--log-every must be 1 to {STAT_SLOTS}");
     }
