@@ -11,7 +11,8 @@
 # depth_VARIANT.*; the eval metrics and summary.md go to results/depth_lavapipe/.
 #
 # Usage: tools/depth_compare.sh [VARIANT...]   (default: all five, in the order below)
-#   VARIANT: synth2_none synth2_mvs synth2_exact fern17_sparse fern17_auto
+#   VARIANT: synth2_none synth2_mvs synth2_exact fern17_sparse fern17_auto, each optionally
+#   with _lLAMBDA (for example synth2_mvs_l1): the same with --depth-lambda LAMBDA (default 0.1).
 #   STEPS (default 3000), EXTRANERF_BIN (default target/release/extranerf, built first).
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
@@ -28,7 +29,9 @@ variants=("$@")
 [ ${#variants[@]} -gt 0 ] || variants=(synth2_none synth2_mvs synth2_exact fern17_sparse fern17_auto)
 common=(--steps "$steps" --rays 256 --samples 32 --log2-table 17)
 for v in "${variants[@]}"; do
-    scene="${v%%_*}"; kind="${v#*_}"
+    scene="${v%%_*}"; kind="${v#*_}"; lambda=()
+    if [[ "$kind" == *_l* ]]; then lambda=(--depth-lambda "${kind##*_l}"); fi
+    name="$kind"; kind="${kind%%_l*}"
     case "$kind" in
         exact) depth="$data/synth2/depth" ;;
         none|mvs|sparse|auto) depth="$kind" ;;
@@ -40,8 +43,8 @@ for v in "${variants[@]}"; do
         *) echo "unknown variant $v" >&2; exit 2 ;;
     esac
     echo "== $v: --depth $depth" >&2
-    tools/curve.sh "$scene" "depth_$kind" "$every" "${common[@]}" --depth "$depth" >/dev/null
-    run="runs/curve_${scene}_depth_${kind}"
+    tools/curve.sh "$scene" "depth_$name" "$every" "${common[@]}" --depth "$depth" "${lambda[@]}" >/dev/null
+    run="runs/curve_${scene}_depth_${name}"
     if [ "$scene" = synth2 ]; then
         "$bin" eval "$run" --views test --lpips-nets alex \
             --visibility-masks "$data/synth2/gt_visibility" --out "$out/$v.metrics.json" >&2
@@ -51,7 +54,11 @@ python3 - "$out" "$steps" <<'EOF'
 import json, re, sys, pathlib
 out, steps = pathlib.Path(sys.argv[1]), sys.argv[2]
 rows = []
-for v in ["synth2_none", "synth2_mvs", "synth2_exact", "fern17_sparse", "fern17_auto"]:
+order = ["synth2_none", "synth2_mvs", "synth2_exact", "fern17_sparse", "fern17_auto"]
+# Any other variant run (the _lLAMBDA ones), after the five.
+extra = sorted(f"{s}_{p.stem[len('depth_'):]}" for s in ["synth2", "fern17"]
+               for p in pathlib.Path(f"results/curves/{s}").glob("depth_*.jsonl"))
+for v in order + [e for e in extra if e not in order]:
     scene, kind = v.split("_", 1)
     curve = pathlib.Path(f"results/curves/{scene}/depth_{kind}.jsonl")
     if not curve.exists():
@@ -69,7 +76,7 @@ for v in ["synth2_none", "synth2_mvs", "synth2_exact", "fern17_sparse", "fern17_
 text = (f"# Depth supervision at a fixed step count (tools/depth_compare.sh, STEPS={steps})\n\n"
         "Held-out views at the last step (the curve's evaluation); synth2's visible and "
         "not-visible PSNR from `eval --visibility-masks ../shared/data/synth2/gt_visibility`.\n\n"
-        "| variant | depth targets (train log) | step | PSNR | SSIM | LPIPS-alex | PSNR visible | PSNR not visible |\n"
+        "| variant (_lX: --depth-lambda X) | depth targets (train log) | step | PSNR | SSIM | LPIPS-alex | PSNR visible | PSNR not visible |\n"
         "|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
 (out / "summary.md").write_text(text)
 print(text)

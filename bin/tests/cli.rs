@@ -194,6 +194,30 @@ fn bad_arguments_are_clear_errors() {
         ]);
         assert!(!ok && err.contains(says), "{flag} {value}: {err}");
     }
+    // extrapolate --depth: resolved before any work; a reused BaseNeRF keeps its own.
+    let fern = fern();
+    let xnew = dir.join("xnew");
+    let (ok, _, err) = extranerf(&[
+        "extrapolate",
+        "--scene",
+        fern.to_str().unwrap(),
+        "--out",
+        xnew.to_str().unwrap(),
+        "--depth",
+        "/no/such/depth",
+    ]);
+    assert!(!ok && err.contains("/no/such/depth"), "{err}");
+    assert!(!xnew.exists(), "a run folder was left behind");
+    let (ok, _, err) = extranerf(&[
+        "extrapolate",
+        "--base",
+        xrun.to_str().unwrap(),
+        "--out",
+        xnew.to_str().unwrap(),
+        "--depth",
+        "mvs",
+    ]);
+    assert!(!ok && err.contains("cannot be used with"), "{err}");
     let _ = std::fs::remove_dir_all(dir);
 }
 
