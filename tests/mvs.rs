@@ -246,12 +246,7 @@ fn mvs_depth_of_the_demo_rig_matches_its_exact_depth_and_caches() {
     write_demo_scene(&dir.join("scene"), w, h).unwrap();
     let spec = extranerf_tests::demo_scene_spec(dir.join("scene"));
     let loaded = spec.load().unwrap();
-    let cams: Vec<Camera> = loaded
-        .split
-        .train
-        .iter()
-        .map(|&i| loaded.scene.cameras[i].clone())
-        .collect();
+    let cams = loaded.train_cameras();
     let settings = MvsDepthSettings::default();
     let run = dir.join("run");
     let (views, used) = cached(ctx, &spec.dir, &cams, &settings, &run).unwrap();

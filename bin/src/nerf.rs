@@ -1549,12 +1549,7 @@ pub struct CamerasArgs {
 pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
     let spec = a.scene.spec();
     let loaded = spec.load()?;
-    let rig: Vec<_> = loaded
-        .split
-        .train
-        .iter()
-        .map(|&i| loaded.scene.cameras[i].clone())
-        .collect();
+    let rig = loaded.train_cameras();
     let cams = extranerf_nerf::cameras::virtual_cameras(&rig, a.trajectory, a.count, a.range)?;
     extranerf_nerf::cameras::write_transforms(&a.out, &cams)?;
     eprintln!(

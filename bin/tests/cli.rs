@@ -915,35 +915,6 @@ fn mvs_writes_depth_maps_training_reads() {
         "{err}"
     );
     // The maps are dense depth supervision for training.
-    let run = dir.join("run");
-    let (ok, _, err) = extranerf(&[
-        "train",
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        run.to_str().unwrap(),
-        "--depth-dir",
-        out.to_str().unwrap(),
-        "--steps",
-        "2",
-        "--levels",
-        "2",
-        "--log2-table",
-        "10",
-        "--width",
-        "16",
-        "--rays",
-        "32",
-        "--samples",
-        "4",
-    ]);
-    assert!(
-        ok && err.contains("step     2/2") && err.contains("depth: dense maps from"),
-        "{err}"
-    );
-    // The other --depth choices: none trains with no target, sparse with the COLMAP points
-    // only; the run folder records the choice. A folder that is not there, or --depth with
-    // --depth-dir, is refused before any work.
     let tiny = [
         "--steps",
         "2",
@@ -958,6 +929,23 @@ fn mvs_writes_depth_maps_training_reads() {
         "--samples",
         "4",
     ];
+    let run = dir.join("run");
+    let mut args = vec!["train", "--scene", scene.to_str().unwrap()];
+    args.extend([
+        "--out",
+        run.to_str().unwrap(),
+        "--depth-dir",
+        out.to_str().unwrap(),
+    ]);
+    args.extend(tiny);
+    let (ok, _, err) = extranerf(&args);
+    assert!(
+        ok && err.contains("step     2/2") && err.contains("depth: dense maps from"),
+        "{err}"
+    );
+    // The other --depth choices: none trains with no target, sparse with the COLMAP points
+    // only; the run folder records the choice. A folder that is not there, or --depth with
+    // --depth-dir, is refused before any work.
     for (depth, says, sparse) in [
         ("none", "depth: none", false),
         ("sparse", "depth: COLMAP sparse points", true),

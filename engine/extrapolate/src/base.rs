@@ -41,12 +41,7 @@ impl BaseField {
 
     /// The training cameras.
     pub fn train_cameras(&self) -> Vec<Camera> {
-        self.loaded
-            .split
-            .train
-            .iter()
-            .map(|&i| self.loaded.scene.cameras[i].clone())
-            .collect()
+        self.loaded.train_cameras()
     }
 
     /// Whether the field is in NDC.

@@ -270,12 +270,7 @@ pub fn default_run_config(
     rep: &mut dyn Reporter,
 ) -> anyhow::Result<RunConfig> {
     let loaded = scene.load()?;
-    let train: Vec<Camera> = loaded
-        .split
-        .train
-        .iter()
-        .map(|&i| loaded.scene.cameras[i].clone())
-        .collect();
+    let train = loaded.train_cameras();
     let extra = make_virtual(virt, &train)?;
     let choice = extranerf_nerf::autoconfig::auto_model_covering(
         &loaded.scene,

@@ -114,12 +114,7 @@ fn points_path(scene_dir: &Path) -> PathBuf {
 
 /// Why the training views of `loaded` cannot be matched by the plane sweep, if they cannot.
 pub fn mvs_unavailable(loaded: &LoadedScene, settings: &MvsDepthSettings) -> Option<String> {
-    let cams: Vec<&Camera> = loaded
-        .split
-        .train
-        .iter()
-        .map(|&i| &loaded.scene.cameras[i])
-        .collect();
+    let cams = loaded.train_cameras();
     if cams.len() < 2 {
         return Some(format!("{} training view(s): it needs two", cams.len()));
     }
@@ -129,8 +124,7 @@ pub fn mvs_unavailable(loaded: &LoadedScene, settings: &MvsDepthSettings) -> Opt
     {
         return Some("the training views are not all one size".into());
     }
-    let owned: Vec<Camera> = cams.into_iter().cloned().collect();
-    settings.range(&owned).err().map(|e| e.to_string())
+    settings.range(&cams).err().map(|e| e.to_string())
 }
 
 impl DepthRequest {
@@ -275,6 +269,17 @@ impl SceneSpec {
     }
 }
 
+impl LoadedScene {
+    /// The training views' cameras, in the split's order.
+    pub fn train_cameras(&self) -> Vec<Camera> {
+        self.split
+            .train
+            .iter()
+            .map(|&i| self.scene.cameras[i].clone())
+            .collect()
+    }
+}
+
 pub use crate::views::View;
 
 /// Loads the training views' images and their depth targets in the model's ray space (NDC t
@@ -308,12 +313,7 @@ pub fn training_views_in(
 ) -> Result<(Vec<View>, Option<CacheUse>)> {
     let (maps, used) = match (&spec.mvs_depth, &spec.depth_dir) {
         (Some(settings), None) => {
-            let cams: Vec<Camera> = loaded
-                .split
-                .train
-                .iter()
-                .map(|&i| loaded.scene.cameras[i].clone())
-                .collect();
+            let cams = loaded.train_cameras();
             let (maps, used) = crate::mvs_depth::cached(ctx, &spec.dir, &cams, settings, run_dir)?;
             (Some(maps), Some(used))
         }
