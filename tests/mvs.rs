@@ -104,6 +104,72 @@ fn sweep_recovers_a_textured_plane() {
     assert_no_validation_messages(ctx);
 }
 
+/// The hole fill reproduces a plane across a hole it is given (in inverse depth, where a plane
+/// is affine across the image), leaves the kept pixels as they were with their confidence, and
+/// gives the filled ones `FILL_CONFIDENCE`; with 0 sweeps it changes nothing.
+#[test]
+fn hole_fill_reproduces_a_plane_across_a_hole() {
+    use extranerf_nerf::depth_completion::DepthCompletion;
+    use extranerf_nerf::mvs_depth::{fill_holes, FILL_CONFIDENCE};
+    let ctx = &engine().ctx;
+    let cams = rig();
+    let imgs: Vec<(Vec<f32>, Vec<f64>)> = cams.iter().map(render).collect();
+    let grey: Vec<Vec<f32>> = imgs.iter().map(|i| i.0.clone()).collect();
+    let cfg = MvsConfig {
+        planes: 96,
+        ..MvsConfig::new(1.5, 8.0)
+    };
+    let out = Mvs::new(ctx).unwrap().run(ctx, &cams, &grey, &cfg).unwrap();
+    let dc = DepthCompletion::new(ctx).unwrap();
+    // View 1's map with the true depth where it kept one (so the fill's error is its own),
+    // and a hole: columns 20..28 of rows 10..26, inside the kept region.
+    let (v, mut m) = (1, out[1].clone());
+    let truth = &imgs[v].1;
+    let hole = |i: usize| (20..28).contains(&(i as u32 % W)) && (10..26).contains(&(i as u32 / W));
+    for i in 0..m.depth.len() {
+        if m.depth[i] > 0.0 {
+            m.depth[i] = truth[i] as f32;
+        }
+    }
+    let around: Vec<usize> = (0..m.depth.len())
+        .filter(|&i| {
+            let (x, y) = (i as u32 % W, i as u32 / W);
+            (18..30).contains(&x) && (8..28).contains(&y) && !hole(i)
+        })
+        .collect();
+    assert!(
+        around.iter().all(|&i| m.depth[i] > 0.0),
+        "the hole's border must be kept"
+    );
+    for i in 0..m.depth.len() {
+        if hole(i) {
+            m.depth[i] = 0.0;
+            m.confidence[i] = 0.0;
+        }
+    }
+    let rgb = vec![0.5f32; 3 * m.depth.len()];
+    let (depth, confidence) = fill_holes(ctx, &dc, &m, &rgb, (1.5, 8.0), 2000).unwrap();
+    let mut worst = 0.0f64;
+    for i in 0..depth.len() {
+        if m.depth[i] > 0.0 {
+            assert_eq!((depth[i], confidence[i]), (m.depth[i], m.confidence[i]));
+        } else {
+            assert!(
+                depth[i] > 0.0 && confidence[i] == FILL_CONFIDENCE,
+                "pixel {i}"
+            );
+            if hole(i) {
+                worst = worst.max((depth[i] as f64 - truth[i]).abs() / truth[i]);
+            }
+        }
+    }
+    eprintln!("hole fill: worst relative error {worst:.2e} across the hole");
+    assert!(worst < 1e-4, "filled plane off by {worst}");
+    let (depth, confidence) = fill_holes(ctx, &dc, &m, &rgb, (1.5, 8.0), 0).unwrap();
+    assert_eq!((depth, confidence), (m.depth.clone(), m.confidence.clone()));
+    assert_no_validation_messages(ctx);
+}
+
 #[test]
 fn sweep_and_consistency_match_the_reference() {
     let ctx = &engine().ctx;

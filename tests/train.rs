@@ -1247,7 +1247,7 @@ fn depth_requests_resolve_as_documented() {
         let said = r
             .parse::<DepthRequest>()
             .unwrap()
-            .resolve(&mut spec, &loaded)
+            .resolve(&mut spec, &loaded, MvsDepthSettings::default())
             .map_err(|e| e.to_string());
         (spec, said)
     };
@@ -1308,14 +1308,16 @@ fn depth_requests_resolve_as_documented() {
     let mut spec = scene_spec(tt.clone(), SplitKind::Given, 1, false);
     let loaded = spec.load().unwrap();
     let e = DepthRequest::Mvs
-        .resolve(&mut spec, &loaded)
+        .resolve(&mut spec, &loaded, MvsDepthSettings::default())
         .unwrap_err()
         .to_string();
     assert!(
         e.contains("--depth mvs") && e.contains("no depth bounds"),
         "{e}"
     );
-    let said = DepthRequest::Auto.resolve(&mut spec, &loaded).unwrap();
+    let said = DepthRequest::Auto
+        .resolve(&mut spec, &loaded, MvsDepthSettings::default())
+        .unwrap();
     assert!(
         said.starts_with("depth auto: none") && said.contains("no MVS depth"),
         "{said}"

@@ -12,7 +12,8 @@
 #
 # Usage: tools/depth_compare.sh [VARIANT...]   (default: all five, in the order below)
 #   VARIANT: synth2_none synth2_mvs synth2_exact fern17_sparse fern17_auto, each optionally
-#   with _lLAMBDA (for example synth2_mvs_l1): the same with --depth-lambda LAMBDA (default 0.1).
+#   with _lLAMBDA (for example synth2_mvs_l1): the same with --depth-lambda LAMBDA (default
+#   0.1), and _fN (synth2_mvs_f300): --mvs-fill N.
 #   STEPS (default 3000), EXTRANERF_BIN (default target/release/extranerf, built first).
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
@@ -29,9 +30,16 @@ variants=("$@")
 [ ${#variants[@]} -gt 0 ] || variants=(synth2_none synth2_mvs synth2_exact fern17_sparse fern17_auto)
 common=(--steps "$steps" --rays 256 --samples 32 --log2-table 17)
 for v in "${variants[@]}"; do
-    scene="${v%%_*}"; kind="${v#*_}"; lambda=()
-    if [[ "$kind" == *_l* ]]; then lambda=(--depth-lambda "${kind##*_l}"); fi
-    name="$kind"; kind="${kind%%_l*}"
+    scene="${v%%_*}"; name="${v#*_}"; kind="${name%%_*}"; extra=()
+    IFS=_ read -r -a opts <<< "${name#"$kind"}"
+    for o in "${opts[@]}"; do
+        case "$o" in
+            "") ;;
+            l*) extra+=(--depth-lambda "${o#l}") ;;
+            f*) extra+=(--mvs-fill "${o#f}") ;;
+            *) echo "unknown option $o in $v" >&2; exit 2 ;;
+        esac
+    done
     case "$kind" in
         exact) depth="$data/synth2/depth" ;;
         none|mvs|sparse|auto) depth="$kind" ;;
@@ -43,7 +51,7 @@ for v in "${variants[@]}"; do
         *) echo "unknown variant $v" >&2; exit 2 ;;
     esac
     echo "== $v: --depth $depth" >&2
-    tools/curve.sh "$scene" "depth_$name" "$every" "${common[@]}" --depth "$depth" "${lambda[@]}" >/dev/null
+    tools/curve.sh "$scene" "depth_$name" "$every" "${common[@]}" --depth "$depth" "${extra[@]}" >/dev/null
     run="runs/curve_${scene}_depth_${name}"
     if [ "$scene" = synth2 ]; then
         "$bin" eval "$run" --views test --lpips-nets alex \
@@ -76,7 +84,7 @@ for v in order + [e for e in extra if e not in order]:
 text = (f"# Depth supervision at a fixed step count (tools/depth_compare.sh, STEPS={steps})\n\n"
         "Held-out views at the last step (the curve's evaluation); synth2's visible and "
         "not-visible PSNR from `eval --visibility-masks ../shared/data/synth2/gt_visibility`.\n\n"
-        "| variant (_lX: --depth-lambda X) | depth targets (train log) | step | PSNR | SSIM | LPIPS-alex | PSNR visible | PSNR not visible |\n"
+        "| variant (_lX: --depth-lambda X, _fN: --mvs-fill N) | depth targets (train log) | step | PSNR | SSIM | LPIPS-alex | PSNR visible | PSNR not visible |\n"
         "|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
 (out / "summary.md").write_text(text)
 print(text)

@@ -286,8 +286,11 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
         Some(dir) if a.base.is_none() => {
             let mut spec = a.views.spec(dir.clone(), false);
             let loaded = spec.load()?;
-            let line =
-                crate::nerf::depth_request(&a.depth, &a.depth_dir).resolve(&mut spec, &loaded)?;
+            let line = crate::nerf::depth_request(&a.depth, &a.depth_dir).resolve(
+                &mut spec,
+                &loaded,
+                Default::default(),
+            )?;
             eprintln!("{line}");
             Some(spec)
         }

@@ -44,6 +44,11 @@ pub struct MvsArgs {
     /// Agreement: relative depth difference.
     #[arg(long, default_value_t = MvsDepthSettings::default().rel_tol)]
     rel_tol: f32,
+    /// Jacobi sweeps of the colour-guided fill of the pixels kept without depth, in inverse
+    /// depth at the matching resolution (0: none); the written maps and --truth-depth's figures
+    /// include the filled pixels, the PNGs and the sparse agreement do not.
+    #[arg(long, default_value_t = MvsDepthSettings::default().fill)]
+    fill: u32,
     /// Exact depth maps to measure against (<image stem>.npy or .exr, view depth in the
     /// capture's units, as `train --depth-dir` reads them; e.g. ../shared/data/synth2/depth):
     /// the kept fraction of pixels with a true depth and the relative errors, in mvs.json.
@@ -109,6 +114,7 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         min_agree: a.min_agree,
         px_tol: a.px_tol,
         rel_tol: a.rel_tol,
+        fill: a.fill,
     };
     let (near, far) = settings.range(&full)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;

@@ -13,6 +13,7 @@ use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::field::mlp::MlpMode;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet, PooledError};
 use extranerf_nerf::model::Precision;
+use extranerf_nerf::mvs_depth::MvsDepthSettings;
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::renderer::{March, Nerf};
@@ -101,6 +102,11 @@ pub struct TrainArgs {
     /// The same as --depth DIR.
     #[arg(long, value_name = "DIR")]
     depth_dir: Option<PathBuf>,
+    /// MVS depth: Jacobi sweeps of the colour-guided fill of the pixels the sweep kept no
+    /// depth for (in inverse depth at the matching resolution; filled pixels weigh 0.25)
+    /// [default: 0, no fill].
+    #[arg(long, value_name = "ITERATIONS")]
+    mvs_fill: Option<u32>,
     /// Depth loss weight (0: off).
     #[arg(long)]
     depth_lambda: Option<f32>,
@@ -293,6 +299,7 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--precision", a.precision.is_some()),
             ("--depth", a.depth.is_some()),
             ("--depth-dir", a.depth_dir.is_some()),
+            ("--mvs-fill", a.mvs_fill.is_some()),
             ("--depth-lambda", a.depth_lambda.is_some()),
             ("--distortion-lambda", a.distortion_lambda.is_some()),
             ("--hash-decay", a.hash_decay.is_some()),
@@ -349,10 +356,18 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             mvs_depth: None,
         };
         let loaded = scene.load()?;
-        eprintln!(
-            "{}",
-            depth_request(&a.depth, &a.depth_dir).resolve(&mut scene, &loaded)?
-        );
+        let mvs = MvsDepthSettings {
+            fill: a.mvs_fill.unwrap_or_default(),
+            ..MvsDepthSettings::default()
+        };
+        let said = depth_request(&a.depth, &a.depth_dir).resolve(&mut scene, &loaded, mvs)?;
+        if a.mvs_fill.is_some() && scene.mvs_depth.is_none() {
+            bail!(
+                "--mvs-fill applies to MVS depth, and this run's depth is {}",
+                scene.depth_label()
+            );
+        }
+        eprintln!("{said}");
         let auto = !a.no_auto;
         let fit = NdcFit {
             grid_box: a.grid_box.unwrap_or_default(),

@@ -974,6 +974,10 @@ fn mvs_writes_depth_maps_training_reads() {
     for (flags, says) in [
         (vec!["--depth", "/no/such/depth"], "/no/such/depth"),
         (
+            vec!["--depth", "none", "--mvs-fill", "10"],
+            "--mvs-fill applies to MVS depth",
+        ),
+        (
             vec!["--depth", "mvs", "--depth-dir", out.to_str().unwrap()],
             "cannot be used with",
         ),

@@ -12,9 +12,10 @@ use sha2::{Digest, Sha256};
 
 use crate::data::depth::read_depth_exr;
 use crate::data::{load_image, Camera, DataError};
+use crate::depth_completion::DepthCompletion;
 use crate::mvs::{downscale_rgb, grey, Mvs, MvsConfig, MvsDepth};
 use crate::run::{write_depth_exr, Result, RunError};
-use extranerf_gpu::Context;
+use extranerf_gpu::{Buffer, Context};
 
 /// Folder of the cache inside a run folder.
 pub const CACHE_DIR: &str = "depth_mvs";
@@ -44,7 +45,17 @@ pub struct MvsDepthSettings {
     pub px_tol: f32,
     /// Agreement: relative depth difference.
     pub rel_tol: f32,
+    /// Jacobi sweeps that fill the pixels the sweep kept no depth for (0: leave them empty):
+    /// a colour-guided harmonic fill in inverse depth at the matching resolution; filled
+    /// pixels take the confidence [`FILL_CONFIDENCE`].
+    #[serde(default)]
+    pub fill: u32,
 }
+
+/// Confidence (the depth loss's weight) of a pixel the fill gave its depth.
+pub const FILL_CONFIDENCE: f32 = 0.25;
+/// Colour difference at which a neighbour's weight in the fill falls to 1/e.
+const FILL_SIGMA: f32 = 0.1;
 
 impl Default for MvsDepthSettings {
     fn default() -> Self {
@@ -59,6 +70,7 @@ impl Default for MvsDepthSettings {
             min_agree: c.min_agree,
             px_tol: c.px_tol,
             rel_tol: c.rel_tol,
+            fill: 0,
         }
     }
 }
@@ -155,6 +167,7 @@ pub fn compute(ctx: &Context, cams: &[Camera], settings: &MvsDepthSettings) -> R
     let (near, far) = settings.range(cams)?;
     let mut small = Vec::with_capacity(cams.len());
     let mut greys = Vec::with_capacity(cams.len());
+    let mut colours = Vec::with_capacity(cams.len());
     for c in cams {
         let img = load_image(&c.image)?;
         if (img.width, img.height) != (c.width, c.height) {
@@ -179,16 +192,25 @@ pub fn compute(ctx: &Context, cams: &[Camera], settings: &MvsDepthSettings) -> R
             )));
         }
         greys.push(grey(&rgb));
+        colours.push(rgb);
         small.push(cam);
     }
     let t = Instant::now();
     let maps = Mvs::new(ctx)?.run(ctx, &small, &greys, &settings.config(near, far))?;
+    let dc = DepthCompletion::new(ctx)?;
+    let mut views = Vec::with_capacity(cams.len());
+    for ((c, m), rgb) in cams.iter().zip(&maps).zip(&colours) {
+        let (depth, confidence) = fill_holes(ctx, &dc, m, rgb, (near, far), settings.fill)?;
+        views.push(upsample(
+            (m.width, m.height),
+            &depth,
+            &confidence,
+            c.width,
+            c.height,
+            settings.downscale,
+        ));
+    }
     let seconds = t.elapsed().as_secs_f64();
-    let views = cams
-        .iter()
-        .zip(&maps)
-        .map(|(c, m)| upsample(m, c.width, c.height, settings.downscale))
-        .collect();
     Ok(SceneDepth {
         views,
         maps,
@@ -200,18 +222,88 @@ pub fn compute(ctx: &Context, cams: &[Camera], settings: &MvsDepthSettings) -> R
     })
 }
 
-/// A matching-resolution map at `width` x `height` (nearest neighbour; the pixels past the
-/// last whole block take the last row or column).
-fn upsample(m: &MvsDepth, width: u32, height: u32, factor: u32) -> ViewDepth {
+/// `iterations` Jacobi sweeps of the colour-guided harmonic fill ([`DepthCompletion`]) over
+/// the pixels of `m` without depth, in inverse depth (in which a plane is affine across the
+/// image, so the fill reproduces one), guided by the matching-resolution colour `rgb`; filled
+/// depths are clamped to the sweep's range and take [`FILL_CONFIDENCE`]. Returns the depth and
+/// confidence (as kept where `iterations` is 0 or nothing or everything was kept).
+pub fn fill_holes(
+    ctx: &Context,
+    dc: &DepthCompletion,
+    m: &MvsDepth,
+    rgb: &[f32],
+    (near, far): (f32, f32),
+    iterations: u32,
+) -> Result<(Vec<f32>, Vec<f32>)> {
+    let known: Vec<u32> = m.depth.iter().map(|&d| u32::from(d > 0.0)).collect();
+    let kept = known.iter().filter(|&&k| k != 0).count();
+    if iterations == 0 || kept == 0 || kept == known.len() {
+        return Ok((m.depth.clone(), m.confidence.clone()));
+    }
+    let mean_inv = m
+        .depth
+        .iter()
+        .filter(|&&d| d > 0.0)
+        .map(|&d| 1.0 / d as f64)
+        .sum::<f64>()
+        / kept as f64;
+    let inv: Vec<f32> = m
+        .depth
+        .iter()
+        .map(|&d| if d > 0.0 { 1.0 / d } else { mean_inv as f32 })
+        .collect();
+    let guide: Vec<[f32; 4]> = rgb
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2], 0.0])
+        .collect();
+    let d = Buffer::from_slice(ctx, "mvs fill", &inv)?;
+    let scratch = Buffer::<f32>::new(ctx, "mvs fill scratch", inv.len())?;
+    let k = Buffer::from_slice(ctx, "mvs fill known", &known)?;
+    let g = Buffer::from_slice(ctx, "mvs fill guide", &guide)?;
+    let mut rec = ctx.recorder("mvs hole fill")?;
+    dc.record(
+        &mut rec,
+        m.width,
+        m.height,
+        d.binding(),
+        scratch.binding(),
+        k.binding(),
+        g.binding(),
+        FILL_SIGMA,
+        iterations,
+    )?;
+    ctx.run(rec)?;
+    let filled = d.read()?;
+    let mut depth = m.depth.clone();
+    let mut confidence = m.confidence.clone();
+    for (i, &k) in known.iter().enumerate() {
+        if k == 0 && filled[i] > 0.0 && filled[i].is_finite() {
+            depth[i] = (1.0 / filled[i]).clamp(near, far);
+            confidence[i] = FILL_CONFIDENCE;
+        }
+    }
+    Ok((depth, confidence))
+}
+
+/// A matching-resolution map (`depth`, `confidence` of `size`) at `width` x `height` (nearest
+/// neighbour; the pixels past the last whole block take the last row or column).
+fn upsample(
+    (mw, mh): (u32, u32),
+    src_depth: &[f32],
+    src_confidence: &[f32],
+    width: u32,
+    height: u32,
+    factor: u32,
+) -> ViewDepth {
     let mut depth = Vec::with_capacity((width * height) as usize);
     let mut confidence = Vec::with_capacity((width * height) as usize);
     for y in 0..height {
-        let sy = (y / factor).min(m.height - 1);
+        let sy = (y / factor).min(mh - 1);
         for x in 0..width {
-            let sx = (x / factor).min(m.width - 1);
-            let k = (sy * m.width + sx) as usize;
-            depth.push(m.depth[k]);
-            confidence.push(m.confidence[k]);
+            let sx = (x / factor).min(mw - 1);
+            let k = (sy * mw + sx) as usize;
+            depth.push(src_depth[k]);
+            confidence.push(src_confidence[k]);
         }
     }
     ViewDepth {

@@ -128,14 +128,19 @@ pub fn mvs_unavailable(loaded: &LoadedScene, settings: &MvsDepthSettings) -> Opt
 }
 
 impl DepthRequest {
-    /// Sets `spec`'s depth fields for this request and says what was chosen (and, for `auto`,
-    /// why). `sparse` needs the scene's sparse points; `mvs` needs views the sweep can match.
-    pub fn resolve(&self, spec: &mut SceneSpec, loaded: &LoadedScene) -> Result<String> {
+    /// Sets `spec`'s depth fields for this request, MVS depth with `settings`, and says what
+    /// was chosen (and, for `auto`, why). `sparse` needs the scene's sparse points; `mvs` needs
+    /// views the sweep can match.
+    pub fn resolve(
+        &self,
+        spec: &mut SceneSpec,
+        loaded: &LoadedScene,
+        settings: MvsDepthSettings,
+    ) -> Result<String> {
         let has_points = points_path(&spec.dir).exists();
         spec.sparse_depth = false;
         spec.depth_dir = None;
         spec.mvs_depth = None;
-        let settings = MvsDepthSettings::default();
         match self {
             DepthRequest::None => {}
             DepthRequest::Sparse => {
@@ -217,18 +222,21 @@ impl SceneSpec {
     /// Where the run's depth targets come from, in words (reports and `eval`).
     pub fn depth_label(&self) -> String {
         let points = self.sparse_depth && points_path(&self.dir).exists();
+        let mvs = |s: &MvsDepthSettings| {
+            let fill = if s.fill > 0 {
+                format!(", holes filled by {} sweeps", s.fill)
+            } else {
+                String::new()
+            };
+            format!(
+                "MVS depth (1/{} resolution, {} planes{fill})",
+                s.downscale, s.planes
+            )
+        };
         match (&self.depth_dir, &self.mvs_depth, points) {
             (Some(d), _, _) => format!("dense maps from {}", d.display()),
-            (None, Some(s), true) => format!(
-                "MVS depth (1/{} resolution, {} planes) and COLMAP sparse points",
-                s.downscale, s.planes
-            ),
-            (None, Some(s), false) => {
-                format!(
-                    "MVS depth (1/{} resolution, {} planes)",
-                    s.downscale, s.planes
-                )
-            }
+            (None, Some(s), true) => format!("{} and COLMAP sparse points", mvs(s)),
+            (None, Some(s), false) => mvs(s),
             (None, None, true) => "COLMAP sparse points".into(),
             (None, None, false) => "none".into(),
         }
