@@ -404,6 +404,13 @@ fn mvs_depth_of_the_demo_rig_matches_its_exact_depth_and_caches() {
     rgb.save(img).unwrap();
     let (_, used) = cached(ctx, &spec.dir, &cams, &other, &run).unwrap();
     assert_eq!(used, CacheUse::Computed);
+    // A view re-registered (its pose moved by 1 mm): recomputed.
+    let mut moved = cams.clone();
+    moved[0].c2w.w_axis.x += 1e-3;
+    let (_, used) = cached(ctx, &spec.dir, &moved, &other, &run).unwrap();
+    assert_eq!(used, CacheUse::Computed);
+    let (_, used) = cached(ctx, &spec.dir, &cams, &other, &run).unwrap();
+    assert_eq!(used, CacheUse::Computed);
     // A damaged cache file: recomputed, not an error.
     std::fs::write(run.join("depth_mvs/view_001_depth.exr"), b"not an exr").unwrap();
     let (_, used) = cached(ctx, &spec.dir, &cams, &other, &run).unwrap();

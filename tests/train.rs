@@ -1286,6 +1286,21 @@ fn depth_requests_resolve_as_documented() {
             "{e}"
         );
     }
+    // More views than the sweep matches (32): auto falls back, mvs is refused.
+    let mut many = loaded.clone();
+    many.split.train = (0..33).map(|k| loaded.split.train[k % 6]).collect();
+    let mut spec = fresh();
+    let said = DepthRequest::Auto
+        .resolve(&mut spec, &many, MvsDepthSettings::default())
+        .unwrap();
+    assert!(
+        said.contains("33 training view(s): it matches 2 to 32"),
+        "{said}"
+    );
+    assert!(spec.mvs_depth.is_none());
+    assert!(DepthRequest::Mvs
+        .resolve(&mut spec, &many, MvsDepthSettings::default())
+        .is_err());
     // A folder that is not there, by name.
     let missing = dir.join("no-such-depth");
     let (_, said) = resolve(missing.to_str().unwrap());

@@ -13,7 +13,7 @@
 # Usage: tools/depth_compare.sh [VARIANT...]   (default: all five, in the order below)
 #   VARIANT: synth2_none synth2_mvs synth2_exact fern17_sparse fern17_auto, each optionally
 #   with _lLAMBDA (for example synth2_mvs_l1): the same with --depth-lambda LAMBDA (default
-#   0.1), and _fN (synth2_mvs_f300): --mvs-fill N.
+#   0.1), _fN (synth2_mvs_f300): --mvs-fill N, and _sN (synth2_none_s2): --seed N.
 #   STEPS (default 3000), EXTRANERF_BIN (default target/release/extranerf, built first).
 set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
@@ -37,6 +37,7 @@ for v in "${variants[@]}"; do
             "") ;;
             l*) extra+=(--depth-lambda "${o#l}") ;;
             f*) extra+=(--mvs-fill "${o#f}") ;;
+            s*) extra+=(--seed "${o#s}") ;;
             *) echo "unknown option $o in $v" >&2; exit 2 ;;
         esac
     done
@@ -73,18 +74,18 @@ for v in order + [e for e in extra if e not in order]:
         continue
     last = [json.loads(l) for l in curve.read_text().splitlines() if l.strip()][-1]
     log = pathlib.Path(f"results/curves/{scene}/depth_{kind}.log").read_text()
-    depth = re.search(r"^depth: (.*)$", log, re.M)
+    depth = (re.findall(r"^depth: (.*)$", log, re.M) or [None])[-1]
     m = out / f"{v}.metrics.json"
     vis = json.loads(m.read_text())["test"] if m.exists() else {}
     f = lambda x, p=2: "" if x is None else f"{x:.{p}f}"
-    rows.append(f"| {v} | {depth.group(1) if depth else '?'} | {last['step']} | "
+    rows.append(f"| {v} | {depth or '?'} | {last['step']} | "
                 f"{f(last.get('test_psnr'))} | {f(last.get('test_ssim'), 3)} | "
                 f"{f(last.get('test_lpips_alex'), 3)} | {f(vis.get('psnr_visible'))} | "
                 f"{f(vis.get('psnr_not_visible'))} |")
 text = (f"# Depth supervision at a fixed step count (tools/depth_compare.sh, STEPS={steps})\n\n"
         "Held-out views at the last step (the curve's evaluation); synth2's visible and "
         "not-visible PSNR from `eval --visibility-masks ../shared/data/synth2/gt_visibility`.\n\n"
-        "| variant (_lX: --depth-lambda X, _fN: --mvs-fill N) | depth targets (train log) | step | PSNR | SSIM | LPIPS-alex | PSNR visible | PSNR not visible |\n"
+        "| variant (_lX: --depth-lambda X, _fN: --mvs-fill N, _sN: --seed N) | depth targets (train log) | step | PSNR | SSIM | LPIPS-alex | PSNR visible | PSNR not visible |\n"
         "|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
 (out / "summary.md").write_text(text)
 print(text)

@@ -282,16 +282,35 @@ fn parse_checkpoint(s: &str) -> Result<Option<u32>, String> {
 
 /// `extranerf extrapolate`.
 pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
+    // A resumed run keeps the depth its BaseNeRF was trained with (runs from before --depth
+    // recorded the COLMAP points whatever the scene had).
+    let recorded = if a.resume {
+        extranerf_extrapolate::manifest::Manifest::load(&a.out)?.map(|m| m.scene)
+    } else {
+        None
+    };
+    if let (Some(r), true) = (&recorded, a.depth.is_some() || a.depth_dir.is_some()) {
+        anyhow::bail!(
+            "--resume keeps the run's depth targets ({}); drop --depth / --depth-dir",
+            r.depth_label()
+        );
+    }
     let scene = match &a.scene {
         Some(dir) if a.base.is_none() => {
             let mut spec = a.views.spec(dir.clone(), false);
-            let loaded = spec.load()?;
-            let line = crate::nerf::depth_request(&a.depth, &a.depth_dir).resolve(
-                &mut spec,
-                &loaded,
-                Default::default(),
-            )?;
-            eprintln!("{line}");
+            if let Some(r) = &recorded {
+                spec.sparse_depth = r.sparse_depth;
+                spec.depth_dir = r.depth_dir.clone();
+                spec.mvs_depth = r.mvs_depth.clone();
+            } else {
+                let loaded = spec.load()?;
+                let line = crate::nerf::depth_request(&a.depth, &a.depth_dir).resolve(
+                    &mut spec,
+                    &loaded,
+                    Default::default(),
+                )?;
+                eprintln!("{line}");
+            }
             Some(spec)
         }
         Some(dir) => Some(a.views.spec(dir.clone(), true)),

@@ -1,8 +1,8 @@
 //! Dense depth for a scene's training views from the project's plane sweep ([`crate::mvs`]):
 //! the depth target of scenes that bring none (issue 52). [`compute`] matches the views at a
 //! fraction of their resolution and returns maps at their full size; [`cached`] keeps them in
-//! a run folder, keyed by the views' paths (relative to the scene), their bytes and the
-//! settings, so that an unchanged input reuses them and any change recomputes them.
+//! a run folder, keyed by the views' paths (relative to the scene), their bytes, their cameras
+//! and the settings, so that an unchanged input reuses them and any change recomputes them.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -324,7 +324,8 @@ pub enum CacheUse {
 }
 
 /// The cache key of `cams` (whose images lie under `scene_dir`) and `settings`: the SHA-256 of
-/// the views' paths relative to the scene, their bytes and the settings.
+/// the views' paths relative to the scene, their bytes, their cameras (pose, intrinsics and
+/// depth bounds) and the settings.
 pub fn cache_key(scene_dir: &Path, cams: &[Camera], settings: &MvsDepthSettings) -> Result<String> {
     let mut views = Vec::with_capacity(cams.len());
     for c in cams {
@@ -334,6 +335,10 @@ pub fn cache_key(scene_dir: &Path, cams: &[Camera], settings: &MvsDepthSettings)
             "image": rel.to_string_lossy(),
             "size": [c.width, c.height],
             "sha256": hex(&Sha256::digest(&bytes)),
+            // The pose, intrinsics and bounds: re-registered images give other maps.
+            "c2w": c.c2w.to_cols_array(),
+            "intrinsics": [c.fx, c.fy, c.cx, c.cy],
+            "bounds": c.bounds,
         }));
     }
     let doc = serde_json::json!({ "views": views, "settings": settings });

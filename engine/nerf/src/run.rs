@@ -115,8 +115,12 @@ fn points_path(scene_dir: &Path) -> PathBuf {
 /// Why the training views of `loaded` cannot be matched by the plane sweep, if they cannot.
 pub fn mvs_unavailable(loaded: &LoadedScene, settings: &MvsDepthSettings) -> Option<String> {
     let cams = loaded.train_cameras();
-    if cams.len() < 2 {
-        return Some(format!("{} training view(s): it needs two", cams.len()));
+    if !(2..=crate::mvs::MAX_VIEWS).contains(&cams.len()) {
+        return Some(format!(
+            "{} training view(s): it matches 2 to {}",
+            cams.len(),
+            crate::mvs::MAX_VIEWS
+        ));
     }
     if cams
         .iter()
