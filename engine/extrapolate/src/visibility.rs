@@ -7,7 +7,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::bail;
-use extranerf_gpu::{Buffer, Context};
+use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::depth_completion::DepthCompletion;
 use extranerf_nerf::render::march::MarchCuts;
@@ -506,26 +506,9 @@ pub fn complete_depth(
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2], 0.0])
         .collect();
-    let n = depth.len();
-    let dc = DepthCompletion::new(ctx)?;
-    let d = Buffer::from_slice(ctx, "completed depth", &depth)?;
-    let scratch = Buffer::<f32>::new(ctx, "depth scratch", n)?;
-    let k = Buffer::from_slice(ctx, "known depth", &known)?;
-    let g = Buffer::from_slice(ctx, "depth guide", &guide)?;
-    let mut rec = ctx.recorder("depth completion")?;
-    dc.record(
-        &mut rec,
-        cam.width,
-        cam.height,
-        d.binding(),
-        scratch.binding(),
-        k.binding(),
-        g.binding(),
-        sigma,
-        iterations,
+    let completed = DepthCompletion::new(ctx)?.run(
+        ctx, cam.width, cam.height, &depth, &known, &guide, sigma, iterations,
     )?;
-    ctx.run(rec)?;
-    let completed = d.read()?;
     let scale = base
         .loaded
         .scene

@@ -4,7 +4,7 @@
 //! colour-weighted harmonic fill, ping-ponged on the device with no host round trips.
 
 use extranerf_gpu::kernels::depth::complete as k;
-use extranerf_gpu::{Binding, Context, GpuError, Kernel, Recorder, Result};
+use extranerf_gpu::{Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
 
 /// The depth-completion kernel.
 #[derive(Debug)]
@@ -18,6 +18,41 @@ impl DepthCompletion {
         Ok(DepthCompletion {
             step: Kernel::new(ctx, &k::complete_step::DESC)?,
         })
+    }
+
+    /// Runs `iterations` steps on a `width` x `height` map from the host: `depth` the starting
+    /// values, `known` the kept pixels, `guide` the colours (see [`DepthCompletion::record`]);
+    /// returns the completed map.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn run(
+        &self,
+        ctx: &Context,
+        width: u32,
+        height: u32,
+        depth: &[f32],
+        known: &[u32],
+        guide: &[[f32; 4]],
+        sigma: f32,
+        iterations: u32,
+    ) -> Result<Vec<f32>> {
+        let d = Buffer::from_slice(ctx, "completed depth", depth)?;
+        let scratch = Buffer::<f32>::new(ctx, "depth scratch", depth.len())?;
+        let k = Buffer::from_slice(ctx, "known depth", known)?;
+        let g = Buffer::from_slice(ctx, "depth guide", guide)?;
+        let mut rec = ctx.recorder("depth completion")?;
+        self.record(
+            &mut rec,
+            width,
+            height,
+            d.binding(),
+            scratch.binding(),
+            k.binding(),
+            g.binding(),
+            sigma,
+            iterations,
+        )?;
+        ctx.run(rec)?;
+        d.read()
     }
 
     /// Records `iterations` steps on a `width` x `height` map. `depth` holds the starting

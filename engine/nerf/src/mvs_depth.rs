@@ -15,7 +15,7 @@ use crate::data::{load_image, Camera, DataError};
 use crate::depth_completion::DepthCompletion;
 use crate::mvs::{downscale_rgb, grey, Mvs, MvsConfig, MvsDepth};
 use crate::run::{write_depth_exr, Result, RunError};
-use extranerf_gpu::{Buffer, Context};
+use extranerf_gpu::Context;
 
 /// Folder of the cache inside a run folder.
 pub const CACHE_DIR: &str = "depth_mvs";
@@ -256,24 +256,9 @@ pub fn fill_holes(
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2], 0.0])
         .collect();
-    let d = Buffer::from_slice(ctx, "mvs fill", &inv)?;
-    let scratch = Buffer::<f32>::new(ctx, "mvs fill scratch", inv.len())?;
-    let k = Buffer::from_slice(ctx, "mvs fill known", &known)?;
-    let g = Buffer::from_slice(ctx, "mvs fill guide", &guide)?;
-    let mut rec = ctx.recorder("mvs hole fill")?;
-    dc.record(
-        &mut rec,
-        m.width,
-        m.height,
-        d.binding(),
-        scratch.binding(),
-        k.binding(),
-        g.binding(),
-        FILL_SIGMA,
-        iterations,
+    let filled = dc.run(
+        ctx, m.width, m.height, &inv, &known, &guide, FILL_SIGMA, iterations,
     )?;
-    ctx.run(rec)?;
-    let filled = d.read()?;
     let mut depth = m.depth.clone();
     let mut confidence = m.confidence.clone();
     for (i, &k) in known.iter().enumerate() {
