@@ -26,10 +26,10 @@ use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
 use extranerf_nerf::model::ModelConfig;
 use extranerf_nerf::run::training_views;
-use extranerf_nerf::run::{load_checkpoint, RunConfig, SceneSpec};
+use extranerf_nerf::run::{load_checkpoint, RunConfig};
 use extranerf_nerf::trainer::TrainConfig;
 use extranerf_nerf::views::ViewKind;
-use extranerf_tests::{assert_no_validation_messages, engine, scratch_dir};
+use extranerf_tests::{assert_no_validation_messages, demo_scene_spec, engine, scratch_dir};
 use rusty_fork::rusty_fork_test;
 
 /// Keeps the notes; panics at the `panic_at`-th training progress of the stage named
@@ -90,18 +90,6 @@ fn crash_in_stage3_round_two(ctx: &extranerf_gpu::Context, o: &Options, run: &Pa
     assert!(crash.is_err(), "the simulated crash did not happen");
     let state = std::fs::read_to_string(run.join("stage3-harmonic/round.json")).unwrap();
     assert!(state.contains("\"rounds_done\":1"), "{state}");
-}
-
-fn scene(dir: &Path) -> SceneSpec {
-    SceneSpec {
-        dir: dir.to_path_buf(),
-        split: extranerf_nerf::data::split::SplitKind::Extrapolation,
-        fewshot_views: 3,
-        factor: 1,
-        sparse_depth: false,
-        depth_dir: None,
-        mvs_depth: None,
-    }
 }
 
 fn options(out: &Path, base: &Path) -> Options {
@@ -194,7 +182,7 @@ fn small_base(
     // A small BaseNeRF.
     let base = dir.join("base");
     let cfg = RunConfig {
-        scene: scene(&scene_dir),
+        scene: demo_scene_spec(scene_dir.to_path_buf()),
         model: ModelConfig {
             levels: 6,
             log2_table: 12,
@@ -288,7 +276,7 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
 
     // The held-out views: where the training cameras saw, stage 2 stays close to the
     // BaseNeRF's render; inside the mask it changes more.
-    let loaded = scene(&scene_dir).load().unwrap();
+    let loaded = demo_scene_spec(scene_dir.to_path_buf()).load().unwrap();
     let st = extranerf_nerf::safetensors::SafeTensors::read(&a.join("visibility/maps.safetensors"))
         .unwrap();
     let (mut vis_psnr, mut mask_psnr) = (Vec::new(), Vec::new());
@@ -411,7 +399,7 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     extranerf_nerf::demo::write_demo_scene(&other, 32, 24).unwrap();
     let e2 = err(Options {
         resume: true,
-        scene: Some(scene(&other)),
+        scene: Some(demo_scene_spec(other.to_path_buf())),
         base: BaseSpec {
             from: None,
             budget: 60.0,
@@ -562,7 +550,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
 
     // The triplets: per training view a fresh field's, the BaseNeRF's and one per data round,
     // the masks of the inpainting-supervised ones the view's pseudo mask; they reload as saved.
-    let loaded = scene(&scene_dir).load().unwrap();
+    let loaded = demo_scene_spec(scene_dir.to_path_buf()).load().unwrap();
     let views = loaded.split.train.len();
     let tr = Triplets::load(&a.join("stage3-data")).unwrap();
     assert_eq!(tr.photos.len(), views);

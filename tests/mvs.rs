@@ -64,17 +64,28 @@ fn rig() -> Vec<Camera> {
     [-0.3, -0.1, 0.1, 0.3].iter().map(|&x| camera(x)).collect()
 }
 
-#[test]
-fn sweep_recovers_a_textured_plane() {
-    let ctx = &engine().ctx;
+/// A view's render of the plane: the grey image and the true depth.
+type PlaneView = (Vec<f32>, Vec<f64>);
+
+/// The rig's renders of the plane and the sweep of them with 96 planes over depths 1.5 to 8.
+fn sweep_plane(
+    ctx: &extranerf_gpu::Context,
+) -> (Vec<PlaneView>, Vec<extranerf_nerf::mvs::MvsDepth>) {
     let cams = rig();
-    let imgs: Vec<(Vec<f32>, Vec<f64>)> = cams.iter().map(render).collect();
+    let imgs: Vec<PlaneView> = cams.iter().map(render).collect();
     let grey: Vec<Vec<f32>> = imgs.iter().map(|i| i.0.clone()).collect();
     let cfg = MvsConfig {
         planes: 96,
         ..MvsConfig::new(1.5, 8.0)
     };
     let out = Mvs::new(ctx).unwrap().run(ctx, &cams, &grey, &cfg).unwrap();
+    (imgs, out)
+}
+
+#[test]
+fn sweep_recovers_a_textured_plane() {
+    let ctx = &engine().ctx;
+    let (imgs, out) = sweep_plane(ctx);
     for (v, m) in out.iter().enumerate() {
         let truth = &imgs[v].1;
         let mut good = 0;
@@ -112,14 +123,7 @@ fn hole_fill_reproduces_a_plane_across_a_hole() {
     use extranerf_nerf::depth_completion::DepthCompletion;
     use extranerf_nerf::mvs_depth::{fill_holes, FILL_CONFIDENCE};
     let ctx = &engine().ctx;
-    let cams = rig();
-    let imgs: Vec<(Vec<f32>, Vec<f64>)> = cams.iter().map(render).collect();
-    let grey: Vec<Vec<f32>> = imgs.iter().map(|i| i.0.clone()).collect();
-    let cfg = MvsConfig {
-        planes: 96,
-        ..MvsConfig::new(1.5, 8.0)
-    };
-    let out = Mvs::new(ctx).unwrap().run(ctx, &cams, &grey, &cfg).unwrap();
+    let (imgs, out) = sweep_plane(ctx);
     let dc = DepthCompletion::new(ctx).unwrap();
     // View 1's map with the true depth where it kept one (so the fill's error is its own),
     // and a hole: columns 20..28 of rows 10..26, inside the kept region.
