@@ -21,6 +21,7 @@ mod metrics;
 mod mvs;
 mod optim;
 mod prims;
+mod proposal;
 mod render;
 mod split;
 mod stability;

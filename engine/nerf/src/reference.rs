@@ -794,6 +794,93 @@ pub fn stratified_occupied(
         .collect()
 }
 
+/// Index of the source bin holding s for sorted `edges` (bins `[edges[i], edges[i + 1])`,
+/// the last closed): the count of interior edges at or below s.
+fn bin_of(edges: &[f64], s: f64) -> usize {
+    edges[1..edges.len() - 1]
+        .iter()
+        .filter(|&&e| e <= s)
+        .count()
+}
+
+/// The proposal sampler's resampling of one ray in f64 (`render/proposal.wgsl`'s `resample`):
+/// from the source bins (sorted `src_edges`, one more than `src_w`) and their weights, a
+/// piecewise-constant density in s proportional to `w + pad` per bin; `k + 1` new edges at
+/// its inverse CDF of `u_j = (j + jitter[j]) / (k + 1)`, or `u_j = j / k` without jitter.
+pub fn proposal_resample(
+    src_edges: &[f64],
+    src_w: &[f64],
+    pad: f64,
+    k: usize,
+    jitter: Option<&[f64]>,
+) -> Vec<f64> {
+    let n = src_w.len();
+    let mass: Vec<f64> = src_w.iter().map(|w| w.max(0.0) + pad).collect();
+    let total: f64 = mass.iter().sum();
+    let mut cdf = vec![0f64; n + 1];
+    for i in 0..n {
+        cdf[i + 1] = cdf[i] + mass[i] / total;
+    }
+    (0..=k)
+        .map(|j| {
+            let u = match jitter {
+                Some(jit) => (j as f64 + jit[j]) / (k + 1) as f64,
+                None => j as f64 / k as f64,
+            };
+            // The bin whose CDF interval holds u (the last one for u = 1).
+            let i = (0..n).rfind(|&i| cdf[i] <= u).unwrap_or(0);
+            let f = ((u - cdf[i]) / (cdf[i + 1] - cdf[i])).clamp(0.0, 1.0);
+            src_edges[i] + f * (src_edges[i + 1] - src_edges[i])
+        })
+        .collect()
+}
+
+/// The main samples of bins with sorted `edges` in s, in f64, as `resample` writes them:
+/// `[t, dt, s, ds]` per bin, s at the bin's middle and dt, ds its lengths in t and s.
+pub fn bin_samples(edges: &[f64], near: f32, far: f32, disparity: bool) -> Vec<[f64; 4]> {
+    let t_of = |s: f64| t_at(s, near, far, disparity);
+    edges
+        .windows(2)
+        .map(|e| {
+            let s = 0.5 * (e[0] + e[1]);
+            [t_of(s), t_of(e[1]) - t_of(e[0]), s, e[1] - e[0]]
+        })
+        .collect()
+}
+
+/// The interlevel loss of one ray in f64 (Mip-NeRF 360's, `render/proposal.wgsl`'s
+/// `interlevel`): for each bin `[a, b]` of `edges` with weight `w` (held constant), the bound
+/// is the summed weight of the source bins from the one holding a to the one holding b (see
+/// [`bin_of`]; at least the first); the loss is the sum of `max(0, w - bound)^2 / (w + eps)`.
+/// Returns the loss and its gradient with respect to each source weight.
+pub fn interlevel(
+    src_edges: &[f64],
+    src_w: &[f64],
+    edges: &[f64],
+    w: &[f64],
+    eps: f64,
+) -> (f64, Vec<f64>) {
+    let mut loss = 0.0;
+    let mut grad = vec![0f64; src_w.len()];
+    for j in 0..w.len() {
+        let lo = bin_of(src_edges, edges[j]);
+        // Bins up to the one whose interval (p_i, p_i+1] holds b.
+        let hi = src_edges[1..src_edges.len() - 1]
+            .iter()
+            .filter(|&&e| e < edges[j + 1])
+            .count()
+            + 1;
+        let hi = hi.max(lo + 1);
+        let bound: f64 = src_w[lo..hi].iter().sum();
+        let excess = (w[j] - bound).max(0.0);
+        loss += excess * excess / (w[j] + eps);
+        for g in &mut grad[lo..hi] {
+            *g -= 2.0 * excess / (w[j] + eps);
+        }
+    }
+    (loss, grad)
+}
+
 /// The BaseNeRF field (see `model::Field`) per sample: `(sigma, rgb)`; sample i looks along
 /// `dirs[i / per_ray]`. Each stage runs in f64 on the previous stage's output rounded to f32
 /// (the stages' own references take f32 inputs).

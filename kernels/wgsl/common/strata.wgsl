@@ -9,6 +9,7 @@
 //
 // Textual include after common/rng.wgsl and common/occupancy.wgsl; the including file declares
 // `occ_bits`.
+//!include common/spacing.wgsl
 
 const MAX_PROBES: u32 = 256u;
 
@@ -18,19 +19,6 @@ struct ProbeMask {
     count: u32,
 }
 
-// Distance at normalised position s for a ray from nf.x to nf.y; spacing 1: linear in
-// disparity, else linear in t.
-fn strata_t(s: f32, nf: vec2<f32>, spacing: u32) -> f32 {
-    if spacing == 1u {
-        return 1.0 / mix(1.0 / nf.x, 1.0 / nf.y, s);
-    }
-    return mix(nf.x, nf.y, s);
-}
-
-// The position in [0, 1) of sample i of ray r inside its stratum for jitter seed `seed`.
-fn strata_jitter(seed: u32, r: u32, i: u32) -> f32 {
-    return rand01(pcg_hash(seed ^ pcg_hash(r)) + i);
-}
 
 // Stratum i of k over the whole ray, at position `jit` in [0, 1) inside it: (t, dt, s).
 // Each stratum's share of s is 1 / k.

@@ -7,6 +7,7 @@ pub mod composite;
 pub mod loss;
 pub mod march;
 pub mod occupancy;
+pub mod proposal;
 pub mod rays;
 pub mod sample;
 pub mod train_step;

@@ -1,0 +1,483 @@
+//! The proposal sampler's kernels (`render/proposal.wgsl`) against the f64 reference: the
+//! resampling on hand-made weight histograms (a single spike, two spikes, uniform, all zero)
+//! and random ones, with shared uniform and per-ray source edges, jittered and not; the
+//! interlevel loss and its gradient, checked by central differences through the proposal's
+//! densities (the kernel's dL/dw fed to composite_bwd).
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use extranerf_gpu::Buffer;
+use extranerf_nerf::reference::{bin_samples, interlevel, proposal_resample, ray_weights};
+use extranerf_nerf::render::composite::{
+    pcg_hash, rand01, Background, Compositor, RayGrads, Samples,
+};
+use extranerf_nerf::render::proposal::{
+    MainBins, Proposal, RaySet, SourceBins, HISTOGRAM_PAD, RESAMPLE_SALT,
+};
+use extranerf_nerf::render::sample::{SampleOutputs, Spacing};
+use extranerf_prims::reference::Rng;
+use extranerf_tests::{assert_no_validation_messages, engine};
+
+/// Source bins per ray, and main samples per ray.
+const NP: usize = 24;
+const K: usize = 10;
+
+/// One ray's source bins: edges in s, and per bin a density and (t, dt).
+struct Ray {
+    edges: Vec<f32>,
+    sigma: Vec<f32>,
+    nf: [f32; 2],
+}
+
+impl Ray {
+    /// The bins' (t, dt): t at the bin's middle, dt its length in t (linear spacing).
+    fn t_dt(&self) -> Vec<[f32; 2]> {
+        let t = |s: f32| self.nf[0] + s * (self.nf[1] - self.nf[0]);
+        self.edges
+            .windows(2)
+            .map(|e| [t(0.5 * (e[0] + e[1])), t(e[1]) - t(e[0])])
+            .collect()
+    }
+
+    fn weights(&self) -> Vec<f64> {
+        let dt: Vec<f32> = self.t_dt().iter().map(|v| v[1]).collect();
+        ray_weights(&self.sigma, &dt).0
+    }
+}
+
+fn uniform_edges() -> Vec<f32> {
+    (0..=NP).map(|i| i as f32 / NP as f32).collect()
+}
+
+/// Hand-made histograms first (a single spike, two spikes, uniform, all zero, an opaque first
+/// bin), then random ones; `shared` gives every ray the uniform edges, else the random rays
+/// get random sorted edges from 0 to 1 (some bins of zero width).
+fn rays(rng: &mut Rng, n: usize, shared: bool) -> Vec<Ray> {
+    let mut out = vec![];
+    for case in 0..n {
+        let a = rng.uniform(0.0, 0.5);
+        let nf = [a, a + rng.uniform(0.2, 3.0)];
+        // The hand-made cases by optical depth per bin (uniform bins of dt = span / NP).
+        let dt = (nf[1] - nf[0]) / NP as f32;
+        let mut sigma = vec![0f32; NP];
+        match case {
+            0 => sigma[7] = 20.0 / dt,
+            1 => {
+                sigma[3] = std::f32::consts::LN_2 / dt;
+                sigma[17] = 20.0 / dt;
+            }
+            2 => sigma.fill(0.02 / dt),
+            3 => {}
+            4 => sigma[0] = 1e8,
+            _ => {
+                for s in &mut sigma {
+                    *s = if rng.uniform(0.0, 1.0) < 0.3 {
+                        0.0
+                    } else {
+                        rng.uniform(0.0, 1.0).powi(3) * 50.0
+                    };
+                }
+            }
+        }
+        let edges = if shared || case < 5 {
+            uniform_edges()
+        } else {
+            let mut e: Vec<f32> = (0..NP - 1).map(|_| rng.uniform(0.0, 1.0)).collect();
+            if case % 4 == 0 {
+                e[3] = e[4];
+            }
+            e.push(0.0);
+            e.push(1.0);
+            e.sort_by(f32::total_cmp);
+            e
+        };
+        out.push(Ray { edges, sigma, nf });
+    }
+    out
+}
+
+/// The jitter of main edge j of ray r, as the kernel draws it.
+fn jitter(seed: u32, r: u32, j: u32) -> f64 {
+    rand01(pcg_hash(seed ^ RESAMPLE_SALT ^ pcg_hash(r)).wrapping_add(j)) as f64
+}
+
+struct Resampled {
+    edges: Vec<f32>,
+    t_dt: Vec<f32>,
+    s_ds: Vec<f32>,
+    pos: Vec<f32>,
+    spans: Vec<u32>,
+}
+
+/// Runs `resample` on the rays (source edges shared when `shared`), origins and directions
+/// made up per ray; a ray with a negative target weight (every third with targets) keeps
+/// unjittered edges.
+fn run_resample(
+    rays: &[Ray],
+    shared: bool,
+    seed: Option<u32>,
+    targets: bool,
+) -> (Resampled, Vec<[f32; 4]>, Vec<[f32; 4]>) {
+    let e = engine();
+    let prop = Proposal::new(&e.ctx).unwrap();
+    let n = rays.len();
+    let src_edges: Vec<f32> = if shared {
+        uniform_edges()
+    } else {
+        rays.iter().flat_map(|r| r.edges.clone()).collect()
+    };
+    let sigma: Vec<f32> = rays.iter().flat_map(|r| r.sigma.clone()).collect();
+    let t_dt: Vec<f32> = rays.iter().flat_map(|r| r.t_dt()).flatten().collect();
+    let o: Vec<[f32; 4]> = (0..n).map(|i| [0.1 * i as f32, -0.3, 0.2, 0.0]).collect();
+    let d: Vec<[f32; 4]> = (0..n).map(|i| [0.01 * i as f32, 0.5, -1.0, 0.0]).collect();
+    let nf: Vec<f32> = rays.iter().flat_map(|r| r.nf).collect();
+    let tgt: Vec<f32> = (0..n)
+        .flat_map(|i| [0.5, 0.5, 0.5, if i % 3 == 0 { -1.0 } else { 1.0 }])
+        .collect();
+    let buf = |name: &str, v: &[f32]| Buffer::from_slice(&e.ctx, name, v).unwrap();
+    let (be, bs, bt) = (
+        buf("src_edges", &src_edges),
+        buf("src_sigma", &sigma),
+        buf("src_t_dt", &t_dt),
+    );
+    let (bo, bd, bnf, btg) = (
+        buf("o", o.as_flattened()),
+        buf("d", d.as_flattened()),
+        buf("nf", &nf),
+        buf("targets", &tgt),
+    );
+    // Poisoned outputs, one element longer than needed: the kernel must write exactly them.
+    let poison = |name: &str, len: usize| buf(name, &vec![f32::NAN; len + 1]);
+    let edges = poison("edges", n * (K + 1));
+    let (pos, tdt, sds) = (
+        poison("positions", 3 * n * K),
+        poison("t_dt", 2 * n * K),
+        poison("s_ds", 2 * n * K),
+    );
+    let spans = Buffer::<u32>::from_slice(&e.ctx, "spans", &vec![u32::MAX; 2 * n]).unwrap();
+    let src = SourceBins {
+        edges: be.binding(),
+        stride: if shared { 0 } else { NP as u32 + 1 },
+        sigma: bs.binding(),
+        t_dt: bt.binding(),
+        count: NP as u32,
+    };
+    let set = RaySet {
+        origins: bo.binding(),
+        directions: bd.binding(),
+        near_far: bnf.binding(),
+        targets: targets.then(|| btg.binding()),
+        n_rays: n as u32,
+    };
+    let out = SampleOutputs {
+        positions: pos.binding(),
+        t_dt: tdt.binding(),
+        s_ds: sds.binding(),
+        rays: spans.binding(),
+    };
+    let mut rec = e.ctx.recorder("resample").unwrap();
+    prop.resample(
+        &mut rec,
+        &src,
+        &set,
+        edges.binding(),
+        &out,
+        K as u32,
+        HISTOGRAM_PAD,
+        Spacing::Linear,
+        seed,
+    )
+    .unwrap();
+    e.ctx.run(rec).unwrap();
+    assert_no_validation_messages(&e.ctx);
+    (
+        Resampled {
+            edges: edges.read().unwrap(),
+            t_dt: tdt.read().unwrap(),
+            s_ds: sds.read().unwrap(),
+            pos: pos.read().unwrap(),
+            spans: spans.read().unwrap(),
+        },
+        o,
+        d,
+    )
+}
+
+#[test]
+fn resample_matches_reference_on_hand_made_histograms() {
+    let mut rng = Rng::new(53);
+    for (shared, seed, targets) in [
+        (true, None, false),
+        (true, Some(11u32), false),
+        (false, Some(12u32), true),
+        (false, None, true),
+    ] {
+        let rays = rays(&mut rng, 40, shared);
+        let (got, o, d) = run_resample(&rays, shared, seed, targets);
+        let n = rays.len();
+        assert!(got.edges[n * (K + 1)].is_nan(), "wrote past the edges");
+        assert!(got.t_dt[2 * n * K].is_nan(), "wrote past t_dt");
+        for (r, ray) in rays.iter().enumerate() {
+            let jittered = seed.filter(|_| !(targets && r % 3 == 0));
+            let jit: Option<Vec<f64>> =
+                jittered.map(|s| (0..=K as u32).map(|j| jitter(s, r as u32, j)).collect());
+            let src: Vec<f64> = ray.edges.iter().map(|&v| v as f64).collect();
+            let want = proposal_resample(
+                &src,
+                &ray.weights(),
+                HISTOGRAM_PAD as f64,
+                K,
+                jit.as_deref(),
+            );
+            let e = &got.edges[r * (K + 1)..(r + 1) * (K + 1)];
+            for (j, (&g, &w)) in e.iter().zip(&want).enumerate() {
+                assert!(
+                    (g as f64 - w).abs() <= 2e-5,
+                    "ray {r} ({shared}, {seed:?}) edge {j}: {g} vs {w}"
+                );
+            }
+            assert!(e.windows(2).all(|p| p[0] <= p[1]), "ray {r}: edges sorted");
+            assert!(e[0] >= 0.0 && e[K] <= 1.0);
+            if jittered.is_none() {
+                assert!(e[0] == 0.0 && (e[K] - 1.0).abs() <= 2e-5, "ray {r}: 0 to 1");
+            }
+            // The hand-made cases, by what their histograms mean.
+            let in_bin = |b: usize| {
+                let (lo, hi) = (b as f32 / NP as f32, (b + 1) as f32 / NP as f32);
+                e.windows(2)
+                    .filter(|p| 0.5 * (p[0] + p[1]) >= lo && 0.5 * (p[0] + p[1]) < hi)
+                    .count()
+            };
+            match r {
+                // Weight 1 in bin 7 against 0.24 of padding: about 0.8 of the samples.
+                0 => assert!(in_bin(7) >= 7, "spike: {e:?}"),
+                // Weights 1/2 and 1/2: about 0.4 of the samples each.
+                1 => assert!(in_bin(3) >= 3 && in_bin(17) >= 3, "two spikes: {e:?}"),
+                // Uniform weights: samples spread over the ray, none in most bins.
+                2 => assert!((0..NP).all(|b| in_bin(b) <= 1), "uniform: {e:?}"),
+                3 if jittered.is_none() => {
+                    for (j, &v) in e.iter().enumerate() {
+                        assert!(
+                            (v - j as f32 / K as f32).abs() <= 1e-5,
+                            "all zero: uniform edges, {e:?}"
+                        );
+                    }
+                }
+                4 => assert!(in_bin(0) >= 7, "opaque first bin: {e:?}"),
+                _ => {}
+            }
+            // The samples from the kernel's own edges.
+            let e64: Vec<f64> = e.iter().map(|&v| v as f64).collect();
+            let samples = bin_samples(&e64, ray.nf[0], ray.nf[1], false);
+            assert_eq!(
+                (got.spans[2 * r], got.spans[2 * r + 1]),
+                ((r * K) as u32, K as u32)
+            );
+            for (j, w) in samples.iter().enumerate() {
+                let i = r * K + j;
+                let g = [
+                    got.t_dt[2 * i] as f64,
+                    got.t_dt[2 * i + 1] as f64,
+                    got.s_ds[2 * i] as f64,
+                    got.s_ds[2 * i + 1] as f64,
+                ];
+                for c in 0..4 {
+                    assert!(
+                        (g[c] - w[c]).abs() <= 1e-5 * (1.0 + w[c].abs()),
+                        "ray {r} sample {j} field {c}: {} vs {}",
+                        g[c],
+                        w[c]
+                    );
+                }
+                for c in 0..3 {
+                    let p = o[r][c] as f64 + g[0] * d[r][c] as f64;
+                    assert!((got.pos[3 * i + c] as f64 - p).abs() <= 1e-5 * (1.0 + p.abs()));
+                }
+            }
+        }
+    }
+}
+
+/// The interlevel loss and dL/dw against the reference, on rays resampled from their own
+/// proposal histograms, on main bins equal to the source bins (edges on edges), and on main
+/// bins of zero width; then dL/dsigma of the proposal's densities (the kernel's dL/dw through
+/// composite_bwd) against central differences of the f64 loss.
+#[test]
+fn interlevel_matches_reference_and_its_gradient() {
+    let e = engine();
+    let prop = Proposal::new(&e.ctx).unwrap();
+    let comp = Compositor::new(&e.ctx).unwrap();
+    let mut rng = Rng::new(54);
+    let lambda = 0.7f32;
+    for shared in [true, false] {
+        let rays = rays(&mut rng, 36, shared);
+        let n = rays.len();
+        // Main bins: resampled (jittered) for most rays; the source edges themselves (K of
+        // them, every other) for ray 5; zero-width bins for ray 6.
+        let (res, _, _) = run_resample(&rays, shared, Some(3), false);
+        let mut main_edges = res.edges.clone();
+        for j in 0..=K {
+            main_edges[5 * (K + 1) + j] = rays[5].edges[(2 * j).min(NP)];
+            let v = res.edges[6 * (K + 1) + j].max(0.25);
+            main_edges[6 * (K + 1) + j] = if j < 4 { 0.25 } else { v };
+        }
+        let main_sigma: Vec<f32> = (0..n * K)
+            .map(|i| {
+                if i % 5 == 0 {
+                    0.0
+                } else {
+                    rng.uniform(0.0, 40.0)
+                }
+            })
+            .collect();
+        let main_t_dt: Vec<f32> = (0..n)
+            .flat_map(|r| {
+                let e64: Vec<f64> = main_edges[r * (K + 1)..(r + 1) * (K + 1)]
+                    .iter()
+                    .map(|&v| v as f64)
+                    .collect();
+                bin_samples(&e64, rays[r].nf[0], rays[r].nf[1], false)
+                    .into_iter()
+                    .flat_map(|s| [s[0] as f32, s[1] as f32])
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let src_edges: Vec<f32> = if shared {
+            uniform_edges()
+        } else {
+            rays.iter().flat_map(|r| r.edges.clone()).collect()
+        };
+        let src_sigma: Vec<f32> = rays.iter().flat_map(|r| r.sigma.clone()).collect();
+        let src_t_dt: Vec<f32> = rays.iter().flat_map(|r| r.t_dt()).flatten().collect();
+        let buf = |name: &str, v: &[f32]| Buffer::from_slice(&e.ctx, name, v).unwrap();
+        let (be, bs, bt) = (
+            buf("src_edges", &src_edges),
+            buf("src_sigma", &src_sigma),
+            buf("src_t_dt", &src_t_dt),
+        );
+        let (me, ms, mt) = (
+            buf("main_edges", &main_edges),
+            buf("main_sigma", &main_sigma),
+            buf("main_t_dt", &main_t_dt),
+        );
+        let loss = buf("loss", &vec![f32::NAN; n + 1]);
+        let d_w = buf("d_weight", &vec![f32::NAN; n * NP + 1]);
+        let src = SourceBins {
+            edges: be.binding(),
+            stride: if shared { 0 } else { NP as u32 + 1 },
+            sigma: bs.binding(),
+            t_dt: bt.binding(),
+            count: NP as u32,
+        };
+        let main = MainBins {
+            edges: me.binding(),
+            sigma: ms.binding(),
+            t_dt: mt.binding(),
+            count: K as u32,
+        };
+        // dL/dsigma of the source samples: composite_bwd with only d_weight.
+        let spans: Vec<u32> = (0..n).flat_map(|r| [(r * NP) as u32, NP as u32]).collect();
+        let bspans = Buffer::<u32>::from_slice(&e.ctx, "spans", &spans).unwrap();
+        let zeros = buf("zeros", &vec![0.0; 4 * n * NP]);
+        let d_sigma = buf("d_sigma", &vec![f32::NAN; n * NP]);
+        let d_rgb = buf("d_rgb", &vec![0.0; 4 * n * NP]);
+        let mut rec = e.ctx.recorder("interlevel").unwrap();
+        prop.interlevel(
+            &mut rec,
+            &src,
+            &main,
+            n as u32,
+            lambda,
+            loss.binding(),
+            d_w.binding(),
+        )
+        .unwrap();
+        let samples = Samples {
+            rays: bspans.binding(),
+            sigma: bs.binding(),
+            rgb: zeros.binding(),
+            t_dt: bt.binding(),
+            n_rays: n as u64,
+            n_samples: (n * NP) as u64,
+        };
+        let grads = RayGrads {
+            d_rgba: zeros.binding(),
+            d_depth: zeros.binding(),
+            d_weight: d_w.binding(),
+            grad_scaling: false,
+        };
+        comp.backward(
+            &mut rec,
+            &samples,
+            Background::Fixed([0.0; 3]),
+            &grads,
+            d_sigma.binding(),
+            d_rgb.binding(),
+        )
+        .unwrap();
+        e.ctx.run(rec).unwrap();
+        assert_no_validation_messages(&e.ctx);
+        let (got_loss, got_dw, got_ds) = (
+            loss.read().unwrap(),
+            d_w.read().unwrap(),
+            d_sigma.read().unwrap(),
+        );
+        assert!(
+            got_loss[n].is_nan() && got_dw[n * NP].is_nan(),
+            "wrote past the ends"
+        );
+        let mut hit = 0;
+        for (r, ray) in rays.iter().enumerate() {
+            let src64: Vec<f64> = ray.edges.iter().map(|&v| v as f64).collect();
+            let me64: Vec<f64> = main_edges[r * (K + 1)..(r + 1) * (K + 1)]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            let dt: Vec<f32> = (0..K).map(|j| main_t_dt[2 * (r * K + j) + 1]).collect();
+            let (w, _) = ray_weights(&main_sigma[r * K..(r + 1) * K], &dt);
+            let f = |sigma: &[f32]| {
+                let dt: Vec<f32> = ray.t_dt().iter().map(|v| v[1]).collect();
+                interlevel(&src64, &ray_weights(sigma, &dt).0, &me64, &w, 1e-7)
+            };
+            let (want_l, want_g) = f(&ray.sigma);
+            let want_l = lambda as f64 * want_l;
+            assert!(
+                (got_loss[r] as f64 - want_l).abs() <= 1e-4 * want_l.abs() + 1e-6,
+                "ray {r} ({shared}): loss {} vs {want_l}",
+                got_loss[r]
+            );
+            for (i, g) in want_g.iter().enumerate() {
+                let want = lambda as f64 * g;
+                let got = got_dw[r * NP + i] as f64;
+                assert!(
+                    (got - want).abs() <= 1e-4 * want.abs() + 1e-4,
+                    "ray {r} ({shared}): dL/dw {i} {got} vs {want}"
+                );
+            }
+            hit += usize::from(want_l > 1e-4);
+            // Central differences through the densities, where the loss is smooth (a
+            // densities' step large enough for f32 rounding, small against the kinks).
+            for i in 0..NP {
+                let s0 = ray.sigma[i];
+                if !(0.05..1e4).contains(&s0) {
+                    continue;
+                }
+                let h = 1e-3 * s0;
+                let mut sp = ray.sigma.clone();
+                sp[i] = s0 + h;
+                let mut sm = ray.sigma.clone();
+                sm[i] = s0 - h;
+                let fd = lambda as f64 * (f(&sp).0 - f(&sm).0) / (2.0 * h as f64);
+                let got = got_ds[r * NP + i] as f64;
+                assert!(
+                    (got - fd).abs() <= 2e-2 * fd.abs() + 1e-3,
+                    "ray {r} ({shared}): dL/dsigma {i} {got} vs central difference {fd}"
+                );
+            }
+        }
+        assert!(
+            hit >= n / 4,
+            "too few rays with a loss to test ({hit} of {n})"
+        );
+    }
+}
