@@ -481,3 +481,261 @@ fn interlevel_matches_reference_and_its_gradient() {
         );
     }
 }
+
+/// Training with the proposal sampler on the demo scene (48x36): the loss falls as with the
+/// uniform strata, the proposal's parameters move, and the trained proposal bounds the main
+/// field's weights far better than the untrained one on the same batch (the interlevel loss
+/// with the proposal's parameters put back to their initial values); the main samples of a
+/// step lie sorted within the sampling range; a checkpoint keeps the sampler and every
+/// parameter. Precision f16 and the cooperative-matrix MLPs (where the device has them) train
+/// with it too; an occupancy grid is refused.
+#[test]
+fn proposal_sampler_trains_on_the_demo_scene() {
+    use extranerf_nerf::field::mlp::MlpMode;
+    use extranerf_nerf::model::{init_params, ModelConfig, Precision, ProposalConfig, Sampler};
+    use extranerf_nerf::renderer::Nerf;
+    use extranerf_nerf::run::{
+        load_checkpoint, save_checkpoint, training_views, Checkpoint, RunConfig,
+    };
+    use extranerf_nerf::trainer::{TrainConfig, Trainer};
+    use extranerf_nerf::views::TrainData;
+    let e = engine();
+    let ctx = &e.ctx;
+    let dir = extranerf_tests::scratch_dir("proposal-train");
+    extranerf_nerf::demo::write_demo_scene(&dir, 48, 36).unwrap();
+    let spec = extranerf_tests::demo_scene_spec(dir.clone());
+    let loaded = spec.load().unwrap();
+    let base = ModelConfig {
+        levels: 8,
+        log2_table: 14,
+        max_res: 256,
+        ..extranerf_nerf::autoconfig::model_for_scene(&loaded.scene)
+    };
+    let proposal = Sampler::Proposal(ProposalConfig {
+        samples: 48,
+        levels: 4,
+        log2_table: 12,
+        min_res: 8,
+        max_res: 64,
+        ..ProposalConfig::default()
+    });
+    let views = training_views(&spec, &loaded, &base).unwrap();
+    let data = TrainData::new(ctx, &views).unwrap();
+    let cfg = TrainConfig {
+        steps: 300,
+        decay_steps: 300,
+        rays: 256,
+        samples: 16,
+        seed: 7,
+        ..TrainConfig::default()
+    };
+    // The first and last window's loss, and the trainer.
+    let train = |sampler: &Sampler, precision: Precision, mlp: MlpMode| {
+        let model = ModelConfig {
+            sampler: sampler.clone(),
+            precision,
+            ..base.clone()
+        };
+        let p0 = init_params(&model, 7);
+        let nerf = Nerf::new(ctx, model, &p0, cfg.background).unwrap();
+        let mut t = Trainer::new(ctx, nerf, TrainConfig { mlp, ..cfg.clone() }, 0, None).unwrap();
+        let first = t.run_steps(ctx, &e.prims, &data, 50).unwrap().loss;
+        let mut last = first;
+        for _ in 1..6 {
+            last = t.run_steps(ctx, &e.prims, &data, 50).unwrap().loss;
+        }
+        (first, last, p0, t)
+    };
+    let (u_first, u_last, _, u) = train(&Sampler::Uniform, Precision::F32, MlpMode::Scalar);
+    let (p_first, p_last, p0, mut t) = train(&proposal, Precision::F32, MlpMode::Scalar);
+    assert_eq!(u.interlevel_loss().unwrap(), None);
+    assert!(t.is_fused(), "{:?}", t.standalone_reason());
+    assert!(
+        p_last < 0.5 * p_first,
+        "the loss falls: {p_first} -> {p_last}"
+    );
+    assert!(
+        p_last < 1.5 * u_last,
+        "as with the uniform strata: {p_last} vs {u_last} (from {u_first})"
+    );
+    let params = t.nerf().params().read().unwrap();
+    let lay = *t.nerf().field().layout();
+    let [pt, pm] = lay.proposal.unwrap();
+    for (name, (start, len)) in [("table", pt), ("MLP", pm)] {
+        let moved = (start..start + len).filter(|&i| params[i] != p0[i]).count();
+        assert!(moved > len / 10, "proposal {name}: {moved} of {len} moved");
+    }
+    // The same batch with the trained proposal, then with the untrained one.
+    t.gradient(ctx, &e.prims, &data).unwrap();
+    let trained = t.interlevel_loss().unwrap().unwrap();
+    let (t_dt, _) = t.last_batch_samples().unwrap();
+    let model = t.nerf().field().config().clone();
+    for ray in t_dt.chunks(cfg.samples as usize) {
+        assert!(
+            ray.windows(2).all(|p| p[0][0] <= p[1][0]),
+            "sorted: {ray:?}"
+        );
+        assert!(ray
+            .iter()
+            .all(|v| v[0] >= model.near && v[0] <= model.far && v[1] >= 0.0));
+    }
+    let mut reset = params.clone();
+    for (start, len) in [pt, pm] {
+        reset[start..start + len].copy_from_slice(&p0[start..start + len]);
+    }
+    t.nerf().params().write(&reset).unwrap();
+    t.gradient(ctx, &e.prims, &data).unwrap();
+    let untrained = t.interlevel_loss().unwrap().unwrap();
+    t.nerf().params().write(&params).unwrap();
+    eprintln!(
+        "loss: uniform {u_first:.5} -> {u_last:.5}, proposal {p_first:.5} -> {p_last:.5}; interlevel loss on one batch: trained proposal {trained:.5}, untrained {untrained:.5}"
+    );
+    assert!(
+        trained < 0.5 * untrained,
+        "the trained proposal bounds the weights: {trained} vs untrained {untrained}"
+    );
+    // A checkpoint keeps the sampler and every parameter.
+    let run = extranerf_tests::scratch_dir("proposal-checkpoint");
+    let config = RunConfig {
+        scene: spec.clone(),
+        model: model.clone(),
+        train: cfg.clone(),
+    };
+    save_checkpoint(
+        &run,
+        &Checkpoint {
+            config,
+            step: 300,
+            params: params.clone(),
+            moments: None,
+        },
+    )
+    .unwrap();
+    let ck = load_checkpoint(&run).unwrap();
+    assert_eq!(ck.config.model.sampler, proposal);
+    assert_eq!(ck.params, params);
+    // Precision f16 (the f16 table copy and MLP records of the main field) and, where the
+    // device has them, cooperative-matrix MLPs.
+    let (f_first, f_last, ..) = train(&proposal, Precision::F16, MlpMode::Scalar);
+    assert!(f_last < 0.5 * f_first, "f16: the loss falls");
+    if extranerf_tests::coop_tile_or_skip(ctx).is_some() {
+        let (c_first, c_last, ..) = train(&proposal, Precision::F32, MlpMode::Coop);
+        assert!(c_last < 0.5 * c_first, "coop: the loss falls");
+    }
+    // An occupancy grid is refused, saying why.
+    let nerf = Nerf::new(ctx, model.clone(), &p0, cfg.background).unwrap();
+    let occ = TrainConfig {
+        occupancy_res: 32,
+        ..cfg.clone()
+    };
+    let err = Trainer::new(ctx, nerf, occ, 0, None)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("occupancy"), "{err}");
+    assert_no_validation_messages(ctx);
+}
+
+/// The fused step with the proposal sampler's samples gives the standalone chain's losses and
+/// gradient, the proposal field's included (both draw the same samples: the proposal field and
+/// the resampling run as the same kernels before either), in NDC with L2 and in contracted
+/// world space with Huber, both with the distortion loss (over bins of unequal width) and
+/// random parameters. With cooperative-matrix MLPs the step is the standalone chain's, saying
+/// why.
+#[test]
+fn fused_step_with_the_proposal_sampler_matches_the_standalone_chain() {
+    use extranerf_nerf::field::mlp::MlpMode;
+    use extranerf_nerf::model::{init_params, ModelConfig, ProposalConfig, Sampler};
+    use extranerf_nerf::renderer::Nerf;
+    use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer};
+    use extranerf_nerf::views::TrainData;
+    let e = engine();
+    let ctx = &e.ctx;
+    let proposal = Sampler::Proposal(ProposalConfig {
+        samples: 24,
+        levels: 2,
+        log2_table: 8,
+        min_res: 4,
+        max_res: 16,
+        width: 8,
+        ..ProposalConfig::default()
+    });
+    let ndc = ModelConfig {
+        sampler: proposal.clone(),
+        ..extranerf_tests::tiny_model()
+    };
+    let world = ModelConfig {
+        space: extranerf_nerf::model::Space::World,
+        near: 0.5,
+        far: 8.0,
+        radius: 2.0,
+        contraction: extranerf_nerf::field::encodings::Contraction::L2,
+        ..ndc.clone()
+    };
+    for (ci, (model, rgb_loss)) in [(ndc, RgbLossKind::L2), (world, RgbLossKind::Huber)]
+        .into_iter()
+        .enumerate()
+    {
+        let views = extranerf_tests::demo_training_views("proposal-fused", &model);
+        let data = TrainData::new(ctx, &views).unwrap();
+        let mut rng = Rng::new(60 + ci as u64);
+        let mut params = init_params(&model, 5);
+        let lay = extranerf_nerf::model::ParamLayout::new(&model);
+        let [pt, pm] = lay.proposal.unwrap();
+        for (start, len) in [lay.table, pt] {
+            for v in &mut params[start..start + len] {
+                *v = rng.uniform(-1.0, 1.0);
+            }
+        }
+        let run = |fused: bool, mlp: MlpMode| {
+            let cfg = TrainConfig {
+                mlp,
+                rays: 100,
+                samples: 10,
+                rgb_loss,
+                huber_delta: 0.05,
+                distortion_lambda: 5e-2,
+                seed: 9,
+                background: [0.2, 0.5, 0.9],
+                random_background: ci == 1,
+                fused_step: fused,
+                ..TrainConfig::default()
+            };
+            let nerf = Nerf::new(ctx, model.clone(), &params, cfg.background).unwrap();
+            let mut t = Trainer::new(ctx, nerf, cfg, 3, None).unwrap();
+            let g = t.gradient(ctx, &e.prims, &data).unwrap();
+            let il = t.interlevel_loss().unwrap().unwrap();
+            (g, il, t)
+        };
+        let ((g_fused, s_fused), il_fused, t_fused) = run(true, MlpMode::Scalar);
+        let ((g_std, s_std), il_std, _) = run(false, MlpMode::Scalar);
+        assert!(t_fused.is_fused(), "{:?}", t_fused.standalone_reason());
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * (1.0 + b.abs());
+        assert!(
+            close(s_fused.loss, s_std.loss) && close(s_fused.mse, s_std.mse),
+            "case {ci}: fused {s_fused:?} vs standalone {s_std:?}"
+        );
+        assert!(
+            (il_fused - il_std).abs() <= 1e-4 * il_std.abs() + 1e-7 && il_std > 0.0,
+            "case {ci}: interlevel loss fused {il_fused} vs standalone {il_std}"
+        );
+        let sections = [lay.table, lay.density, lay.color, pt, pm];
+        for (si, &(start, len)) in sections.iter().enumerate() {
+            let want = &g_std[start..start + len];
+            let got = &g_fused[start..start + len];
+            let scale = want.iter().fold(0f32, |m, v| m.max(v.abs()));
+            assert!(scale > 0.0, "case {ci} section {si}: no gradient");
+            for (j, (&g, &w)) in got.iter().zip(want).enumerate() {
+                assert!(
+                    g.is_finite() && (g - w).abs() <= 2e-5 * scale + 1e-3 * w.abs(),
+                    "case {ci} section {si} param {j}: fused {g} vs standalone {w} (largest {scale})"
+                );
+            }
+        }
+        if extranerf_tests::coop_tile_or_skip(ctx).is_some() {
+            let (_, _, t) = run(true, MlpMode::Coop);
+            assert!(!t.is_fused());
+            assert!(t.standalone_reason().unwrap().contains("proposal"));
+        }
+    }
+    assert_no_validation_messages(ctx);
+}

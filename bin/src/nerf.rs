@@ -12,7 +12,7 @@ use extranerf_nerf::autoconfig::{
 use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::field::mlp::MlpMode;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet, PooledError};
-use extranerf_nerf::model::Precision;
+use extranerf_nerf::model::{Precision, ProposalConfig, Sampler};
 use extranerf_nerf::mvs_depth::MvsDepthSettings;
 use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
@@ -74,6 +74,16 @@ pub struct TrainArgs {
     /// Hash-grid levels (paper: 16).
     #[arg(long)]
     levels: Option<u32>,
+    /// Where each ray's --samples go: uniform (jittered strata over the sampling range) or
+    /// proposal (Mip-NeRF 360's: a small density-only field, a 6-level 2^16 hash grid and a
+    /// 16-wide MLP, is evaluated at --proposal-samples strata per ray, and the samples are drawn
+    /// from its weights' histogram; an interlevel loss trains it; it does not use an occupancy
+    /// grid; renders still use uniform strata) [default: uniform].
+    #[arg(long, value_enum)]
+    sampler: Option<SamplerArg>,
+    /// The proposal field's strata per ray, 2 to 256 [default: 64].
+    #[arg(long, value_name = "N")]
+    proposal_samples: Option<u32>,
     /// Finest hash-grid resolution (paper: 2048).
     #[arg(long)]
     max_res: Option<u32>,
@@ -242,6 +252,15 @@ pub enum BenchSteps {
     Both,
 }
 
+/// `train --sampler`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SamplerArg {
+    /// The same jittered strata on every ray.
+    Uniform,
+    /// A proposal field's histogram.
+    Proposal,
+}
+
 /// `train --background`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BackgroundArg {
@@ -294,6 +313,8 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             ("--samples", a.samples.is_some()),
             ("--log2-table", a.log2_table.is_some()),
             ("--levels", a.levels.is_some()),
+            ("--sampler", a.sampler.is_some()),
+            ("--proposal-samples", a.proposal_samples.is_some()),
             ("--max-res", a.max_res.is_some()),
             ("--width", a.width.is_some()),
             ("--precision", a.precision.is_some()),
@@ -395,6 +416,21 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
         if let Some(w) = a.width {
             model.density_width = w;
             model.color_width = w;
+        }
+        match a.sampler.unwrap_or(SamplerArg::Uniform) {
+            SamplerArg::Uniform => {
+                if a.proposal_samples.is_some() {
+                    bail!("--proposal-samples applies to --sampler proposal");
+                }
+            }
+            SamplerArg::Proposal => {
+                let mut p = ProposalConfig::default();
+                apply(&mut p.samples, a.proposal_samples);
+                // No finer than the main field.
+                p.max_res = p.max_res.min(model.max_res);
+                p.min_res = p.min_res.min(p.max_res);
+                model.sampler = Sampler::Proposal(p);
+            }
         }
         let mut train = TrainConfig::default();
         apply(&mut train.rays, a.rays);

@@ -289,6 +289,20 @@ pub fn train_loop(
         cfg.train.rays,
         cfg.train.samples
     ));
+    if let Some(p) = cfg.model.sampler.proposal() {
+        rep.note(&format!(
+            "sampler: proposal: a density field (hash grid {}x{}x2^{}, N {}..{}, MLP {:?}) at {} strata per ray; the {} samples per ray drawn from its weights; interlevel loss weight {}",
+            p.levels,
+            p.features,
+            p.log2_table,
+            p.min_res,
+            p.max_res,
+            p.mlp().dims,
+            p.samples,
+            cfg.train.samples,
+            p.interlevel
+        ));
+    }
     match trainer.standalone_reason() {
         None => rep.note(
             "training step: fused kernel (pixels to gradients) + MLP weight-gradient reduction",

@@ -62,6 +62,125 @@ pub struct ModelConfig {
     /// the fused march reads the f32 table). Arithmetic stays f32.
     #[serde(default)]
     pub precision: Precision,
+    /// How training places the samples along a ray: uniform strata, or a proposal field's
+    /// histogram. Absent from configs written before the proposal sampler (uniform).
+    #[serde(default, skip_serializing_if = "Sampler::is_uniform")]
+    pub sampler: Sampler,
+}
+
+/// How the field's samples are placed along a training ray.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Sampler {
+    /// The same count of jittered strata on every ray (over the occupied part of it with an
+    /// occupancy grid).
+    #[default]
+    Uniform,
+    /// Mip-NeRF 360's proposal sampler: a small density-only field (its own hash grid and
+    /// MLP, after the main field in the flat parameter buffer) is evaluated at
+    /// `samples` strata per ray, and the main field's samples are drawn from its weights'
+    /// histogram; the interlevel loss trains it to bound the main field's weights.
+    Proposal(ProposalConfig),
+}
+
+impl Sampler {
+    /// True for the uniform sampler (configs written without a sampler).
+    pub fn is_uniform(&self) -> bool {
+        matches!(self, Sampler::Uniform)
+    }
+
+    /// The proposal field's settings, with the proposal sampler.
+    pub fn proposal(&self) -> Option<&ProposalConfig> {
+        match self {
+            Sampler::Uniform => None,
+            Sampler::Proposal(p) => Some(p),
+        }
+    }
+
+    /// The name in reports and on the command line.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Sampler::Uniform => "uniform",
+            Sampler::Proposal(_) => "proposal",
+        }
+    }
+}
+
+/// The proposal field and its sampling (nerfacto's first proposal network, smaller).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProposalConfig {
+    /// Strata per ray the proposal field is evaluated at (the histogram's bins).
+    pub samples: u32,
+    /// Hash-grid levels.
+    pub levels: u32,
+    /// Features per level.
+    pub features: u32,
+    /// log2 of the per-level table size.
+    pub log2_table: u32,
+    /// Coarsest grid resolution.
+    pub min_res: u32,
+    /// Finest grid resolution.
+    pub max_res: u32,
+    /// Hidden width of its one-layer density MLP.
+    pub width: u32,
+    /// Weight of the interlevel loss (per ray, averaged over the batch).
+    pub interlevel: f32,
+}
+
+impl Default for ProposalConfig {
+    fn default() -> Self {
+        ProposalConfig {
+            samples: 64,
+            levels: 6,
+            features: 2,
+            log2_table: 16,
+            min_res: 16,
+            max_res: 256,
+            width: 16,
+            interlevel: 1.0,
+        }
+    }
+}
+
+impl ProposalConfig {
+    /// The proposal field's hash grid.
+    pub fn grid(&self) -> HashGridConfig {
+        HashGridConfig {
+            levels: self.levels,
+            features: self.features,
+            log2_table: self.log2_table,
+            min_res: self.min_res,
+            max_res: self.max_res,
+        }
+    }
+
+    /// Its density MLP: the encoding to `width` to the density logit.
+    pub fn mlp(&self) -> MlpConfig {
+        MlpConfig {
+            dims: vec![self.levels * self.features, self.width, 1],
+        }
+    }
+
+    /// Checks every setting.
+    pub fn validate(&self) -> Result<()> {
+        self.grid().validate()?;
+        self.mlp().validate()?;
+        if !(2..=crate::render::sample::MAX_PROBES).contains(&self.samples) {
+            return Err(GpuError::Usage(format!(
+                "{} proposal samples per ray: use 2 to {}",
+                self.samples,
+                crate::render::sample::MAX_PROBES
+            )));
+        }
+        if !(self.interlevel.is_finite() && self.interlevel >= 0.0) {
+            return Err(GpuError::Usage(format!(
+                "interlevel loss weight {}: it must be finite and >= 0",
+                self.interlevel
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// The space rays are marched in.
@@ -130,6 +249,7 @@ impl Default for ModelConfig {
             radius: 1.0,
             contraction: Contraction::None,
             precision: Precision::F32,
+            sampler: Sampler::Uniform,
         }
     }
 }
@@ -212,6 +332,9 @@ impl ModelConfig {
                 self.center, self.radius
             )));
         }
+        if let Some(p) = self.sampler.proposal() {
+            p.validate()?;
+        }
         if self.precision == Precision::F16 && self.features != 2 {
             return Err(GpuError::Usage(format!(
                 "precision f16 needs 2 features per level, not {}",
@@ -231,6 +354,9 @@ pub struct ParamLayout {
     pub density: (usize, usize),
     /// Colour MLP.
     pub color: (usize, usize),
+    /// With the proposal sampler: the proposal field's hash table and density MLP, after the
+    /// colour MLP.
+    pub proposal: Option<[(usize, usize); 2]>,
     /// Total floats including alignment gaps.
     pub total: usize,
 }
@@ -244,11 +370,21 @@ impl ParamLayout {
         let c = cfg.color_mlp().param_count();
         let d0 = up(t);
         let c0 = d0 + up(d);
+        let mut total = c0 + up(c);
+        let proposal = cfg.sampler.proposal().map(|p| {
+            let pt = p.grid().param_count() as usize;
+            let pm = p.mlp().param_count();
+            let t0 = total;
+            let m0 = t0 + up(pt);
+            total = m0 + up(pm);
+            [(t0, pt), (m0, pm)]
+        });
         ParamLayout {
             table: (0, t),
             density: (d0, d),
             color: (c0, c),
-            total: c0 + up(c),
+            proposal,
+            total,
         }
     }
 }
@@ -262,6 +398,14 @@ impl ParamLayout {
             buf.slice(self.color.0, self.color.1)?,
         ])
     }
+
+    /// The proposal field's sections (hash table, density MLP) of a flat buffer, with the
+    /// proposal sampler.
+    pub fn proposal_sections<'a>(&self, buf: &'a Buffer<f32>) -> Result<Option<[Binding<'a>; 2]>> {
+        self.proposal
+            .map(|[t, m]| Ok([buf.slice(t.0, t.1)?, buf.slice(m.0, m.1)?]))
+            .transpose()
+    }
 }
 
 /// Initial parameters: table entries uniform in +-1e-4 (Instant-NGP), MLP weights Xavier-uniform,
@@ -270,13 +414,21 @@ pub fn init_params(cfg: &ModelConfig, seed: u64) -> Vec<f32> {
     let lay = ParamLayout::new(cfg);
     let mut rng = Rng::new(seed);
     let mut p = vec![0f32; lay.total];
-    for v in &mut p[lay.table.0..lay.table.0 + lay.table.1] {
-        *v = rng.uniform(-1e-4, 1e-4);
-    }
-    for (mlp, start) in [
+    let mut tables = vec![lay.table];
+    let mut mlps = vec![
         (cfg.density_mlp(), lay.density.0),
         (cfg.color_mlp(), lay.color.0),
-    ] {
+    ];
+    if let (Some(pc), Some([t, m])) = (cfg.sampler.proposal(), lay.proposal) {
+        tables.push(t);
+        mlps.push((pc.mlp(), m.0));
+    }
+    for (start, len) in tables {
+        for v in &mut p[start..start + len] {
+            *v = rng.uniform(-1e-4, 1e-4);
+        }
+    }
+    for (mlp, start) in mlps {
         for l in 0..mlp.layers() {
             let (ni, no) = (mlp.dims[l] as usize, mlp.dims[l + 1] as usize);
             let a = (6.0 / (ni + no) as f64).sqrt() as f32;

@@ -282,7 +282,22 @@ impl Nerf {
         background: Background,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
-        let space = self.space;
+        self.record_rays(rec, ws, cameras, n_cameras, n, prof)?;
+        self.record_strata(rec, ws, n, seed, targets, skip, prof)?;
+        self.record_field_forward(rec, ws, n, background, prof)
+    }
+
+    /// Records the rays of `ws.pixels[..n]`: in the field's space (`ws.origins`, `ws.dirs`)
+    /// and in the world (`ws.world_origins`, `ws.world_dirs`, for the view directions).
+    pub(crate) fn record_rays<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        n: u64,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
         self.raygen.generate(
             rec,
             cameras,
@@ -291,7 +306,7 @@ impl Nerf {
             ws.origins.binding(),
             ws.dirs.binding(),
             n,
-            space,
+            self.space,
         )?;
         self.raygen.generate(
             rec,
@@ -303,27 +318,49 @@ impl Nerf {
             n,
             RaySpace::World,
         )?;
-        mark(prof, rec, "rays (NDC + world)")?;
-        let io = ws.io();
-        let out = SampleOutputs {
-            positions: io.positions,
+        mark(prof, rec, "rays (NDC + world)")
+    }
+
+    /// How samples are spaced along the field's rays: linear in NDC, in disparity in the
+    /// world.
+    pub(crate) fn spacing(&self) -> Spacing {
+        match self.space {
+            RaySpace::Ndc { .. } => Spacing::Linear,
+            RaySpace::World => Spacing::Disparity,
+        }
+    }
+
+    /// The outputs of a sampler into `ws`'s main samples.
+    pub(crate) fn sample_outputs<'a>(&self, ws: &'a Workspace) -> SampleOutputs<'a> {
+        SampleOutputs {
+            positions: ws.io().positions,
             t_dt: ws.t_dt.binding(),
             s_ds: ws.s_ds.binding(),
             rays: ws.spans.binding(),
-        };
-        let spacing = match space {
-            RaySpace::Ndc { .. } => Spacing::Linear,
-            RaySpace::World => Spacing::Disparity,
-        };
+        }
+    }
+
+    /// Records the stratified samples of the rays of [`Nerf::record_rays`] into `ws`.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub(crate) fn record_strata<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        n: u64,
+        seed: Option<u32>,
+        targets: Option<Binding<'a>>,
+        skip: Option<&SkipEmpty<'a>>,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
         self.sampler.record(
             rec,
             ws.origins.binding(),
             ws.dirs.binding(),
             ws.near_far.binding(),
-            &out,
+            &self.sample_outputs(ws),
             n,
             ws.samples,
-            spacing,
+            self.spacing(),
             seed,
             targets,
             skip,
@@ -336,10 +373,28 @@ impl Nerf {
             } else {
                 "stratified samples"
             },
-        )?;
+        )
+    }
+
+    /// Records the field at `ws`'s samples and the compositing into `ws.out_rgba` /
+    /// `ws.out_depth`.
+    pub(crate) fn record_field_forward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        n: u64,
+        background: Background,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
         let ns = n * ws.samples as u64;
-        self.field
-            .forward(rec, self.sections(&self.params)?, &io, ns, ws.samples, prof)?;
+        self.field.forward(
+            rec,
+            self.sections(&self.params)?,
+            &ws.io(),
+            ns,
+            ws.samples,
+            prof,
+        )?;
         self.comp.forward(
             rec,
             &ws.samples(n),

@@ -701,7 +701,7 @@ pub fn write_exr_channels(
 mod tests {
     use super::*;
     use crate::field::encodings::Contraction;
-    use crate::model::{Precision, Space};
+    use crate::model::{Precision, ProposalConfig, Sampler, Space};
     use crate::trainer::RgbLossKind;
 
     fn config() -> RunConfig {
@@ -745,6 +745,16 @@ mod tests {
         old["model"].as_object_mut().unwrap().remove("precision");
         let back: RunConfig = serde_json::from_value(old.clone()).unwrap();
         assert_eq!(back.model.precision, Precision::F32);
+        // A config from before the proposal sampler (no `sampler`) reads as uniform and writes
+        // no `sampler`; the proposal sampler's settings round-trip.
+        assert!(old["model"].get("sampler").is_none());
+        assert_eq!(back.model.sampler, Sampler::Uniform);
+        let mut with = config();
+        with.model.sampler = Sampler::Proposal(ProposalConfig::default());
+        let json = serde_json::to_value(&with).unwrap();
+        assert_eq!(json["model"]["sampler"]["proposal"]["samples"], 64);
+        let back: RunConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(back, with);
         // A value that names no choice is refused, naming the choices.
         old["model"]["space"] = "spherical".into();
         let e = serde_json::from_value::<RunConfig>(old)

@@ -8,17 +8,19 @@
 use serde::{Deserialize, Serialize};
 
 use extranerf_gpu::kernels::render::{batch as kb, pixels as kp};
-use extranerf_gpu::{Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result};
+use extranerf_gpu::{Binding, Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result};
 use extranerf_prims::{Prims, ReducePlan};
 
 use crate::field::mlp::{MlpMode, MlpPath};
+use crate::field::proposal::{ProposalField, ProposalWork};
 use crate::model::{mark, Profiler, Space};
 use crate::optim::{Adam, AdamConfig, AdamMode, SparseTable, TableDecay};
-use crate::render::composite::{Background, RayGrads};
+use crate::render::composite::{Background, RayGrads, Samples};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
-use crate::render::sample::{SkipEmpty, MAX_PROBES};
-use crate::render::train_step::{FusedStep, StepLosses, StepOutputs};
+use crate::render::proposal::{MainBins, Proposal, RaySet, SourceBins, HISTOGRAM_PAD};
+use crate::render::sample::{SampleOutputs, SkipEmpty, MAX_PROBES};
+use crate::render::train_step::{FusedStep, GivenSamples, StepLosses, StepOutputs};
 use crate::renderer::{Nerf, Workspace};
 use crate::views::{DrawnBatch, TrainData};
 
@@ -312,7 +314,20 @@ pub struct Trainer {
     standalone_reason: Option<String>,
     /// The MLP path the steps take.
     mlp_path: MlpPath,
+    /// With the proposal sampler: its field, buffers and kernels.
+    proposal: Option<ProposalTrain>,
 }
+
+/// What the proposal sampler trains with.
+#[derive(Debug)]
+struct ProposalTrain {
+    field: ProposalField,
+    work: ProposalWork,
+    kernels: Proposal,
+}
+
+/// Why the fused step does not train with the proposal sampler and cooperative matrices.
+const PROPOSAL_STANDALONE: &str = "the fused step takes the proposal sampler's samples with scalar MLPs only; with cooperative-matrix MLPs it trains with the standalone chain";
 
 impl Trainer {
     /// A trainer for `nerf` (its parameters are trained in place), at step `step` with Adam
@@ -336,8 +351,26 @@ impl Trainer {
         let mut nerf = nerf;
         let mlp_path = nerf.set_mlp(ctx, cfg.mlp)?;
         let total = nerf.field.layout().total;
+        let proposal = match ProposalField::new(ctx, nerf.field.config())? {
+            None => None,
+            Some(mut field) => {
+                if cfg.occupancy_res > 0 {
+                    return Err(GpuError::Usage(
+                        "the proposal sampler places the samples where its field's weights are; it does not use an occupancy grid (set the occupancy resolution to 0)".into(),
+                    ));
+                }
+                field.set_path(ctx, mlp_path)?;
+                Some(ProposalTrain {
+                    work: ProposalWork::new(ctx, &field, cfg.rays, cfg.samples)?,
+                    kernels: Proposal::new(ctx)?,
+                    field,
+                })
+            }
+        };
         let why_not = if !cfg.fused_step {
             Some("the standalone chain was asked for".to_string())
+        } else if proposal.is_some() && mlp_path != MlpPath::Scalar {
+            Some(PROPOSAL_STANDALONE.to_string())
         } else {
             FusedStep::supports(&nerf.field)
                 .err()
@@ -423,7 +456,34 @@ impl Trainer {
             fused,
             standalone_reason: why_not,
             mlp_path,
+            proposal,
         })
+    }
+
+    /// The interlevel loss of the last step recorded (the batch mean times its weight), with
+    /// the proposal sampler.
+    pub fn interlevel_loss(&self) -> Result<Option<f64>> {
+        self.proposal
+            .as_ref()
+            .map(|p| Ok(p.work.loss.read()?.iter().map(|&v| v as f64).sum()))
+            .transpose()
+    }
+
+    /// The main samples of the last step recorded by the standalone chain or with the proposal
+    /// sampler, `(t, dt)` for each
+    /// of `samples` per ray, and each ray's rendered depth (where the proposal sampler put the
+    /// samples against what the field renders).
+    pub fn last_batch_samples(&self) -> Result<(Vec<[f32; 2]>, Vec<f32>)> {
+        let t_dt = match (&self.fused, &self.proposal) {
+            (None, _) => self.ws.t_dt.read()?,
+            (Some(_), Some(p)) => p.work.main_t_dt.read()?,
+            (Some(_), None) => {
+                return Err(GpuError::Usage(
+                    "the fused step places its strata in registers; the standalone chain and the proposal sampler store them".into(),
+                ))
+            }
+        };
+        Ok((t_dt, self.ws.out_depth.read()?))
     }
 
     /// True when steps run the fused kernel ([`FusedStep`]).
@@ -645,18 +705,25 @@ impl Trainer {
         let n = ws.rays as u64;
         let ns = n * ws.samples as u64;
         let nerf = &self.nerf;
-        nerf.record_forward(
-            rec,
-            ws,
-            data.cameras.binding(),
-            data.n_images,
-            n,
-            Some(seed),
-            Some(ws.target_rgb.binding()),
-            skip,
-            self.background(seed),
-            prof,
-        )?;
+        match &self.proposal {
+            None => nerf.record_forward(
+                rec,
+                ws,
+                data.cameras.binding(),
+                data.n_images,
+                n,
+                Some(seed),
+                Some(ws.target_rgb.binding()),
+                skip,
+                self.background(seed),
+                prof,
+            )?,
+            Some(p) => {
+                nerf.record_rays(rec, ws, data.cameras.binding(), data.n_images, n, prof)?;
+                self.record_proposal_samples(rec, p, seed, &nerf.sample_outputs(ws), prof)?;
+                nerf.record_field_forward(rec, ws, n, self.background(seed), prof)?;
+            }
+        }
         let samples = ws.samples(n);
         if self.cfg.distortion_lambda > 0.0 {
             nerf.comp.distortion(
@@ -729,7 +796,149 @@ impl Trainer {
             ns,
             ws.samples,
             prof,
+        )?;
+        match &self.proposal {
+            Some(p) => {
+                let main = MainBins {
+                    edges: p.work.main_edges.binding(),
+                    sigma: ws.io().sigma,
+                    t_dt: ws.t_dt.binding(),
+                    count: ws.samples,
+                };
+                self.record_proposal_backward(rec, p, &main, prof)
+            }
+            None => Ok(()),
+        }
+    }
+
+    /// The proposal sampler's half of the forward pass, after the rays: the proposal field at
+    /// its strata, then the main samples drawn from its weights into `out`.
+    fn record_proposal_samples<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        p: &'a ProposalTrain,
+        seed: u32,
+        out: &SampleOutputs<'a>,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let (ws, nerf, w) = (&self.ws, &self.nerf, &p.work);
+        let n = ws.rays as u64;
+        let strata = SampleOutputs {
+            positions: w.positions.binding(),
+            t_dt: w.t_dt.binding(),
+            s_ds: w.s_ds.binding(),
+            rays: w.spans.binding(),
+        };
+        nerf.sampler.record(
+            rec,
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            ws.near_far.binding(),
+            &strata,
+            n,
+            w.samples,
+            nerf.spacing(),
+            Some(seed),
+            Some(ws.target_rgb.binding()),
+            None,
+        )?;
+        mark(prof, rec, "proposal strata")?;
+        p.field
+            .forward(rec, self.proposal_sections(&nerf.params)?, w, prof)?;
+        let rays = RaySet {
+            origins: ws.origins.binding(),
+            directions: ws.dirs.binding(),
+            near_far: ws.near_far.binding(),
+            targets: Some(ws.target_rgb.binding()),
+            n_rays: ws.rays,
+        };
+        p.kernels.resample(
+            rec,
+            &Self::proposal_bins(w),
+            &rays,
+            w.main_edges.binding(),
+            out,
+            ws.samples,
+            HISTOGRAM_PAD,
+            nerf.spacing(),
+            Some(seed),
+        )?;
+        mark(prof, rec, "proposal resampling")
+    }
+
+    /// The proposal sampler's half of the backward pass, after the main field's: the
+    /// interlevel loss against the `main` samples' weights, its gradient through the
+    /// proposal's compositing and field.
+    fn record_proposal_backward<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        p: &'a ProposalTrain,
+        main: &MainBins<'a>,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let (ws, nerf, w) = (&self.ws, &self.nerf, &p.work);
+        let n = ws.rays as u64;
+        let src = Self::proposal_bins(w);
+        p.kernels.interlevel(
+            rec,
+            &src,
+            main,
+            ws.rays,
+            p.field.config().interlevel / ws.rays as f32,
+            w.loss.binding(),
+            w.d_weight.binding(),
+        )?;
+        mark(prof, rec, "interlevel loss")?;
+        let samples = Samples {
+            rays: w.spans.binding(),
+            sigma: w.sigma.binding(),
+            rgb: w.zero_rgb.binding(),
+            t_dt: w.t_dt.binding(),
+            n_rays: n,
+            n_samples: n * w.samples as u64,
+        };
+        let g = RayGrads {
+            d_rgba: w.zero_rgb.binding(),
+            d_depth: w.zero_rgb.binding(),
+            d_weight: w.d_weight.binding(),
+            grad_scaling: false,
+        };
+        nerf.comp.backward(
+            rec,
+            &samples,
+            Background::Fixed([0.0; 3]),
+            &g,
+            w.d_sigma.binding(),
+            w.d_rgb.binding(),
+        )?;
+        mark(prof, rec, "proposal composite bwd")?;
+        p.field.backward(
+            rec,
+            self.proposal_sections(&nerf.params)?,
+            self.proposal_sections(&self.grads)?,
+            w,
+            prof,
         )
+    }
+
+    /// The proposal strata as the resampling's source bins (uniform edges in s).
+    fn proposal_bins(w: &ProposalWork) -> SourceBins<'_> {
+        SourceBins {
+            edges: w.uniform_edges.binding(),
+            stride: 0,
+            sigma: w.sigma.binding(),
+            t_dt: w.t_dt.binding(),
+            count: w.samples,
+        }
+    }
+
+    /// The proposal field's sections of a flat buffer (parameters or gradients).
+    fn proposal_sections<'a>(&self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 2]> {
+        self.nerf
+            .field
+            .layout()
+            .proposal_sections(buf)?
+            .ok_or_else(|| GpuError::Usage("the field has no proposal sections".into()))
     }
 
     /// The background of a step drawn with `seed`: random per ray when the config asks for it,
@@ -860,6 +1069,32 @@ impl Trainer {
             }
         }
         mark(prof, rec, "zero gradients")?;
+        let given = match &self.proposal {
+            None => None,
+            Some(p) => {
+                let w = &p.work;
+                nerf.record_rays(
+                    rec,
+                    ws,
+                    data.cameras.binding(),
+                    data.n_images,
+                    ws.rays as u64,
+                    prof,
+                )?;
+                let out = SampleOutputs {
+                    positions: w.main_positions.binding(),
+                    t_dt: w.main_t_dt.binding(),
+                    s_ds: w.main_s_ds.binding(),
+                    rays: w.main_spans.binding(),
+                };
+                self.record_proposal_samples(rec, p, seed, &out, prof)?;
+                Some(GivenSamples {
+                    t_dt: w.main_t_dt.binding(),
+                    s_ds: w.main_s_ds.binding(),
+                    sigma: w.main_sigma.binding(),
+                })
+            }
+        };
         let losses = StepLosses {
             loss: self.cfg.loss()?,
             // The kernel's loss is per ray; the batch mean (like the photometric loss).
@@ -890,10 +1125,22 @@ impl Trainer {
                 dist_loss: ws.dist_loss.binding(),
                 touched: self.touched.as_ref().map(|t| t.binding()),
             },
+            given.as_ref(),
         )?;
         mark(prof, rec, "fused step (march, losses, backward)")?;
         fused.record_weight_gradients(rec, &nerf.field, nerf.sections(&self.grads)?)?;
-        mark(prof, rec, "MLP weight gradients")
+        mark(prof, rec, "MLP weight gradients")?;
+        if let Some(p) = &self.proposal {
+            let w = &p.work;
+            let main = MainBins {
+                edges: w.main_edges.binding(),
+                sigma: w.main_sigma.binding(),
+                t_dt: w.main_t_dt.binding(),
+                count: ws.samples,
+            };
+            self.record_proposal_backward(rec, p, &main, prof)?;
+        }
+        Ok(())
     }
 
     /// Runs one training step with a timestamp after every stage: `(stage, ms)` in order.

@@ -76,6 +76,11 @@ const STEP_GRAD_SCALING: u32 = 16u;
 // Set the bit of every vec4 of the table the step adds a gradient to in `touched` (for the
 // sparse Adam, optim/adam_sparse.wgsl; unsplit tables only: the host refuses split ones).
 const STEP_TOUCHED: u32 = 32u;
+// The samples are given (the proposal sampler's, render/proposal.wgsl's resample): sample j of
+// ray i is (t, dt) = given_t_dt[i * samples + j] and (s, ds) = given_s_ds[...], in place of
+// the strata; the step writes each sample's density to given_sigma for the interlevel loss.
+// The scalar kernel only (group_slots); the host refuses it with cooperative matrices.
+const STEP_GIVEN: u32 = 64u;
 
 // The strata's spacing (render/sample.wgsl; common/field_eval.wgsl's t_of asks for it): 0
 // (linear in t) in NDC, else 1 (linear in disparity).
@@ -114,6 +119,11 @@ fn sample_spacing() -> u32 {
 @group(0) @binding(19) var<storage, read_write> saved_color: array<vec4<f32>>;
 // With STEP_TOUCHED: bit i of word w marks the table's vec4 32 w + i as holding a gradient.
 @group(0) @binding(20) var<storage, read_write> touched: array<atomic<u32>>;
+// With STEP_GIVEN: the samples, and their densities out (bindings 21 and 22 are the
+// cooperative-matrix step's, common/coop_fused.wgsl).
+@group(0) @binding(23) var<storage, read> given_t_dt: array<vec2<f32>>;
+@group(0) @binding(24) var<storage, read> given_s_ds: array<vec2<f32>>;
+@group(0) @binding(25) var<storage, read_write> given_sigma: array<f32>;
 
 // The vec4 at float e (a multiple of 4) of the colour (or density) MLP's records; a branch, so
 // each binding is only indexed within its own range.
@@ -287,16 +297,20 @@ fn stratum(ray: u32, j: u32, mask: ptr<function, ProbeMask>) -> vec3<f32> {
 }
 
 // The samples of group gi of ray i: validity, record offsets (density, colour), strata
-// (t, dt, s) and scene-normalised points. Slots past the last sample repeat it.
+// (t, dt, s), each one's share ds of s, and scene-normalised points. Slots past the last
+// sample repeat it.
 struct Slots {
     valid: vec4<bool>,
     rd: vec4<u32>,
     rc: vec4<u32>,
     st: array<vec3<f32>, 4>,
+    ds: vec4<f32>,
     u: array<vec3<f32>, 4>,
 }
 
-fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>, mask: ptr<function, ProbeMask>) -> Slots {
+// ds: the strata's share of s (StepRay.ds), used unless the samples are given.
+fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>, mask: ptr<function, ProbeMask>,
+               ds: f32) -> Slots {
     let k = params.samples;
     var sl: Slots;
     for (var q = 0u; q < MLP_GROUP; q += 1u) {
@@ -305,7 +319,15 @@ fn group_slots(i: u32, gi: u32, ray: array<vec3<f32>, 2>, mask: ptr<function, Pr
         let jj = min(j, k - 1u);
         sl.rd[q] = (i * k + jj) * params.density_stride;
         sl.rc[q] = (i * k + jj) * params.color_stride;
-        sl.st[q] = stratum(i, jj, mask);
+        if (params.flags & STEP_GIVEN) != 0u {
+            let tdt = given_t_dt[i * k + jj];
+            let sds = given_s_ds[i * k + jj];
+            sl.st[q] = vec3<f32>(tdt, sds.x);
+            sl.ds[q] = sds.y;
+        } else {
+            sl.st[q] = stratum(i, jj, mask);
+            sl.ds[q] = ds;
+        }
         sl.u[q] = scene_point(ray, sl.st[q].x);
     }
     return sl;
@@ -430,7 +452,8 @@ fn step_losses(i: u32, f: Composite, ds: f32) -> StepGrad {
 // The compositing gradient of the next sample in order (stratum st, density sigma, colour
 // col): (dL/d colour MLP output rgb, through the sigmoid; dL/d sigma), both scaled by Floaters
 // No More's min(1, t^2) when on.
-fn composite_grad(g: ptr<function, StepGrad>, st: vec3<f32>, sigma: f32, col: vec3<f32>) -> vec4<f32> {
+fn composite_grad(g: ptr<function, StepGrad>, st: vec3<f32>, sigma: f32, col: vec3<f32>,
+                  ds: f32) -> vec4<f32> {
     let dt = st.y;
     let x = optical_depth(sigma, dt);
     let w = exp(-(*g).tau) * alpha_of(x);
@@ -440,7 +463,7 @@ fn composite_grad(g: ptr<function, StepGrad>, st: vec3<f32>, sigma: f32, col: ve
     let w_gt = (*g).w_tot - (*g).w_lt - w;
     let wm_gt = (*g).wm_tot - (*g).wm_lt - w * m;
     let below = m * (*g).w_lt - (*g).wm_lt;
-    let dw = (*g).lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / 3.0 * w * (*g).ds);
+    let dw = (*g).lam * (2.0 * below + 2.0 * (wm_gt - m * w_gt) + 2.0 / 3.0 * w * ds);
     (*g).w_lt += w;
     (*g).wm_lt += w * m;
     let uj = dot(col, (*g).gc) + st.x * (*g).gd + dw;

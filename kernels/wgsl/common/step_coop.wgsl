@@ -176,7 +176,7 @@ fn train_step_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
             u = scene_point(r.ray, st.x);
             sigma = trunc_exp(rec_get(false, rd + d_out).x);
             let col = sigmoid3(rec_get(true, rc + c_out));
-            let dg = composite_grad(&sgrad, st, sigma, col);
+            let dg = composite_grad(&sgrad, st, sigma, col, sgrad.ds);
             d_sigma = dg.w;
             g[0] = vec4<f32>(dg.xyz, 0.0);
         }

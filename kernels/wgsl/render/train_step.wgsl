@@ -2,7 +2,8 @@
 // batch pixel and the parameter gradients, except the MLP weight-gradient reduction.
 //
 //   pass 1 (forward): ray (NDC or world), jittered stratified samples (over the occupied part
-//     of the ray when an occupancy grid is given, as render/sample.wgsl), per sample the
+//     of the ray when an occupancy grid is given, as render/sample.wgsl; or the samples given,
+//     the proposal sampler's, with STEP_GIVEN, whose densities it then writes), per sample the
 //     contraction, every hash-grid level, the density MLP, trunc-exp, SH4 and the colour MLP in
 //     registers; compositing, and the O(N) distortion sums.
 //   losses: RGB (L2 or Huber) and depth against the batch targets, as render/loss.wgsl; the
@@ -45,6 +46,12 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var mask: ProbeMask;
     let r = step_ray(i, &mask);
     if !r.valid {
+        // (Here, not in step_ray: the cooperative-matrix step binds no given samples.)
+        if (params.flags & STEP_GIVEN) != 0u {
+            for (var j = 0u; j < k; j += 1u) {
+                given_sigma[i * k + j] = 0.0;
+            }
+        }
         return;
     }
     let dshape = density_shape[0];
@@ -55,7 +62,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     var a: ActGroup;
     let groups = (k + MLP_GROUP - 1u) / MLP_GROUP;
     for (var gi = 0u; gi < groups; gi += 1u) {
-        let sl = group_slots(i, gi, r.ray, &mask);
+        let sl = group_slots(i, gi, r.ray, &mask, r.ds);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             // (A pointer to a[q] cannot be a call argument in SPIR-V: copy through t.)
             var t: Act;
@@ -66,12 +73,15 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
         var sigma = vec4<f32>(0.0);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             sigma[q] = trunc_exp(a[q][0].x);
+            if sl.valid[q] && (params.flags & STEP_GIVEN) != 0u {
+                given_sigma[i * k + gi * MLP_GROUP + q] = sigma[q];
+            }
         }
         color_input_group(&a, r.sh);
         forward_recorded(true, cshape, params.color_base, sl.rc, sl.valid, &a);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
             if sl.valid[q] {
-                composite_sample(&f, sl.st[q], sigma[q], sigmoid3(a[q][0]), r.ds);
+                composite_sample(&f, sl.st[q], sigma[q], sigmoid3(a[q][0]), sl.ds[q]);
             }
         }
     }
@@ -83,7 +93,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     let c_out = output_at(cshape);
     var g: ActGroup;
     for (var gi = 0u; gi < groups; gi += 1u) {
-        let sl = group_slots(i, gi, r.ray, &mask);
+        let sl = group_slots(i, gi, r.ray, &mask, r.ds);
         var sigma = vec4<f32>(0.0);
         var d_sigma = vec4<f32>(0.0);
         for (var q = 0u; q < MLP_GROUP; q += 1u) {
@@ -95,7 +105,7 @@ fn train_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
             }
             sigma[q] = trunc_exp(rec_get(false, sl.rd[q] + d_out).x);
             let col = sigmoid3(rec_get(true, sl.rc[q] + c_out));
-            let dg = composite_grad(&sg, sl.st[q], sigma[q], col);
+            let dg = composite_grad(&sg, sl.st[q], sigma[q], col, sl.ds[q]);
             d_sigma[q] = dg.w;
             g[q][0] = vec4<f32>(dg.xyz, 0.0);
         }

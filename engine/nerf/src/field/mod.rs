@@ -4,3 +4,4 @@ pub mod activation;
 pub mod encodings;
 pub mod hash_grid;
 pub mod mlp;
+pub mod proposal;

@@ -41,6 +41,21 @@ const STEP_NDC: u32 = 4;
 const STEP_HUBER: u32 = 8;
 const STEP_GRAD_SCALING: u32 = 16;
 const STEP_TOUCHED: u32 = 32;
+const STEP_GIVEN: u32 = 64;
+
+/// A fused step's samples when something else placed them (the proposal sampler,
+/// [`crate::render::proposal::Proposal::resample`]): `samples` per ray, ray r's at
+/// `r * samples`, in place of the strata; the step writes their densities for the interlevel
+/// loss.
+#[derive(Clone, Copy, Debug)]
+pub struct GivenSamples<'a> {
+    /// `(t, dt)` per sample.
+    pub t_dt: Binding<'a>,
+    /// `(s, ds)` per sample (the distortion loss's position and width).
+    pub s_ds: Binding<'a>,
+    /// The step writes each sample's density here.
+    pub sigma: Binding<'a>,
+}
 
 /// What one fused step writes per ray: `(rgb, opacity)`, expected depth, the photometric and
 /// depth loss over the batch (their sum over rays is the batch mean), the squared colour error
@@ -186,8 +201,25 @@ impl FusedStep {
         skip: Option<&SkipEmpty<'a>>,
         background: Background,
         out: &StepOutputs<'a>,
+        given: Option<&GivenSamples<'a>>,
     ) -> Result<()> {
         let n = self.rays as u64;
+        if let Some(g) = given {
+            let ns = n * self.samples as u64;
+            g.t_dt.check_fits(2 * ns, 4, "fused step given t_dt")?;
+            g.s_ds.check_fits(2 * ns, 4, "fused step given s_ds")?;
+            g.sigma.check_fits(ns, 4, "fused step densities output")?;
+            if self.coop.is_some() {
+                return Err(GpuError::Usage(
+                    "the fused step takes given samples (the proposal sampler) with scalar MLPs only; its cooperative-matrix twin places its own strata".into(),
+                ));
+            }
+            if skip.is_some() {
+                return Err(GpuError::Usage(
+                    "the fused step takes given samples or spreads its strata over an occupancy grid, not both".into(),
+                ));
+            }
+        }
         let cfg = field.config();
         pixels.check_fits(2 * n, 4, "fused step pixels")?;
         targets
@@ -273,7 +305,8 @@ impl FusedStep {
                 | bit(ndc, STEP_NDC)
                 | loss_flag
                 | bit(losses.grad_scaling, STEP_GRAD_SCALING)
-                | bit(touched.is_some(), STEP_TOUCHED),
+                | bit(touched.is_some(), STEP_TOUCHED)
+                | bit(given.is_some(), STEP_GIVEN),
             n_cameras,
             color_base: base,
             dist_lambda: losses.distortion,
@@ -315,13 +348,21 @@ impl FusedStep {
             saved_density: self.saved_density.binding(),
             saved_color: self.saved_color.binding(),
             touched: touched.unwrap_or(self.no_touched.binding()),
+            // Bound to stubs without given samples (never accessed then).
+            given_t_dt: given.map_or(self.no_bits.binding(), |g| g.t_dt),
+            given_s_ds: given.map_or(self.no_bits.binding(), |g| g.s_ds),
+            given_sigma: given.map_or(self.no_touched.binding(), |g| g.sigma),
         };
         let Some(coop) = &self.coop else {
             return rec.dispatch(&self.kernel, b.into_array(), &p, n);
         };
         let shapes = [b.density_shape, b.color_shape];
         let mlp = b.mlp;
-        coop.record::<_, 21, 22>(rec, field, shapes, mlp, b.into_array(), &p, n)
+        // The cooperative-matrix twin binds the scalar step's first 21 (not the given samples).
+        let all = b.into_array();
+        let mut first = [all[0]; 21];
+        first.copy_from_slice(&all[..21]);
+        coop.record::<_, 21, 22>(rec, field, shapes, mlp, first, &p, n)
     }
 
     /// The MLP path this step takes.
