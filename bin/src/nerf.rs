@@ -261,6 +261,26 @@ pub enum SamplerArg {
     Proposal,
 }
 
+/// The sampler `--sampler` and `--proposal-samples` ask for, for a main grid of finest
+/// resolution `max_res` (the proposal's grid is no finer).
+fn sampler(kind: SamplerArg, samples: Option<u32>, max_res: u32) -> anyhow::Result<Sampler> {
+    Ok(match kind {
+        SamplerArg::Uniform => {
+            if samples.is_some() {
+                bail!("--proposal-samples applies to --sampler proposal");
+            }
+            Sampler::Uniform
+        }
+        SamplerArg::Proposal => {
+            let mut p = ProposalConfig::default();
+            apply(&mut p.samples, samples);
+            p.max_res = p.max_res.min(max_res);
+            p.min_res = p.min_res.min(p.max_res);
+            Sampler::Proposal(p)
+        }
+    })
+}
+
 /// `train --background`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BackgroundArg {
@@ -417,21 +437,11 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             model.density_width = w;
             model.color_width = w;
         }
-        match a.sampler.unwrap_or(SamplerArg::Uniform) {
-            SamplerArg::Uniform => {
-                if a.proposal_samples.is_some() {
-                    bail!("--proposal-samples applies to --sampler proposal");
-                }
-            }
-            SamplerArg::Proposal => {
-                let mut p = ProposalConfig::default();
-                apply(&mut p.samples, a.proposal_samples);
-                // No finer than the main field.
-                p.max_res = p.max_res.min(model.max_res);
-                p.min_res = p.min_res.min(p.max_res);
-                model.sampler = Sampler::Proposal(p);
-            }
-        }
+        model.sampler = sampler(
+            a.sampler.unwrap_or(SamplerArg::Uniform),
+            a.proposal_samples,
+            model.max_res,
+        )?;
         let mut train = TrainConfig::default();
         apply(&mut train.rays, a.rays);
         apply(&mut train.samples, a.samples);
@@ -1044,6 +1054,13 @@ pub struct BenchTrainArgs {
     /// `--step fused` only).
     #[arg(long, value_enum, default_value_t = extranerf_nerf::optim::AdamMode::Dense)]
     adam: extranerf_nerf::optim::AdamMode,
+    /// Where the samples go: uniform strata, or the proposal sampler's histogram (`train
+    /// --sampler`).
+    #[arg(long, value_enum, default_value_t = SamplerArg::Uniform)]
+    sampler: SamplerArg,
+    /// The proposal field's strata per ray (with `--sampler proposal`) [default: 64].
+    #[arg(long, value_name = "N")]
+    proposal_samples: Option<u32>,
     /// Also write the results as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -1080,6 +1097,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
     apply(&mut model.max_res, a.max_res);
     model.density_width = a.width;
     model.color_width = a.width;
+    model.sampler = sampler(a.sampler, a.proposal_samples, model.max_res)?;
     let views = training_views(&spec, &loaded, &model)?;
     let data = TrainData::new(ctx, &views)?;
     let prims = Prims::new(ctx)?;
@@ -1148,6 +1166,16 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             a.samples,
             t.samples_per_step()
         );
+        if let Some(p) = model.sampler.proposal() {
+            println!(
+                "sampler: proposal, its field (hash grid {}x{}x2^{}, MLP {:?}) at {} strata per ray",
+                p.levels,
+                p.features,
+                p.log2_table,
+                p.mlp().dims,
+                p.samples
+            );
+        }
         // With the sparse Adam: the share of the table one step's batch reached.
         let touched = match a.adam {
             extranerf_nerf::optim::AdamMode::Dense => None,
@@ -1200,6 +1228,8 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             "step": label,
             "fused": t.is_fused(),
             "mlp": t.mlp_path().to_string(),
+            "sampler": model.sampler.name(),
+            "proposal_samples": model.sampler.proposal().map(|p| p.samples),
             "step_ms_wall": secs * 1e3 / a.steps as f64,
             "samples_per_s": sps,
             "warmup_s": warm_s,

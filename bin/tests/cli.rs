@@ -108,6 +108,11 @@ fn bad_arguments_are_clear_errors() {
             &["fused", "standalone"],
         ),
         (
+            ["train", "--out", run, "--sampler"],
+            "nested",
+            &["uniform", "proposal"],
+        ),
+        (
             ["extrapolate", "--out", run, "--diffusion-backend"],
             "tpu",
             &["auto", "device", "cpu"],
@@ -175,6 +180,21 @@ fn bad_arguments_are_clear_errors() {
     assert!(!ok && err.contains("checkpoint.safetensors"), "{err}");
     let (ok, _, err) = extranerf(&["train", "--resume", "--out", out.to_str().unwrap()]);
     assert!(!ok && err.contains("checkpoint.safetensors"), "{err}");
+    // A run's sampler is its own: --resume refuses to change it.
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--resume",
+        "--out",
+        out.to_str().unwrap(),
+        "--sampler",
+        "proposal",
+        "--proposal-samples",
+        "32",
+    ]);
+    assert!(
+        !ok && err.contains("--sampler") && err.contains("--proposal-samples"),
+        "{err}"
+    );
     // KID's protocol flags on an extrapolate run are checked before any work.
     let xrun = dir.join("xrun");
     std::fs::create_dir_all(&xrun).unwrap();
