@@ -96,6 +96,22 @@ fn rays(rng: &mut Rng, n: usize, shared: bool) -> Vec<Ray> {
     out
 }
 
+/// The source bins of the test rays: NP bins per ray, the edges shared or one set per ray.
+fn source_bins<'a>(
+    edges: &'a Buffer<f32>,
+    sigma: &'a Buffer<f32>,
+    t_dt: &'a Buffer<f32>,
+    shared: bool,
+) -> SourceBins<'a> {
+    SourceBins {
+        edges: edges.binding(),
+        stride: if shared { 0 } else { NP as u32 + 1 },
+        sigma: sigma.binding(),
+        t_dt: t_dt.binding(),
+        count: NP as u32,
+    }
+}
+
 /// The jitter of main edge j of ray r, as the kernel draws it.
 fn jitter(seed: u32, r: u32, j: u32) -> f64 {
     rand01(pcg_hash(seed ^ RESAMPLE_SALT ^ pcg_hash(r)).wrapping_add(j)) as f64
@@ -155,13 +171,7 @@ fn run_resample(
         poison("s_ds", 2 * n * K),
     );
     let spans = Buffer::<u32>::from_slice(&e.ctx, "spans", &vec![u32::MAX; 2 * n]).unwrap();
-    let src = SourceBins {
-        edges: be.binding(),
-        stride: if shared { 0 } else { NP as u32 + 1 },
-        sigma: bs.binding(),
-        t_dt: bt.binding(),
-        count: NP as u32,
-    };
+    let src = source_bins(&be, &bs, &bt, shared);
     let set = RaySet {
         origins: bo.binding(),
         directions: bd.binding(),
@@ -362,13 +372,7 @@ fn interlevel_matches_reference_and_its_gradient() {
         );
         let loss = buf("loss", &vec![f32::NAN; n + 1]);
         let d_w = buf("d_weight", &vec![f32::NAN; n * NP + 1]);
-        let src = SourceBins {
-            edges: be.binding(),
-            stride: if shared { 0 } else { NP as u32 + 1 },
-            sigma: bs.binding(),
-            t_dt: bt.binding(),
-            count: NP as u32,
-        };
+        let src = source_bins(&be, &bs, &bt, shared);
         let main = MainBins {
             edges: me.binding(),
             sigma: ms.binding(),

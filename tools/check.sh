@@ -54,11 +54,13 @@ targets_of() {
         engine/gpu/*) echo "gpu prims" ;;
         engine/prims/*|kernels/wgsl/prims/*) echo "prims" ;;
         kernels/wgsl/common/*|kernels/build.rs|kernels/src/*|kernels/Cargo.toml)
-            echo "prims field render march train" ;;
-        kernels/wgsl/field/*|engine/nerf/src/field/*) echo "field" ;;
+            echo "prims field render march train proposal" ;;
+        engine/nerf/src/field/proposal.rs) echo "proposal" ;;
+        kernels/wgsl/field/*|engine/nerf/src/field/*) echo "field proposal" ;;
         kernels/wgsl/render/visibility.wgsl|engine/nerf/src/render/visibility.rs) echo "visibility" ;;
         kernels/wgsl/render/train_step*|engine/nerf/src/render/train_step.rs|engine/nerf/src/trainer.rs)
-            echo "train" ;;
+            echo "train proposal" ;;
+        kernels/wgsl/render/proposal.wgsl|engine/nerf/src/render/proposal.rs) echo "proposal" ;;
         kernels/wgsl/render/march*|engine/nerf/src/render/march.rs|engine/nerf/src/renderer.rs)
             echo "march render" ;;
         kernels/wgsl/render/occupancy.wgsl|engine/nerf/src/render/occupancy.rs) echo "render march train" ;;
@@ -68,7 +70,7 @@ targets_of() {
         kernels/wgsl/depth/*|engine/nerf/src/depth_completion.rs) echo "render" ;;
         engine/nerf/src/data/*|engine/nerf/src/safetensors.rs|engine/nerf/src/cameras.rs) echo "data fuzz" ;;
         engine/nerf/src/metrics/*) echo "metrics" ;;
-        engine/nerf/src/reference.rs) echo "field render" ;;
+        engine/nerf/src/reference.rs) echo "field render proposal" ;;
         engine/nerf/src/*) echo "train stability" ;;
         engine/diffusion/src/device.rs) echo "diffusion" ;;
         engine/diffusion/src/enhancer.rs) echo "enhancer diffusion_models" ;;
