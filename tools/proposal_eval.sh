@@ -2,8 +2,8 @@
 # Issue 53: the held-out views of trained runs rendered with uniform strata at several sample
 # counts (`eval --samples N`): what a proposal-trained field learned, while the march does not
 # use the proposal field yet (issue 54), against a uniform-trained run at the same counts.
-# Writes OUT/RUNNAME_sN.metrics.json per run and count, and OUT/eval.md (PSNR, SSIM,
-# LPIPS-alex and the checkpoint's step).
+# Writes OUT/RUNNAME_sN.metrics.json per run and count (kept: delete one to evaluate it again),
+# and OUT/eval.md (PSNR, SSIM, LPIPS-alex and the checkpoint's step).
 #
 # Usage: [SAMPLES="32 128"] [OUT=results/proposal_lavapipe] [EXTRANERF_BIN=...]
 #        tools/proposal_eval.sh RUN...
@@ -19,8 +19,9 @@ out="${OUT:-results/proposal_lavapipe}"
 mkdir -p "$out"
 for run in "$@"; do
     for s in $counts; do
-        "$bin" eval "$run" --views test --samples "$s" --lpips-nets alex \
-            --out "$out/$(basename "$run")_s$s.metrics.json" >&2
+        # A run and count already evaluated (its metrics file exists) is not evaluated again.
+        f="$out/$(basename "$run")_s$s.metrics.json"
+        [ -f "$f" ] || "$bin" eval "$run" --views test --samples "$s" --lpips-nets alex --out "$f" >&2
     done
 done
 python3 - "$out" "$counts" "$@" <<'EOF'
