@@ -298,16 +298,7 @@ impl Nerf {
         n: u64,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
-        self.raygen.generate(
-            rec,
-            cameras,
-            n_cameras,
-            ws.pixels.binding(),
-            ws.origins.binding(),
-            ws.dirs.binding(),
-            n,
-            self.space,
-        )?;
+        self.record_field_rays(rec, ws, cameras, n_cameras, n)?;
         self.raygen.generate(
             rec,
             cameras,
@@ -319,6 +310,28 @@ impl Nerf {
             RaySpace::World,
         )?;
         mark(prof, rec, "rays (NDC + world)")
+    }
+
+    /// Records the rays of `ws.pixels[..n]` in the field's space only (`ws.origins`,
+    /// `ws.dirs`): what the samplers place samples along.
+    pub(crate) fn record_field_rays<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        n: u64,
+    ) -> Result<()> {
+        self.raygen.generate(
+            rec,
+            cameras,
+            n_cameras,
+            ws.pixels.binding(),
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            n,
+            self.space,
+        )
     }
 
     /// How samples are spaced along the field's rays: linear in NDC, in disparity in the

@@ -823,18 +823,12 @@ impl Trainer {
     ) -> Result<()> {
         let (ws, nerf, w) = (&self.ws, &self.nerf, &p.work);
         let n = ws.rays as u64;
-        let strata = SampleOutputs {
-            positions: w.positions.binding(),
-            t_dt: w.t_dt.binding(),
-            s_ds: w.s_ds.binding(),
-            rays: w.spans.binding(),
-        };
         nerf.sampler.record(
             rec,
             ws.origins.binding(),
             ws.dirs.binding(),
             ws.near_far.binding(),
-            &strata,
+            &w.strata_outputs(),
             n,
             w.samples,
             nerf.spacing(),
@@ -1073,21 +1067,17 @@ impl Trainer {
             None => None,
             Some(p) => {
                 let w = &p.work;
-                nerf.record_rays(
+                // The step builds its own rays; the samplers need them in the field's space
+                // (not the world's, which only the standalone chain's colour MLP reads).
+                nerf.record_field_rays(
                     rec,
                     ws,
                     data.cameras.binding(),
                     data.n_images,
                     ws.rays as u64,
-                    prof,
                 )?;
-                let out = SampleOutputs {
-                    positions: w.main_positions.binding(),
-                    t_dt: w.main_t_dt.binding(),
-                    s_ds: w.main_s_ds.binding(),
-                    rays: w.main_spans.binding(),
-                };
-                self.record_proposal_samples(rec, p, seed, &out, prof)?;
+                mark(prof, rec, "rays")?;
+                self.record_proposal_samples(rec, p, seed, &w.main_outputs(), prof)?;
                 Some(GivenSamples {
                     t_dt: w.main_t_dt.binding(),
                     s_ds: w.main_s_ds.binding(),

@@ -12,6 +12,7 @@ use crate::field::encodings::{Encodings, SceneBox};
 use crate::field::hash_grid::HashGrid;
 use crate::field::mlp::{Mlp, MlpPath};
 use crate::model::{mark, ModelConfig, Profiler, ProposalConfig};
+use crate::render::sample::SampleOutputs;
 
 /// The density column of the MLP's one output.
 const DENSITY: Column = Column {
@@ -114,6 +115,26 @@ impl ProposalWork {
             d_encoded: Buffer::new(ctx, "proposal dL/d encoding", enc * n)?,
             saved: Buffer::new(ctx, "proposal MLP record", field.mlp.saved_words() * n)?,
         })
+    }
+
+    /// The proposal strata, as the stratified sampler writes them.
+    pub(crate) fn strata_outputs(&self) -> SampleOutputs<'_> {
+        SampleOutputs {
+            positions: self.positions.binding(),
+            t_dt: self.t_dt.binding(),
+            s_ds: self.s_ds.binding(),
+            rays: self.spans.binding(),
+        }
+    }
+
+    /// The main samples the fused step takes, as the resampling writes them.
+    pub(crate) fn main_outputs(&self) -> SampleOutputs<'_> {
+        SampleOutputs {
+            positions: self.main_positions.binding(),
+            t_dt: self.main_t_dt.binding(),
+            s_ds: self.main_s_ds.binding(),
+            rays: self.main_spans.binding(),
+        }
     }
 
     /// Proposal samples per batch.
