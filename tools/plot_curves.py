@@ -3,13 +3,18 @@
 into results/curves/SCENE.svg (held-out PSNR and LPIPS-alex against training seconds) and
 prints a Markdown table of each curve's last point. Standard library only.
 
-Usage: tools/plot_curves.py SCENE [NAME ...] [--x seconds|steps|samples] [--out STEM]
+Usage: tools/plot_curves.py SCENE [NAME ...] [--x seconds|steps|samples|paired] [--out STEM]
+                            [--ms NAME=MS ...] [--target DB]
   NAME: a curve of the scene (default: every one), or the path of a .jsonl with its
         .config.json beside it (e.g. ../shared/baselines/fern17_c85d100_steps6000.jsonl).
   --x:  the horizontal axis: training seconds (default), steps, or samples processed
         (steps x rays x samples per ray, from the run's config: equal compute whatever the
-        machine's speed).
+        machine's speed), or paired: steps x each curve's time per step as measured in
+        alternating rounds (tools/bench_step_pairs.sh, tools/proposal_pairs.sh), given by
+        --ms NAME=MS for every curve (the time to a quality on one measure, whatever the load
+        while the curve ran); it also prints every point of each curve.
   --out: write results/curves/STEM.svg instead of SCENE.svg.
+  --target: with --x paired, print the first point of each curve at or above DB held out.
 """
 import json
 import pathlib
@@ -27,7 +32,8 @@ def load(path):
 
 
 X_LABELS = {"seconds": "training seconds", "steps": "steps",
-            "samples": "samples processed (millions)"}
+            "samples": "samples processed (millions)",
+            "paired": "training seconds (steps x paired ms per step)"}
 
 
 def x_of(r, axis):
@@ -35,6 +41,8 @@ def x_of(r, axis):
         return r["train_seconds"]
     if axis == "steps":
         return r["step"]
+    if axis == "paired":
+        return r["step"] * r["_ms"] / 1000
     return r["step"] * r["_per_step"] / 1e6
 
 
@@ -92,17 +100,26 @@ def curve(root, scene, name):
 
 def main():
     args = sys.argv[1:]
-    axis, stem = "seconds", None
-    for flag in ("--x", "--out"):
-        if flag in args:
-            i = args.index(flag)
-            if i + 1 >= len(args):
-                raise SystemExit(f"{flag} needs a value")
-            if flag == "--x":
-                axis = args[i + 1]
-            else:
-                stem = args[i + 1]
-            del args[i:i + 2]
+    axis, stem, target, ms = "seconds", None, None, {}
+    while any(f in args for f in ("--x", "--out", "--ms", "--target")):
+        i = next(i for i, a in enumerate(args) if a in ("--x", "--out", "--ms", "--target"))
+        flag = args[i]
+        if i + 1 >= len(args):
+            raise SystemExit(f"{flag} needs a value")
+        v = args[i + 1]
+        if flag == "--x":
+            axis = v
+        elif flag == "--out":
+            stem = v
+        elif flag == "--target":
+            target = float(v)
+        else:
+            name, _, value = v.partition("=")
+            try:
+                ms[name] = float(value)
+            except ValueError:
+                raise SystemExit(f"--ms {v}: use NAME=MS, e.g. defaults=512")
+        del args[i:i + 2]
     if not args or axis not in X_LABELS:
         raise SystemExit(__doc__)
     root = pathlib.Path(__file__).resolve().parent.parent / "results" / "curves"
@@ -115,6 +132,12 @@ def main():
         for n, rows in curves:
             if rows[0]["_per_step"] is None:
                 raise SystemExit(f"{n}: no .config.json beside the curve to count samples")
+    if axis == "paired":
+        for n, rows in curves:
+            if n not in ms:
+                raise SystemExit(f"--x paired: give {n}'s time per step with --ms {n}=MS")
+            for r in rows:
+                r["_ms"] = ms[n]
     w, h = 520, 330
     legend = "\n".join(
         f'<rect x="{20 + 200 * (i % 5)}" y="{h + 12 + 18 * (i // 5)}" width="12" height="12" '
@@ -139,6 +162,23 @@ def main():
         print(f"| {n} | {r['step']} | {r['train_seconds']:.0f} | {r['test_psnr']:.2f} | "
               f"{r['test_ssim']:.3f} | {'-' if lp is None else f'{lp:.3f}'} | "
               f"{r['test_opacity']:.3f} | {r['batch_psnr']:.2f} |")
+    if axis == "paired":
+        print()
+        print("| curve | ms per step (paired) | step | seconds (paired) | held-out PSNR | LPIPS-alex |")
+        print("|---|---|---|---|---|---|")
+        for n, rows in curves:
+            for r in rows:
+                lp = r.get("test_lpips_alex")
+                print(f"| {n} | {ms[n]:.0f} | {r['step']} | {x_of(r, axis):.0f} | "
+                      f"{r['test_psnr']:.2f} | {'-' if lp is None else f'{lp:.3f}'} |")
+        if target is not None:
+            print()
+            print(f"| curve | first point at {target:.2f} dB or more held out | seconds (paired) |")
+            print("|---|---|---|")
+            for n, rows in curves:
+                hit = next((r for r in rows if r["test_psnr"] >= target), None)
+                print(f"| {n} | {'not reached' if hit is None else hit['step']} | "
+                      f"{'-' if hit is None else f'{x_of(hit, axis):.0f}'} |")
     print(f"wrote {out}", file=sys.stderr)
 
 

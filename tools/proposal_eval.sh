@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# Issue 53: the held-out views of trained runs rendered with uniform strata at several sample
-# counts (`eval --samples N`): what a proposal-trained field learned, while the march does not
-# use the proposal field yet (issue 54), against a uniform-trained run at the same counts.
-# Writes OUT/RUNNAME_sN.metrics.json per run and count (kept: delete one to evaluate it again),
-# and OUT/eval.md (PSNR, SSIM, LPIPS-alex and the checkpoint's step).
+# Issue 53: the held-out views of trained runs rendered by the fused march with uniform strata
+# at several sample counts (`eval --samples N`), and a proposal-trained run also with its own
+# sampler (`eval --march standalone`: the proposal field's samples, the run's --samples per
+# ray; the fused march does not take them yet, issue 54), against a uniform-trained run.
+# Writes OUT/RUNNAME_sN.metrics.json per run and count, OUT/RUNNAME_proposal.metrics.json
+# (kept: delete one to evaluate it again), and OUT/eval.md (PSNR, SSIM, LPIPS-alex and the
+# checkpoint's step).
 #
 # Usage: [SAMPLES="32 128"] [OUT=results/proposal_lavapipe] [EXTRANERF_BIN=...]
 #        tools/proposal_eval.sh RUN...
@@ -23,6 +25,10 @@ for run in "$@"; do
         f="$out/$(basename "$run")_s$s.metrics.json"
         [ -f "$f" ] || "$bin" eval "$run" --views test --samples "$s" --lpips-nets alex --out "$f" >&2
     done
+    f="$out/$(basename "$run")_proposal.metrics.json"
+    if grep -q '"proposal"' "$run/config.json" && [ ! -f "$f" ]; then
+        "$bin" eval "$run" --views test --march standalone --lpips-nets alex --out "$f" >&2
+    fi
 done
 python3 - "$out" "$counts" "$@" <<'EOF'
 import json, pathlib, struct, sys
@@ -38,18 +44,23 @@ def sampler(run):
 lines = [
     "# Held-out views by render sample count (tools/proposal_eval.sh)",
     "",
-    "`eval RUN --views test --samples N --lpips-nets alex`: uniform strata at N samples per ray "
-    "(the march does not use the proposal field yet).",
+    "`eval RUN --views test --samples N --lpips-nets alex`: the fused march, uniform strata at N "
+    "samples per ray; `proposal`: `eval RUN --views test --march standalone --lpips-nets alex`, "
+    "the proposal sampler's samples at the run's own samples per ray (the fused march does not "
+    "take them yet, issue 54).",
     "",
-    "| run | sampler | train samples | step | render samples | PSNR | SSIM | LPIPS-alex |",
+    "| run | sampler | train samples | step | render | PSNR | SSIM | LPIPS-alex |",
     "|---|---|---|---|---|---|---|---|",
 ]
 for run in runs:
     cfg = json.loads((pathlib.Path(run) / "config.json").read_text())
-    for s in counts:
-        t = json.loads((out / f"{pathlib.Path(run).name}_s{s}.metrics.json").read_text())["test"]
+    renders = [(f"{s} strata", f"_s{s}") for s in counts]
+    if sampler(run) != "uniform":
+        renders.append((f"proposal, {cfg['train']['samples']} samples", "_proposal"))
+    for label, suffix in renders:
+        t = json.loads((out / f"{pathlib.Path(run).name}{suffix}.metrics.json").read_text())["test"]
         lines.append(
-            f"| {pathlib.Path(run).name} | {sampler(run)} | {cfg['train']['samples']} | {step(run)} | {s} | "
+            f"| {pathlib.Path(run).name} | {sampler(run)} | {cfg['train']['samples']} | {step(run)} | {label} | "
             f"{t['psnr']:.2f} | {t['ssim']:.3f} | {t['lpips_alex']:.3f} |"
         )
 (out / "eval.md").write_text("\n".join(lines) + "\n")

@@ -731,6 +731,11 @@ fn render_views(
     eprintln!("MLPs: {mlp_path}");
     let samples = samples.unwrap_or(cfg.train.samples);
     let how = march.march()?;
+    if nerf.has_proposal() && how != March::Standalone {
+        eprintln!(
+            "note: this field trained with the proposal sampler; the fused march takes {samples} uniform strata per ray, not the proposal's samples (--march standalone renders with them)"
+        );
+    }
     if let Some(occ) = march.occupancy(&cfg.model)? {
         let t = Instant::now();
         let prims = Prims::new(ctx)?;

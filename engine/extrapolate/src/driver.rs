@@ -10,8 +10,7 @@ use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet};
 use extranerf_nerf::mvs_depth::CacheUse;
-use extranerf_nerf::render::march::MarchCuts;
-use extranerf_nerf::renderer::{March, Nerf};
+use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::run::{save_checkpoint, training_views_in, Checkpoint, LoadedScene, RunConfig};
 use extranerf_nerf::trainer::{StepStats, Trainer};
 use extranerf_nerf::views::TrainData;
@@ -515,7 +514,9 @@ impl ViewSet {
 }
 
 /// Held-out evaluations during training (`train --eval-every`): each renders the chosen views
-/// with the fused march at the training samples per ray and appends one line to `curve.jsonl`.
+/// at the training samples per ray, as `render` would ([`Nerf::default_march`]: the fused march,
+/// or the proposal sampler's samples when the field has one), and appends one line to
+/// `curve.jsonl`.
 pub struct HeldOut {
     views: Vec<(usize, extranerf_nerf::data::Camera, Vec<f32>)>,
     lpips: Option<Lpips>,
@@ -592,13 +593,9 @@ impl HeldOut {
         let samples = trainer.config().samples;
         let (mut p, mut s, mut l, mut o) = (0.0, 0.0, 0.0, 0.0);
         for (_, cam, truth) in &self.views {
-            let (rgb, _, opacity) = trainer.nerf().render_with(
-                ctx,
-                cam,
-                8192,
-                samples,
-                March::Fused(MarchCuts::EXACT),
-            )?;
+            let nerf = trainer.nerf();
+            let (rgb, _, opacity) =
+                nerf.render_with(ctx, cam, 8192, samples, nerf.default_march())?;
             p += psnr(&rgb, truth)?;
             s += ssim(&rgb, truth, cam.width, cam.height)?;
             if let Some(lp) = &self.lpips {

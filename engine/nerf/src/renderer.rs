@@ -1,7 +1,8 @@
 //! Rendering a trained BaseNeRF field: [`Nerf`] holds the field, its parameters and the
-//! kernels that render it, either through the fused march (the default, skipping empty space
-//! once the occupancy grid is built) or through the standalone training chain that stores
-//! every sample between kernels.
+//! kernels that render it, either through the fused march (the default for the uniform
+//! sampler, skipping empty space once the occupancy grid is built) or through the standalone
+//! training chain that stores every sample between kernels (the default for a field trained
+//! with the proposal sampler, whose samples it draws from the proposal field as training did).
 
 use extranerf_gpu::kernels::render::pixels as kp;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
@@ -9,10 +10,12 @@ use extranerf_prims::Prims;
 
 use crate::data::Camera;
 use crate::field::mlp::{MlpMode, MlpPath};
+use crate::field::proposal::{ProposalField, ProposalUse, ProposalWork};
 use crate::model::{mark, Field, FieldGrads, FieldIo, ModelConfig, Profiler, Space};
 use crate::render::composite::{Background, Compositor, Samples};
 use crate::render::march::{MarchCuts, Marcher};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
+use crate::render::proposal::{Proposal, RaySet, HISTOGRAM_PAD};
 use crate::render::rays::{gpu_camera, RayGen, RaySpace};
 use crate::render::sample::{SampleOutputs, Sampler, SkipEmpty, Spacing};
 
@@ -154,16 +157,28 @@ pub struct Nerf {
     pub(crate) background: [f32; 3],
     pub(crate) marcher: Marcher,
     pub(crate) occupancy: Option<Occupancy>,
+    /// With the proposal sampler ([`crate::model::Sampler::Proposal`]): its field and kernels.
+    pub(crate) proposal: Option<ProposalSampler>,
 }
 
-/// How [`Nerf::render_with`] evaluates the field (by default the fused march, no cuts).
+/// The proposal sampler of a field: the proposal field's kernels and the resampling's.
+#[derive(Debug)]
+pub(crate) struct ProposalSampler {
+    pub(crate) field: ProposalField,
+    pub(crate) kernels: Proposal,
+}
+
+/// How [`Nerf::render_with`] evaluates the field ([`Nerf::default_march`] chooses for
+/// [`Nerf::render`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum March {
-    /// The training chain: rays, samples, the field's standalone kernels, compositing (every
-    /// sample stored in memory between kernels; no cuts, no occupancy).
+    /// The training chain: rays, samples (the proposal sampler's when the field has one,
+    /// else uniform strata), the field's standalone kernels, compositing (every sample stored
+    /// in memory between kernels; no cuts, no occupancy).
     Standalone,
-    /// The fused march kernel with these cuts, skipping empty space when the occupancy grid
-    /// has been built ([`Nerf::build_occupancy`]).
+    /// The fused march kernel with these cuts at uniform strata, skipping empty space when the
+    /// occupancy grid has been built ([`Nerf::build_occupancy`]). It does not take the proposal
+    /// sampler's samples.
     Fused(MarchCuts),
 }
 
@@ -176,8 +191,8 @@ impl Default for March {
 /// The per-chunk buffers of one render path.
 #[allow(clippy::large_enum_variant)] // one short-lived value per render call
 enum RenderIo {
-    /// Every stage's per-sample buffers.
-    Standalone(Workspace),
+    /// Every stage's per-sample buffers, and the proposal sampler's when the field has one.
+    Standalone(Workspace, Option<ProposalWork>),
     /// Pixels in, colour and depth out, per ray.
     Fused {
         cuts: MarchCuts,
@@ -216,7 +231,15 @@ impl Nerf {
             Space::Ndc => RaySpace::Ndc { near: 1.0 },
             Space::World => RaySpace::World,
         };
+        let proposal = match ProposalField::new(ctx, field.config())? {
+            None => None,
+            Some(field) => Some(ProposalSampler {
+                field,
+                kernels: Proposal::new(ctx)?,
+            }),
+        };
         Ok(Nerf {
+            proposal,
             space,
             params: Buffer::from_slice(ctx, "field parameters", params)?,
             raygen: RayGen::new(ctx)?,
@@ -231,19 +254,44 @@ impl Nerf {
     }
 
     /// Resolves `mode` on `ctx`'s device and sets the MLP path of the field (the standalone
-    /// kernels) and of the fused march; returns the path taken.
-    /// On an error both keep their previous paths.
+    /// kernels), of the proposal field when there is one, and of the fused march; returns the
+    /// path taken. On an error all keep their previous paths.
     pub fn set_mlp(&mut self, ctx: &Context, mode: MlpMode) -> Result<MlpPath> {
         let path = mode.resolve(ctx, self.field.density().is_f16())?;
         let before = self.marcher.mlp_path();
         self.marcher.set_path(ctx, &self.field, path)?;
-        match self.field.set_mlp(ctx, mode) {
+        let proposal_before = self.proposal.as_ref().map(|ps| ps.field.path());
+        let set = match &mut self.proposal {
+            Some(ps) => ps.field.set_path(ctx, path),
+            None => Ok(()),
+        }
+        .and_then(|()| self.field.set_mlp(ctx, mode));
+        match set {
             Ok(p) => Ok(p),
             Err(e) => {
                 self.marcher.set_path(ctx, &self.field, before)?;
+                if let (Some(ps), Some(p)) = (&mut self.proposal, proposal_before) {
+                    ps.field.set_path(ctx, p)?;
+                }
                 Err(e)
             }
         }
+    }
+
+    /// The path [`Nerf::render`] takes: the standalone chain for a field with the proposal
+    /// sampler (the fused march takes uniform strata only) or one the fused march cannot take
+    /// ([`Marcher::supports`]), else the fused march with no cuts.
+    pub fn default_march(&self) -> March {
+        if self.proposal.is_some() || Marcher::supports(&self.field).is_err() {
+            March::Standalone
+        } else {
+            March::default()
+        }
+    }
+
+    /// True when the field samples its rays with the proposal sampler.
+    pub fn has_proposal(&self) -> bool {
+        self.proposal.is_some()
     }
 
     /// The MLP path the fused march renders with.
@@ -265,6 +313,75 @@ impl Nerf {
         self.field.layout().sections(buf)
     }
 
+    /// The proposal field's sections of a flat buffer (parameters or gradients).
+    pub(crate) fn proposal_sections<'a>(&self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 2]> {
+        self.field
+            .layout()
+            .proposal_sections(buf)?
+            .ok_or_else(|| GpuError::Usage("the field has no proposal sections".into()))
+    }
+
+    /// The proposal sampler, or an error saying the field has none.
+    pub(crate) fn proposal_sampler(&self) -> Result<&ProposalSampler> {
+        self.proposal
+            .as_ref()
+            .ok_or_else(|| GpuError::Usage("the field has no proposal sampler".into()))
+    }
+
+    /// The proposal sampler's half of a forward pass, after [`Nerf::record_field_rays`] of
+    /// `ws`'s first `n` rays: the proposal field at its strata (in `w`), then the main samples
+    /// drawn from its weights into `out` (`ws.samples` per ray), their edges into
+    /// `w.main_edges`. `seed: None` centres the strata and the resampling (renders); `targets`
+    /// as [`Sampler::record`] takes them.
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub(crate) fn record_proposal_samples<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        ws: &'a Workspace,
+        w: &'a ProposalWork,
+        n: u64,
+        seed: Option<u32>,
+        targets: Option<Binding<'a>>,
+        out: &SampleOutputs<'a>,
+        prof: &mut Option<Profiler<'a>>,
+    ) -> Result<()> {
+        let ps = self.proposal_sampler()?;
+        self.sampler.record(
+            rec,
+            ws.origins.binding(),
+            ws.dirs.binding(),
+            ws.near_far.binding(),
+            &w.strata_outputs(),
+            n,
+            w.samples,
+            self.spacing(),
+            seed,
+            targets,
+            None,
+        )?;
+        mark(prof, rec, "proposal strata")?;
+        ps.field
+            .forward(rec, self.proposal_sections(&self.params)?, w, n, prof)?;
+        let rays = RaySet {
+            origins: ws.origins.binding(),
+            directions: ws.dirs.binding(),
+            near_far: ws.near_far.binding(),
+            targets,
+            n_rays: count_u32(n, "rays")?,
+        };
+        ps.kernels.resample(
+            rec,
+            &w.source_bins(),
+            &rays,
+            w.main_edges.binding(),
+            out,
+            ws.samples,
+            HISTOGRAM_PAD,
+            self.spacing(),
+            seed,
+        )?;
+        mark(prof, rec, "proposal resampling")
+    }
     /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`; with `targets`, a
     /// training batch's target colours, not on virtual views' rays: [`Sampler::record`]), the
     /// field and the compositing into `ws.out_rgba` / `ws.out_depth`.
@@ -471,12 +588,14 @@ impl Nerf {
     }
 
     /// Renders a whole view: `(rgb[w*h*3], depth[w*h], opacity[w*h])`, depth in the ray space's
-    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass, midpoint samples,
-    /// through the fused march with no cuts, as the command line renders (skipping empty space
-    /// once [`Nerf::build_occupancy`] has built the grid; it reads the f32 hash table also for
-    /// an f16 model). A field the fused march cannot take ([`Marcher::supports`]: MLP widths
-    /// that are not multiples of 4 or overflow its weight block, world space with near 0)
-    /// renders through the standalone training kernels. [`Nerf::render_with`] chooses the path.
+    /// units (NDC t for forward-facing scenes). `chunk_rays` rays per pass, midpoint samples
+    /// (`samples` per ray: the main samples the proposal sampler draws, when the field has
+    /// one), through the fused march with no cuts, as the command line renders (skipping empty
+    /// space once [`Nerf::build_occupancy`] has built the grid; it reads the f32 hash table also
+    /// for an f16 model). A field with the proposal sampler, or one the fused march cannot take
+    /// ([`Marcher::supports`]: MLP widths that are not multiples of 4 or overflow its weight
+    /// block, world space with near 0), renders through the standalone training kernels
+    /// ([`Nerf::default_march`]). [`Nerf::render_with`] chooses the path.
     pub fn render(
         &self,
         ctx: &Context,
@@ -484,11 +603,7 @@ impl Nerf {
         chunk_rays: u32,
         samples: u32,
     ) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-        let march = match Marcher::supports(&self.field) {
-            Ok(()) => March::default(),
-            Err(_) => March::Standalone,
-        };
-        self.render_with(ctx, camera, chunk_rays, samples, march)
+        self.render_with(ctx, camera, chunk_rays, samples, self.default_march())
     }
 
     /// [`Nerf::render`] with a choice of evaluation path.
@@ -505,15 +620,23 @@ impl Nerf {
         }
         // The standalone chain needs per-sample buffers; the fused march only per-ray ones.
         let io = match march {
-            March::Standalone => RenderIo::Standalone(Workspace::new(
-                ctx,
-                &self.field,
-                self.field.config(),
-                chunk_rays,
-                samples,
-                false,
-                true,
-            )?),
+            March::Standalone => RenderIo::Standalone(
+                Workspace::new(
+                    ctx,
+                    &self.field,
+                    self.field.config(),
+                    chunk_rays,
+                    samples,
+                    false,
+                    true,
+                )?,
+                self.proposal
+                    .as_ref()
+                    .map(|ps| {
+                        ProposalWork::new(ctx, &ps.field, chunk_rays, samples, ProposalUse::Render)
+                    })
+                    .transpose()?,
+            ),
             March::Fused(cuts) => RenderIo::Fused {
                 cuts,
                 pixels: Buffer::new(ctx, "march pixels", chunk_rays as usize)?,
@@ -564,23 +687,40 @@ impl Nerf {
                     )?;
                     (rgba.binding(), depth.binding())
                 }
-                RenderIo::Standalone(ws) => {
+                RenderIo::Standalone(ws, proposal) => {
                     let b = kp::pixel_range::Bindings {
                         pixels: ws.pixels.binding(),
                     };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-                    self.record_forward(
-                        &mut rec,
-                        ws,
-                        cams.binding(),
-                        1,
-                        n,
-                        None,
-                        None,
-                        None,
-                        Background::Fixed(self.background),
-                        &mut None,
-                    )?;
+                    let background = Background::Fixed(self.background);
+                    match proposal {
+                        None => self.record_forward(
+                            &mut rec,
+                            ws,
+                            cams.binding(),
+                            1,
+                            n,
+                            None,
+                            None,
+                            None,
+                            background,
+                            &mut None,
+                        )?,
+                        Some(w) => {
+                            self.record_rays(&mut rec, ws, cams.binding(), 1, n, &mut None)?;
+                            self.record_proposal_samples(
+                                &mut rec,
+                                ws,
+                                w,
+                                n,
+                                None,
+                                None,
+                                &self.sample_outputs(ws),
+                                &mut None,
+                            )?;
+                            self.record_field_forward(&mut rec, ws, n, background, &mut None)?;
+                        }
+                    }
                     (ws.out_rgba.binding(), ws.out_depth.binding())
                 }
             };

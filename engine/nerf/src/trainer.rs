@@ -8,18 +8,18 @@
 use serde::{Deserialize, Serialize};
 
 use extranerf_gpu::kernels::render::{batch as kb, pixels as kp};
-use extranerf_gpu::{Binding, Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result};
+use extranerf_gpu::{Buffer, Context, GpuError, GpuTimer, Kernel, Recorder, Result};
 use extranerf_prims::{Prims, ReducePlan};
 
 use crate::field::mlp::{MlpMode, MlpPath};
-use crate::field::proposal::{ProposalField, ProposalWork};
+use crate::field::proposal::{ProposalUse, ProposalWork};
 use crate::model::{mark, Profiler, Space};
 use crate::optim::{Adam, AdamConfig, AdamMode, SparseTable, TableDecay};
 use crate::render::composite::{Background, RayGrads, Samples};
 use crate::render::loss::{LossConfig, RayLoss, RgbLoss, Targets};
 use crate::render::occupancy::{Occupancy, OccupancyConfig};
-use crate::render::proposal::{MainBins, Proposal, RaySet, SourceBins, HISTOGRAM_PAD};
-use crate::render::sample::{SampleOutputs, SkipEmpty, MAX_PROBES};
+use crate::render::proposal::MainBins;
+use crate::render::sample::{SkipEmpty, MAX_PROBES};
 use crate::render::train_step::{FusedStep, GivenSamples, StepLosses, StepOutputs};
 use crate::renderer::{Nerf, Workspace};
 use crate::views::{DrawnBatch, TrainData};
@@ -314,16 +314,9 @@ pub struct Trainer {
     standalone_reason: Option<String>,
     /// The MLP path the steps take.
     mlp_path: MlpPath,
-    /// With the proposal sampler: its field, buffers and kernels.
-    proposal: Option<ProposalTrain>,
-}
-
-/// What the proposal sampler trains with.
-#[derive(Debug)]
-struct ProposalTrain {
-    field: ProposalField,
-    work: ProposalWork,
-    kernels: Proposal,
+    /// With the proposal sampler: its buffers (its field and kernels are the field's,
+    /// [`Nerf`]'s).
+    proposal: Option<ProposalWork>,
 }
 
 /// Why the fused step does not train with the proposal sampler and cooperative matrices.
@@ -351,25 +344,14 @@ impl Trainer {
         let mut nerf = nerf;
         let mlp_path = nerf.set_mlp(ctx, cfg.mlp)?;
         let total = nerf.field.layout().total;
-        let proposal = match ProposalField::new(ctx, nerf.field.config())? {
-            None => None,
-            Some(mut field) => {
-                if cfg.occupancy_res > 0 {
-                    return Err(GpuError::Usage(
-                        "the proposal sampler places the samples where its field's weights are; it does not use an occupancy grid (set the occupancy resolution to 0)".into(),
-                    ));
-                }
-                field.set_path(ctx, mlp_path)?;
-                Some(ProposalTrain {
-                    work: ProposalWork::new(ctx, &field, cfg.rays, cfg.samples)?,
-                    kernels: Proposal::new(ctx)?,
-                    field,
-                })
-            }
-        };
+        if nerf.proposal.is_some() && cfg.occupancy_res > 0 {
+            return Err(GpuError::Usage(
+                "the proposal sampler places the samples where its field's weights are; it does not use an occupancy grid (set the occupancy resolution to 0)".into(),
+            ));
+        }
         let why_not = if !cfg.fused_step {
             Some("the standalone chain was asked for".to_string())
-        } else if proposal.is_some() && mlp_path != MlpPath::Scalar {
+        } else if nerf.proposal.is_some() && mlp_path != MlpPath::Scalar {
             Some(PROPOSAL_STANDALONE.to_string())
         } else {
             FusedStep::supports(&nerf.field)
@@ -379,6 +361,22 @@ impl Trainer {
         let fused = match why_not {
             None => Some(FusedStep::new(ctx, &nerf.field, cfg.rays, cfg.samples)?),
             Some(_) => None,
+        };
+        let proposal = match &nerf.proposal {
+            None => None,
+            Some(ps) => {
+                let purpose = match fused {
+                    Some(_) => ProposalUse::Fused,
+                    None => ProposalUse::Standalone,
+                };
+                Some(ProposalWork::new(
+                    ctx,
+                    &ps.field,
+                    cfg.rays,
+                    cfg.samples,
+                    purpose,
+                )?)
+            }
         };
         let ws = Workspace::new(
             ctx,
@@ -465,7 +463,7 @@ impl Trainer {
     pub fn interlevel_loss(&self) -> Result<Option<f64>> {
         self.proposal
             .as_ref()
-            .map(|p| Ok(p.work.loss.read()?.iter().map(|&v| v as f64).sum()))
+            .map(|w| Ok(w.loss.read()?.iter().map(|&v| v as f64).sum()))
             .transpose()
     }
 
@@ -476,7 +474,7 @@ impl Trainer {
     pub fn last_batch_samples(&self) -> Result<(Vec<[f32; 2]>, Vec<f32>)> {
         let t_dt = match (&self.fused, &self.proposal) {
             (None, _) => self.ws.t_dt.read()?,
-            (Some(_), Some(p)) => p.work.main_t_dt.read()?,
+            (Some(_), Some(w)) => w.main_t_dt.read()?,
             (Some(_), None) => {
                 return Err(GpuError::Usage(
                     "the fused step places its strata in registers; the standalone chain and the proposal sampler store them".into(),
@@ -718,9 +716,18 @@ impl Trainer {
                 self.background(seed),
                 prof,
             )?,
-            Some(p) => {
+            Some(w) => {
                 nerf.record_rays(rec, ws, data.cameras.binding(), data.n_images, n, prof)?;
-                self.record_proposal_samples(rec, p, seed, &nerf.sample_outputs(ws), prof)?;
+                nerf.record_proposal_samples(
+                    rec,
+                    ws,
+                    w,
+                    n,
+                    Some(seed),
+                    Some(ws.target_rgb.binding()),
+                    &nerf.sample_outputs(ws),
+                    prof,
+                )?;
                 nerf.record_field_forward(rec, ws, n, self.background(seed), prof)?;
             }
         }
@@ -798,66 +805,17 @@ impl Trainer {
             prof,
         )?;
         match &self.proposal {
-            Some(p) => {
+            Some(w) => {
                 let main = MainBins {
-                    edges: p.work.main_edges.binding(),
+                    edges: w.main_edges.binding(),
                     sigma: ws.io().sigma,
                     t_dt: ws.t_dt.binding(),
                     count: ws.samples,
                 };
-                self.record_proposal_backward(rec, p, &main, prof)
+                self.record_proposal_backward(rec, w, &main, prof)
             }
             None => Ok(()),
         }
-    }
-
-    /// The proposal sampler's half of the forward pass, after the rays: the proposal field at
-    /// its strata, then the main samples drawn from its weights into `out`.
-    fn record_proposal_samples<'a>(
-        &'a self,
-        rec: &mut Recorder<'a>,
-        p: &'a ProposalTrain,
-        seed: u32,
-        out: &SampleOutputs<'a>,
-        prof: &mut Option<Profiler<'a>>,
-    ) -> Result<()> {
-        let (ws, nerf, w) = (&self.ws, &self.nerf, &p.work);
-        let n = ws.rays as u64;
-        nerf.sampler.record(
-            rec,
-            ws.origins.binding(),
-            ws.dirs.binding(),
-            ws.near_far.binding(),
-            &w.strata_outputs(),
-            n,
-            w.samples,
-            nerf.spacing(),
-            Some(seed),
-            Some(ws.target_rgb.binding()),
-            None,
-        )?;
-        mark(prof, rec, "proposal strata")?;
-        p.field
-            .forward(rec, self.proposal_sections(&nerf.params)?, w, prof)?;
-        let rays = RaySet {
-            origins: ws.origins.binding(),
-            directions: ws.dirs.binding(),
-            near_far: ws.near_far.binding(),
-            targets: Some(ws.target_rgb.binding()),
-            n_rays: ws.rays,
-        };
-        p.kernels.resample(
-            rec,
-            &Self::proposal_bins(w),
-            &rays,
-            w.main_edges.binding(),
-            out,
-            ws.samples,
-            HISTOGRAM_PAD,
-            nerf.spacing(),
-            Some(seed),
-        )?;
-        mark(prof, rec, "proposal resampling")
     }
 
     /// The proposal sampler's half of the backward pass, after the main field's: the
@@ -866,16 +824,16 @@ impl Trainer {
     fn record_proposal_backward<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
-        p: &'a ProposalTrain,
+        w: &'a ProposalWork,
         main: &MainBins<'a>,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
-        let (ws, nerf, w) = (&self.ws, &self.nerf, &p.work);
+        let (ws, nerf) = (&self.ws, &self.nerf);
+        let p = nerf.proposal_sampler()?;
         let n = ws.rays as u64;
-        let src = Self::proposal_bins(w);
         p.kernels.interlevel(
             rec,
-            &src,
+            &w.source_bins(),
             main,
             ws.rays,
             p.field.config().interlevel / ws.rays as f32,
@@ -908,31 +866,11 @@ impl Trainer {
         mark(prof, rec, "proposal composite bwd")?;
         p.field.backward(
             rec,
-            self.proposal_sections(&nerf.params)?,
-            self.proposal_sections(&self.grads)?,
+            nerf.proposal_sections(&nerf.params)?,
+            nerf.proposal_sections(&self.grads)?,
             w,
             prof,
         )
-    }
-
-    /// The proposal strata as the resampling's source bins (uniform edges in s).
-    fn proposal_bins(w: &ProposalWork) -> SourceBins<'_> {
-        SourceBins {
-            edges: w.uniform_edges.binding(),
-            stride: 0,
-            sigma: w.sigma.binding(),
-            t_dt: w.t_dt.binding(),
-            count: w.samples,
-        }
-    }
-
-    /// The proposal field's sections of a flat buffer (parameters or gradients).
-    fn proposal_sections<'a>(&self, buf: &'a Buffer<f32>) -> Result<[Binding<'a>; 2]> {
-        self.nerf
-            .field
-            .layout()
-            .proposal_sections(buf)?
-            .ok_or_else(|| GpuError::Usage("the field has no proposal sections".into()))
     }
 
     /// The background of a step drawn with `seed`: random per ray when the config asks for it,
@@ -1065,8 +1003,7 @@ impl Trainer {
         mark(prof, rec, "zero gradients")?;
         let given = match &self.proposal {
             None => None,
-            Some(p) => {
-                let w = &p.work;
+            Some(w) => {
                 // The step builds its own rays; the samplers need them in the field's space
                 // (not the world's, which only the standalone chain's colour MLP reads).
                 nerf.record_field_rays(
@@ -1077,7 +1014,16 @@ impl Trainer {
                     ws.rays as u64,
                 )?;
                 mark(prof, rec, "rays")?;
-                self.record_proposal_samples(rec, p, seed, &w.main_outputs(), prof)?;
+                nerf.record_proposal_samples(
+                    rec,
+                    ws,
+                    w,
+                    ws.rays as u64,
+                    Some(seed),
+                    Some(ws.target_rgb.binding()),
+                    &w.main_outputs(),
+                    prof,
+                )?;
                 Some(GivenSamples {
                     t_dt: w.main_t_dt.binding(),
                     s_ds: w.main_s_ds.binding(),
@@ -1120,15 +1066,14 @@ impl Trainer {
         mark(prof, rec, "fused step (march, losses, backward)")?;
         fused.record_weight_gradients(rec, &nerf.field, nerf.sections(&self.grads)?)?;
         mark(prof, rec, "MLP weight gradients")?;
-        if let Some(p) = &self.proposal {
-            let w = &p.work;
+        if let Some(w) = &self.proposal {
             let main = MainBins {
                 edges: w.main_edges.binding(),
                 sigma: w.main_sigma.binding(),
                 t_dt: w.main_t_dt.binding(),
                 count: ws.samples,
             };
-            self.record_proposal_backward(rec, p, &main, prof)?;
+            self.record_proposal_backward(rec, w, &main, prof)?;
         }
         Ok(())
     }

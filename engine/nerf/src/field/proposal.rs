@@ -12,6 +12,7 @@ use crate::field::encodings::{Encodings, SceneBox};
 use crate::field::hash_grid::HashGrid;
 use crate::field::mlp::{Mlp, MlpPath};
 use crate::model::{mark, ModelConfig, Profiler, ProposalConfig};
+use crate::render::proposal::SourceBins;
 use crate::render::sample::SampleOutputs;
 
 /// The density column of the MLP's one output.
@@ -31,9 +32,22 @@ pub struct ProposalField {
     act: Activations,
 }
 
+/// What a [`ProposalWork`] is for: which of its buffers are sized (the others hold one
+/// element that no kernel binds).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ProposalUse {
+    /// Rendering: the proposal field forward and the resampling into the renderer's samples.
+    Render,
+    /// Training with the standalone chain: also the backward pass (the main samples are the
+    /// chain's workspace's).
+    Standalone,
+    /// Training with the fused step: also the main samples the step takes.
+    Fused,
+}
+
 /// Per-sample buffers of the proposal field for batches of `rays` rays of `samples` strata:
-/// its samples (as the stratified sampler writes them), the field's intermediates and the
-/// gradient scratch of its backward pass.
+/// its samples (as the stratified sampler writes them), the field's intermediates and, for
+/// training, the gradient scratch of its backward pass.
 #[derive(Debug)]
 pub struct ProposalWork {
     /// Rays per batch.
@@ -52,9 +66,9 @@ pub struct ProposalWork {
     pub(crate) uniform_edges: Buffer<f32>,
     /// The main samples' edges, `main_samples + 1` per ray.
     pub(crate) main_edges: Buffer<f32>,
-    /// The main samples when the fused step takes them (the standalone chain's are its
-    /// workspace's): positions (unread by the step), `(t, dt)`, `(s, ds)`, spans, and the
-    /// densities the step writes.
+    /// The main samples when the fused step takes them ([`ProposalUse::Fused`]; the
+    /// standalone chain's and the renderer's are their workspace's): positions (unread by the
+    /// step), `(t, dt)`, `(s, ds)`, spans, and the densities the step writes.
     pub(crate) main_positions: Buffer<f32>,
     pub(crate) main_t_dt: Buffer<[f32; 2]>,
     pub(crate) main_s_ds: Buffer<[f32; 2]>,
@@ -74,20 +88,29 @@ pub struct ProposalWork {
 }
 
 impl ProposalWork {
-    /// Buffers for `field` with batches of `rays` rays and `main_samples` main samples each.
+    /// Buffers for `field` with batches of `rays` rays and `main_samples` main samples each,
+    /// for `purpose`.
     pub fn new(
         ctx: &Context,
         field: &ProposalField,
         rays: u32,
         main_samples: u32,
+        purpose: ProposalUse,
     ) -> Result<ProposalWork> {
         let kp = field.config.samples;
         let r = rays as usize;
         let n = r * kp as usize;
         extranerf_gpu::count_u32(n as u64, "proposal samples per batch")?;
+        extranerf_gpu::count_u32(r as u64 * main_samples as u64, "main samples per batch")?;
         let enc = (field.config.levels * field.config.features) as usize;
         let edges: Vec<f32> = (0..=kp).map(|i| i as f32 / kp as f32).collect();
-        let main = r * main_samples as usize;
+        let (grads, fused) = match purpose {
+            ProposalUse::Render => (false, false),
+            ProposalUse::Standalone => (true, false),
+            ProposalUse::Fused => (true, true),
+        };
+        let main = if fused { r * main_samples as usize } else { 1 };
+        let g = |len: usize| if grads { len } else { 1 };
         Ok(ProposalWork {
             rays,
             samples: kp,
@@ -104,16 +127,16 @@ impl ProposalWork {
             main_positions: Buffer::new(ctx, "main sample positions", 3 * main)?,
             main_t_dt: Buffer::new(ctx, "main sample t_dt", main)?,
             main_s_ds: Buffer::new(ctx, "main sample s_ds", main)?,
-            main_spans: Buffer::new(ctx, "main sample spans", r)?,
+            main_spans: Buffer::new(ctx, "main sample spans", if fused { r } else { 1 })?,
             main_sigma: Buffer::new(ctx, "main sample densities", main)?,
-            loss: Buffer::new(ctx, "interlevel loss", r)?,
-            d_weight: Buffer::new(ctx, "interlevel dL/dw", n)?,
-            d_sigma: Buffer::new(ctx, "proposal dL/dsigma", n)?,
-            zero_rgb: Buffer::from_slice(ctx, "proposal zero colours", &vec![[0f32; 4]; n])?,
-            d_rgb: Buffer::new(ctx, "proposal dL/drgb", n)?,
-            d_dens: Buffer::new(ctx, "proposal dL/d MLP output", n)?,
-            d_encoded: Buffer::new(ctx, "proposal dL/d encoding", enc * n)?,
-            saved: Buffer::new(ctx, "proposal MLP record", field.mlp.saved_words() * n)?,
+            loss: Buffer::new(ctx, "interlevel loss", g(r))?,
+            d_weight: Buffer::new(ctx, "interlevel dL/dw", g(n))?,
+            d_sigma: Buffer::new(ctx, "proposal dL/dsigma", g(n))?,
+            zero_rgb: Buffer::from_slice(ctx, "proposal zero colours", &vec![[0f32; 4]; g(n)])?,
+            d_rgb: Buffer::new(ctx, "proposal dL/drgb", g(n))?,
+            d_dens: Buffer::new(ctx, "proposal dL/d MLP output", g(n))?,
+            d_encoded: Buffer::new(ctx, "proposal dL/d encoding", g(enc * n))?,
+            saved: Buffer::new(ctx, "proposal MLP record", g(field.mlp.saved_words() * n))?,
         })
     }
 
@@ -137,9 +160,21 @@ impl ProposalWork {
         }
     }
 
-    /// Proposal samples per batch.
-    fn points(&self) -> u64 {
-        self.rays as u64 * self.samples as u64
+    /// The proposal strata as the resampling's and the interlevel loss's source bins (uniform
+    /// edges in s, shared by every ray).
+    pub(crate) fn source_bins(&self) -> SourceBins<'_> {
+        SourceBins {
+            edges: self.uniform_edges.binding(),
+            stride: 0,
+            sigma: self.sigma.binding(),
+            t_dt: self.t_dt.binding(),
+            count: self.samples,
+        }
+    }
+
+    /// Proposal samples of `n_rays` rays.
+    fn points(&self, n_rays: u64) -> u64 {
+        n_rays * self.samples as u64
     }
 }
 
@@ -165,21 +200,34 @@ impl ProposalField {
         &self.config
     }
 
+    /// The MLP's path.
+    pub fn path(&self) -> MlpPath {
+        self.mlp.path()
+    }
+
     /// Sets the MLP's path (as the main field's, [`crate::model::Field::set_mlp`]).
     pub fn set_path(&mut self, ctx: &Context, path: MlpPath) -> Result<()> {
         self.mlp.set_path(ctx, path)
     }
 
-    /// Records the density at every proposal sample of `w` (its positions) into `w.sigma`;
-    /// `params`: the proposal's sections of the flat buffer (table, MLP).
+    /// Records the density at the proposal samples of `w`'s first `n_rays` rays (their
+    /// positions) into `w.sigma`; `params`: the proposal's sections of the flat buffer (table,
+    /// MLP).
     pub fn forward<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
         params: [Binding<'a>; 2],
         w: &'a ProposalWork,
+        n_rays: u64,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
-        let n = w.points();
+        if n_rays > w.rays as u64 {
+            return Err(extranerf_gpu::GpuError::Usage(format!(
+                "{n_rays} rays for proposal buffers of {}",
+                w.rays
+            )));
+        }
+        let n = w.points(n_rays);
         let [table, mlp] = params;
         self.enc.contract(
             rec,
@@ -203,8 +251,9 @@ impl ProposalField {
         mark(prof, rec, "proposal field fwd")
     }
 
-    /// Records the backward pass from `w.d_sigma` after [`ProposalField::forward`]: adds the
-    /// gradients to `d_params` (the same sections of the gradient buffer).
+    /// Records the backward pass from `w.d_sigma` after [`ProposalField::forward`] of all of
+    /// `w`'s rays: adds the gradients to `d_params` (the same sections of the gradient buffer).
+    /// `w` must be a training one ([`ProposalUse::Standalone`] or [`ProposalUse::Fused`]).
     pub fn backward<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
@@ -213,7 +262,12 @@ impl ProposalField {
         w: &'a ProposalWork,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
-        let n = w.points();
+        if w.d_sigma.len() < w.points(w.rays as u64) as usize {
+            return Err(extranerf_gpu::GpuError::Usage(
+                "the proposal field's backward pass needs training buffers".into(),
+            ));
+        }
+        let n = w.points(w.rays as u64);
         let [_, mlp] = params;
         let [d_table, d_mlp] = d_params;
         self.act.backward(
