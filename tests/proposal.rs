@@ -601,14 +601,22 @@ fn proposal_sampler_trains_on_the_demo_scene() {
         trained < 0.5 * untrained,
         "the trained proposal bounds the weights: {trained} vs untrained {untrained}"
     );
-    // Rendered as `render` renders it (the standalone chain with the proposal sampler's
-    // samples, centred), two training views are nearer their true colours than the fused
-    // march's uniform strata make them at 8 samples per ray (about 0.5 dB here), and no
+    // Rendered as `render` renders it (the fused march at the proposal sampler's samples,
+    // centred), two training views are nearer their true colours than the same field's
+    // uniform strata make them at 8 samples per ray (about 0.5 dB here), and no
     // farther at the 16 it trained with; the render does not depend on the chunk (the last
     // chunk here is partial).
     let nerf = t.nerf();
     assert!(nerf.has_proposal());
-    assert_eq!(nerf.default_march(), March::Standalone);
+    assert_eq!(nerf.default_march(), March::default());
+    // The same field without its proposal: uniform strata (its parameters are a prefix).
+    let uniform_model = ModelConfig {
+        sampler: Sampler::Uniform,
+        ..nerf.field().config().clone()
+    };
+    let total = extranerf_nerf::model::ParamLayout::new(&uniform_model).total;
+    let all = nerf.params().read().unwrap();
+    let uniform = Nerf::new(ctx, uniform_model, &all[..total], cfg.background).unwrap();
     let mut db = [[0.0; 2]; 2];
     for &i in loaded.split.train.iter().take(2) {
         let cam = &loaded.scene.cameras[i];
@@ -623,7 +631,7 @@ fn proposal_sampler_trains_on_the_demo_scene() {
                 "chunks"
             );
             assert!(image.0.iter().chain(&image.1).all(|v| v.is_finite()));
-            let strata = nerf
+            let strata = uniform
                 .render_with(ctx, cam, 4096, samples, March::Fused(MarchCuts::EXACT))
                 .unwrap()
                 .0;
@@ -775,6 +783,115 @@ fn fused_step_with_the_proposal_sampler_matches_the_standalone_chain() {
             let (_, _, t) = run(true, MlpMode::Coop);
             assert!(!t.is_fused());
             assert!(t.standalone_reason().unwrap().contains("proposal"));
+        }
+    }
+    assert_no_validation_messages(ctx);
+}
+
+/// The fused march at the proposal sampler's samples renders what the standalone chain renders
+/// at them (both draw them with the same kernels), in NDC and contracted world space, with the
+/// last group of four samples partial and the last chunk partial; the render is what
+/// `Nerf::render` takes, except with cooperative-matrix MLPs (the standalone chain then); an
+/// occupancy grid is refused.
+#[test]
+fn fused_march_with_the_proposal_sampler_matches_the_standalone_chain() {
+    use extranerf_nerf::field::mlp::MlpMode;
+    use extranerf_nerf::model::{init_params, ModelConfig, ProposalConfig, Sampler};
+    use extranerf_nerf::render::march::MarchCuts;
+    use extranerf_nerf::render::occupancy::OccupancyConfig;
+    use extranerf_nerf::renderer::{March, Nerf};
+    let e = engine();
+    let ctx = &e.ctx;
+    let ndc = ModelConfig {
+        sampler: Sampler::Proposal(ProposalConfig {
+            samples: 24,
+            levels: 2,
+            log2_table: 8,
+            min_res: 4,
+            max_res: 16,
+            width: 8,
+            ..ProposalConfig::default()
+        }),
+        ..extranerf_tests::tiny_model()
+    };
+    let world = ModelConfig {
+        space: extranerf_nerf::model::Space::World,
+        near: 0.5,
+        far: 8.0,
+        radius: 2.0,
+        contraction: extranerf_nerf::field::encodings::Contraction::L2,
+        ..ndc.clone()
+    };
+    for (ci, (model, samples)) in [(ndc, 10u32), (world, 37)].into_iter().enumerate() {
+        let views = extranerf_tests::demo_training_views("proposal-march", &model);
+        let cam = &views[0].camera;
+        let mut rng = Rng::new(80 + ci as u64);
+        let mut params = init_params(&model, 5);
+        let lay = extranerf_nerf::model::ParamLayout::new(&model);
+        let [pt, _] = lay.proposal.unwrap();
+        for (start, len) in [lay.table, pt] {
+            for v in &mut params[start..start + len] {
+                *v = rng.uniform(-1.0, 1.0);
+            }
+        }
+        let mut nerf = Nerf::new(ctx, model.clone(), &params, [0.2, 0.5, 0.9]).unwrap();
+        nerf.set_mlp(ctx, MlpMode::Scalar).unwrap();
+        assert_eq!(nerf.default_march(), March::default());
+        let chunk = (cam.width * cam.height).div_ceil(3) + 7;
+        let fused = nerf
+            .render_with(ctx, cam, chunk, samples, March::Fused(MarchCuts::EXACT))
+            .unwrap();
+        let chain = nerf
+            .render_with(ctx, cam, chunk, samples, March::Standalone)
+            .unwrap();
+        let diff =
+            |a: &[f32], b: &[f32]| a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+        let (c, d, o) = (
+            diff(&fused.0, &chain.0),
+            diff(&fused.1, &chain.1),
+            diff(&fused.2, &chain.2),
+        );
+        let lit = fused.2.iter().filter(|&&v| v > 0.05 && v < 0.95).count();
+        eprintln!("case {ci}: fused vs standalone colour {c:e} depth {d:e} opacity {o:e}; {lit} partly transparent pixels");
+        // (The NDC case's random field is partly transparent; the world case's is opaque.)
+        assert!(
+            ci == 1 || lit > 10,
+            "case {ci}: a scene with partly transparent pixels"
+        );
+        assert!(
+            c < 2e-5 && d < 2e-5 && o < 2e-5,
+            "case {ci}: fused and standalone differ by {c} (colour), {d} (depth), {o} (opacity)"
+        );
+        // The uniform strata give another picture: the march took the samples given.
+        let uniform = ModelConfig {
+            sampler: Sampler::Uniform,
+            ..model.clone()
+        };
+        let total = extranerf_nerf::model::ParamLayout::new(&uniform).total;
+        let strata = Nerf::new(ctx, uniform, &params[..total], [0.2, 0.5, 0.9])
+            .unwrap()
+            .render_with(ctx, cam, chunk, samples, March::Fused(MarchCuts::EXACT))
+            .unwrap();
+        assert!(
+            diff(&strata.0, &fused.0) > 1e-3,
+            "case {ci}: the proposal's samples change the render"
+        );
+        if ci == 0 {
+            let occ = OccupancyConfig {
+                res: 16,
+                ..OccupancyConfig::default()
+            };
+            nerf.build_occupancy(ctx, &e.prims, Some(occ), 1).unwrap();
+            let err = nerf
+                .render_with(ctx, cam, chunk, samples, March::Fused(MarchCuts::EXACT))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("occupancy"), "{err}");
+            nerf.build_occupancy(ctx, &e.prims, None, 1).unwrap();
+            if extranerf_tests::coop_tile_or_skip(ctx).is_some() {
+                nerf.set_mlp(ctx, MlpMode::Coop).unwrap();
+                assert_eq!(nerf.default_march(), March::Standalone);
+            }
         }
     }
     assert_no_validation_messages(ctx);

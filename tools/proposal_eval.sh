@@ -1,11 +1,9 @@
 #!/usr/bin/env bash
-# Issue 53: the held-out views of trained runs rendered by the fused march with uniform strata
-# at several sample counts (`eval --samples N`), and a proposal-trained run also with its own
-# sampler (`eval --march standalone`: the proposal field's samples, the run's --samples per
-# ray; the fused march does not take them yet, issue 54), against a uniform-trained run.
-# Writes OUT/RUNNAME_sN.metrics.json per run and count, OUT/RUNNAME_proposal.metrics.json
-# (kept: delete one to evaluate it again), and OUT/eval.md (PSNR, SSIM, LPIPS-alex and the
-# checkpoint's step).
+# Issue 53: the held-out views of trained runs rendered at several sample counts per ray
+# (`eval --samples N`, the fused march): uniform strata for a uniform-trained run, the samples
+# its proposal field draws for a proposal-trained one. Writes OUT/RUNNAME_sN.metrics.json per
+# run and count (kept: delete one to evaluate it again) and OUT/eval.md (PSNR, SSIM,
+# LPIPS-alex and the checkpoint's step).
 #
 # Usage: [SAMPLES="32 128"] [OUT=results/proposal_lavapipe] [EXTRANERF_BIN=...]
 #        tools/proposal_eval.sh RUN...
@@ -25,10 +23,6 @@ for run in "$@"; do
         f="$out/$(basename "$run")_s$s.metrics.json"
         [ -f "$f" ] || "$bin" eval "$run" --views test --samples "$s" --lpips-nets alex --out "$f" >&2
     done
-    f="$out/$(basename "$run")_proposal.metrics.json"
-    if grep -q '"proposal"' "$run/config.json" && [ ! -f "$f" ]; then
-        "$bin" eval "$run" --views test --march standalone --lpips-nets alex --out "$f" >&2
-    fi
 done
 python3 - "$out" "$counts" "$@" <<'EOF'
 import json, pathlib, struct, sys
@@ -44,20 +38,16 @@ def sampler(run):
 lines = [
     "# Held-out views by render sample count (tools/proposal_eval.sh)",
     "",
-    "`eval RUN --views test --samples N --lpips-nets alex`: the fused march, uniform strata at N "
-    "samples per ray; `proposal`: `eval RUN --views test --march standalone --lpips-nets alex`, "
-    "the proposal sampler's samples at the run's own samples per ray (the fused march does not "
-    "take them yet, issue 54).",
+    "`eval RUN --views test --samples N --lpips-nets alex`, the fused march at N samples per ray: "
+    "uniform strata, or the samples a proposal-trained run's proposal field draws.",
     "",
     "| run | sampler | train samples | step | render | PSNR | SSIM | LPIPS-alex |",
     "|---|---|---|---|---|---|---|---|",
 ]
 for run in runs:
     cfg = json.loads((pathlib.Path(run) / "config.json").read_text())
-    renders = [(f"{s} strata", f"_s{s}") for s in counts]
-    if sampler(run) != "uniform":
-        renders.append((f"proposal, {cfg['train']['samples']} samples", "_proposal"))
-    for label, suffix in renders:
+    kind = "strata" if sampler(run) == "uniform" else "proposal samples"
+    for label, suffix in [(f"{s} {kind}", f"_s{s}") for s in counts]:
         t = json.loads((out / f"{pathlib.Path(run).name}{suffix}.metrics.json").read_text())["test"]
         lines.append(
             f"| {pathlib.Path(run).name} | {sampler(run)} | {cfg['train']['samples']} | {step(run)} | {label} | "

@@ -10,7 +10,7 @@ use extranerf_nerf::autoconfig::{
     model_covering, model_for_scene, ndc_pixels_in_cube, GridBox, NdcFit, SampleRange,
 };
 use extranerf_nerf::data::split::SplitKind;
-use extranerf_nerf::field::mlp::MlpMode;
+use extranerf_nerf::field::mlp::{MlpMode, MlpPath};
 use extranerf_nerf::metrics::{psnr, ssim, Lpips, LpipsNet, PooledError};
 use extranerf_nerf::model::{Precision, ProposalConfig, Sampler};
 use extranerf_nerf::mvs_depth::MvsDepthSettings;
@@ -730,11 +730,12 @@ fn render_views(
     let mlp_path = nerf.set_mlp(ctx, march.mlp)?;
     eprintln!("MLPs: {mlp_path}");
     let samples = samples.unwrap_or(cfg.train.samples);
-    let how = march.march()?;
-    if nerf.has_proposal() && how != March::Standalone {
+    let mut how = march.march()?;
+    if nerf.has_proposal() && how != March::Standalone && mlp_path != MlpPath::Scalar {
         eprintln!(
-            "note: this field trained with the proposal sampler; the fused march takes {samples} uniform strata per ray, not the proposal's samples (--march standalone renders with them)"
+            "note: the fused march takes the proposal sampler's samples with scalar MLPs only; rendering through the standalone chain ({mlp_path} MLPs)"
         );
+        how = March::Standalone;
     }
     if let Some(occ) = march.occupancy(&cfg.model)? {
         let t = Instant::now();

@@ -1,8 +1,8 @@
 //! Rendering a trained BaseNeRF field: [`Nerf`] holds the field, its parameters and the
-//! kernels that render it, either through the fused march (the default for the uniform
-//! sampler, skipping empty space once the occupancy grid is built) or through the standalone
-//! training chain that stores every sample between kernels (the default for a field trained
-//! with the proposal sampler, whose samples it draws from the proposal field as training did).
+//! kernels that render it, either through the fused march (the default, skipping empty space
+//! once the occupancy grid is built) or through the standalone training chain that stores
+//! every sample between kernels. A field trained with the proposal sampler renders at the
+//! samples drawn from its proposal field's weights, as training drew them, on either path.
 
 use extranerf_gpu::kernels::render::pixels as kp;
 use extranerf_gpu::{count_u32, Binding, Buffer, Context, GpuError, Kernel, Recorder, Result};
@@ -176,9 +176,9 @@ pub enum March {
     /// else uniform strata), the field's standalone kernels, compositing (every sample stored
     /// in memory between kernels; no cuts, no occupancy).
     Standalone,
-    /// The fused march kernel with these cuts at uniform strata, skipping empty space when the
-    /// occupancy grid has been built ([`Nerf::build_occupancy`]). It does not take the proposal
-    /// sampler's samples.
+    /// The fused march kernel with these cuts, at uniform strata skipping empty space when the
+    /// occupancy grid has been built ([`Nerf::build_occupancy`]), or at the proposal sampler's
+    /// samples (drawn by its standalone kernels before the march; scalar MLPs, no occupancy).
     Fused(MarchCuts),
 }
 
@@ -193,12 +193,15 @@ impl Default for March {
 enum RenderIo {
     /// Every stage's per-sample buffers, and the proposal sampler's when the field has one.
     Standalone(Workspace, Option<ProposalWork>),
-    /// Pixels in, colour and depth out, per ray.
+    /// Pixels in, colour and depth out, per ray; with the proposal sampler, the rays (in a
+    /// workspace without per-sample buffers, whose pixels the march then reads) and the
+    /// proposal's buffers, whose main samples the march takes.
     Fused {
         cuts: MarchCuts,
         pixels: Buffer<[u32; 2]>,
         rgba: Buffer<[f32; 4]>,
         depth: Buffer<f32>,
+        proposal: Option<(Workspace, ProposalWork)>,
     },
 }
 
@@ -278,11 +281,13 @@ impl Nerf {
         }
     }
 
-    /// The path [`Nerf::render`] takes: the standalone chain for a field with the proposal
-    /// sampler (the fused march takes uniform strata only) or one the fused march cannot take
-    /// ([`Marcher::supports`]), else the fused march with no cuts.
+    /// The path [`Nerf::render`] takes: the standalone chain for a field the fused march cannot
+    /// take ([`Marcher::supports`]) or one with the proposal sampler when the march runs
+    /// cooperative-matrix MLPs (it takes given samples with scalar MLPs only), else the fused
+    /// march with no cuts.
     pub fn default_march(&self) -> March {
-        if self.proposal.is_some() || Marcher::supports(&self.field).is_err() {
+        let proposal_coop = self.proposal.is_some() && self.marcher.mlp_path() != MlpPath::Scalar;
+        if proposal_coop || Marcher::supports(&self.field).is_err() {
             March::Standalone
         } else {
             March::default()
@@ -592,10 +597,11 @@ impl Nerf {
     /// (`samples` per ray: the main samples the proposal sampler draws, when the field has
     /// one), through the fused march with no cuts, as the command line renders (skipping empty
     /// space once [`Nerf::build_occupancy`] has built the grid; it reads the f32 hash table also
-    /// for an f16 model). A field with the proposal sampler, or one the fused march cannot take
-    /// ([`Marcher::supports`]: MLP widths that are not multiples of 4 or overflow its weight
-    /// block, world space with near 0), renders through the standalone training kernels
-    /// ([`Nerf::default_march`]). [`Nerf::render_with`] chooses the path.
+    /// for an f16 model). A field the fused march cannot take ([`Marcher::supports`]: MLP
+    /// widths that are not multiples of 4 or overflow its weight block, world space with near
+    /// 0), or one with the proposal sampler while the march runs cooperative-matrix MLPs,
+    /// renders through the standalone training kernels ([`Nerf::default_march`]).
+    /// [`Nerf::render_with`] chooses the path.
     pub fn render(
         &self,
         ctx: &Context,
@@ -642,6 +648,34 @@ impl Nerf {
                 pixels: Buffer::new(ctx, "march pixels", chunk_rays as usize)?,
                 rgba: Buffer::new(ctx, "march colour", chunk_rays as usize)?,
                 depth: Buffer::new(ctx, "march depth", chunk_rays as usize)?,
+                proposal: match &self.proposal {
+                    None => None,
+                    Some(ps) => {
+                        if self.occupancy.is_some() {
+                            return Err(GpuError::Usage(
+                                "a field with the proposal sampler renders without an occupancy grid (its samples lie where the proposal's weights are)".into(),
+                            ));
+                        }
+                        Some((
+                            Workspace::new(
+                                ctx,
+                                &self.field,
+                                self.field.config(),
+                                chunk_rays,
+                                samples,
+                                false,
+                                false,
+                            )?,
+                            ProposalWork::new(
+                                ctx,
+                                &ps.field,
+                                chunk_rays,
+                                samples,
+                                ProposalUse::March,
+                            )?,
+                        ))
+                    }
+                },
             },
         };
         let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
@@ -665,18 +699,38 @@ impl Nerf {
                     pixels,
                     rgba,
                     depth,
+                    proposal,
                 } => {
-                    let b = kp::pixel_range::Bindings {
-                        pixels: pixels.binding(),
+                    let pixels = match proposal {
+                        Some((ws, _)) => ws.pixels.binding(),
+                        None => pixels.binding(),
                     };
+                    let b = kp::pixel_range::Bindings { pixels };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
+                    let given = match proposal {
+                        None => None,
+                        Some((ws, w)) => {
+                            self.record_field_rays(&mut rec, ws, cams.binding(), 1, n)?;
+                            self.record_proposal_samples(
+                                &mut rec,
+                                ws,
+                                w,
+                                n,
+                                None,
+                                None,
+                                &w.main_outputs(),
+                                &mut None,
+                            )?;
+                            Some(w.main_t_dt.binding())
+                        }
+                    };
                     self.marcher.render(
                         &mut rec,
                         &self.field,
                         self.sections(&self.params)?,
                         cams.binding(),
                         1,
-                        pixels.binding(),
+                        pixels,
                         n,
                         samples,
                         *cuts,
@@ -684,6 +738,7 @@ impl Nerf {
                         self.background,
                         rgba.binding(),
                         depth.binding(),
+                        given,
                     )?;
                     (rgba.binding(), depth.binding())
                 }

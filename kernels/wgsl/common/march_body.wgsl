@@ -41,7 +41,9 @@ struct Params {
     color_base: u32,
     min_weight: f32,
     min_transmittance: f32,
-    // Scene centre (xyz).
+    // Scene centre (xyz); w: non-zero when march_render takes the samples given (the proposal
+    // sampler's, render/proposal.wgsl's resample: sample j of ray i is
+    // given_t_dt[i * samples + j]) in place of the strata.
     center: vec4<f32>,
     // Background colour (xyz).
     background: vec4<f32>,
@@ -77,6 +79,8 @@ fn sample_spacing() -> u32 {
 @group(0) @binding(12) var<uniform> mlp: array<vec4<f32>, 4096>;
 // The second part of a split hash table (common/hash_grid.wgsl).
 @group(0) @binding(13) var<storage, read> table_hi: array<f32>;
+// The samples given, (t, dt) per sample (params.center.w non-zero; the scalar march only).
+@group(0) @binding(14) var<storage, read> given_t_dt: array<vec2<f32>>;
 
 
 // Ray i (< params.n). Out-of-range camera or pixel indices give a zero pixel (written here)

@@ -1,6 +1,7 @@
 // Fused march: one thread per ray does everything between a pixel and its colour. It builds the
 // ray from the camera (NDC for forward-facing scenes), places the samples (stratum midpoints,
-// linear in t or in disparity), skips samples in cells the occupancy grid marks empty (points
+// linear in t or in disparity, or takes the samples given: the proposal sampler's, sorted along
+// the ray, when params.center.w is non-zero), skips samples in cells the occupancy grid marks empty (points
 // outside the grid are evaluated), and evaluates the
 // field per sample in registers: contraction, every hash-grid level, the density MLP,
 // trunc-exp, SH4 of the world direction, and the colour MLP, four samples at a time sharing
@@ -56,6 +57,7 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
     // samples in empty space cost no MLP work.
     var done = false;
     var next = 0u;
+    let given = params.center.w != 0.0;
     loop {
         if done || next >= k {
             break;
@@ -70,7 +72,12 @@ fn march_render(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) 
             }
             let j = next;
             next += 1u;
-            let td = march_stratum(j, k);
+            var td: vec2<f32>;
+            if given {
+                td = given_t_dt[i * k + j];
+            } else {
+                td = march_stratum(j, k);
+            }
             let u = scene_point(ray, td.x);
             if !occupied(u) {
                 continue;

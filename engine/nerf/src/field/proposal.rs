@@ -36,8 +36,11 @@ pub struct ProposalField {
 /// element that no kernel binds).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ProposalUse {
-    /// Rendering: the proposal field forward and the resampling into the renderer's samples.
+    /// Rendering through the standalone chain: the proposal field forward and the resampling
+    /// into the chain's samples.
     Render,
+    /// Rendering through the fused march: also the main samples the march takes.
+    March,
     /// Training with the standalone chain: also the backward pass (the main samples are the
     /// chain's workspace's).
     Standalone,
@@ -66,8 +69,8 @@ pub struct ProposalWork {
     pub(crate) uniform_edges: Buffer<f32>,
     /// The main samples' edges, `main_samples + 1` per ray.
     pub(crate) main_edges: Buffer<f32>,
-    /// The main samples when the fused step takes them ([`ProposalUse::Fused`]; the
-    /// standalone chain's and the renderer's are their workspace's): positions (unread by the
+    /// The main samples when the fused step or march takes them ([`ProposalUse::Fused`],
+    /// [`ProposalUse::March`]; the standalone chain's are its workspace's): positions (unread by the
     /// step), `(t, dt)`, `(s, ds)`, spans, and the densities the step writes.
     pub(crate) main_positions: Buffer<f32>,
     pub(crate) main_t_dt: Buffer<[f32; 2]>,
@@ -106,6 +109,7 @@ impl ProposalWork {
         let edges: Vec<f32> = (0..=kp).map(|i| i as f32 / kp as f32).collect();
         let (grads, fused) = match purpose {
             ProposalUse::Render => (false, false),
+            ProposalUse::March => (false, true),
             ProposalUse::Standalone => (true, false),
             ProposalUse::Fused => (true, true),
         };

@@ -89,6 +89,8 @@ pub struct Marcher {
     occupancy: Kernel,
     /// Bound as the occupancy bitfield when no grid is used (the kernel does not read it).
     no_bits: Buffer<u32>,
+    /// Bound in place of the given samples when the march places its own.
+    no_given: Buffer<[f32; 2]>,
     /// Both MLPs' weights, copied from the parameter buffer before each pass.
     mlp_block: Buffer<f32>,
 }
@@ -145,6 +147,7 @@ impl Marcher {
             coop: None,
             occupancy: Kernel::new(ctx, &k::march_occupancy::DESC)?,
             no_bits: Buffer::from_slice(ctx, "no occupancy bits", &[u32::MAX])?,
+            no_given: Buffer::new(ctx, "no given samples", 1)?,
             mlp_block: Buffer::new(ctx, "march MLP weights", MLP_BLOCK_FLOATS)?,
         })
     }
@@ -221,7 +224,10 @@ impl Marcher {
     /// Records the render of `n` rays given as (camera, pixel) pairs in `pixels` into
     /// `out_rgba[n]` (colour plus opacity) and `out_depth[n]` (expected depth in the ray space's
     /// units). `params` are the field's parameter sections. With `occupancy`, samples in cells
-    /// its bitfield marks empty are skipped (samples outside the grid are evaluated).
+    /// its bitfield marks empty are skipped (samples outside the grid are evaluated). With
+    /// `given`, `(t, dt)` per sample `[n * samples, 2]` sorted along each ray (the proposal
+    /// sampler's, [`crate::render::proposal::Proposal::resample`]), the march takes those in
+    /// place of the strata (scalar MLPs, no occupancy grid).
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn render<'a>(
         &'a self,
@@ -238,6 +244,7 @@ impl Marcher {
         background: [f32; 3],
         out_rgba: Binding<'a>,
         out_depth: Binding<'a>,
+        given: Option<Binding<'a>>,
     ) -> Result<()> {
         cuts.validate()?;
         pixels.check_fits(2 * n, 4, "march pixels")?;
@@ -256,9 +263,23 @@ impl Marcher {
             }
             None => self.no_bits.binding(),
         };
+        let given_t_dt = match given {
+            None => self.no_given.binding(),
+            Some(g) => {
+                if self.coop.is_some() || occupancy.is_some() {
+                    return Err(GpuError::Usage(
+                        "the fused march takes given samples with scalar MLPs and no occupancy grid".into(),
+                    ));
+                }
+                g.check_fits(2 * n * samples as u64, 4, "march given samples")?;
+                p.center[3] = 1.0;
+                g
+            }
+        };
         p.color_base = self.record_mlp_block(rec, field, &params)?;
         let (table, table_hi) = field.grid().parts(params[0])?;
         let b = k::march_render::Bindings {
+            given_t_dt,
             cameras,
             pixels,
             level_info: field.grid().levels().binding(),
@@ -276,7 +297,11 @@ impl Marcher {
         };
         let shapes = [b.density_shape, b.color_shape];
         let mlp = b.mlp;
-        coop.record::<_, 11, 12>(rec, field, shapes, mlp, b.into_array(), &p, n)
+        // The cooperative-matrix twin binds the scalar march's first 11 (not the given samples).
+        let all = b.into_array();
+        let mut first = [all[0]; 11];
+        first.copy_from_slice(&all[..11]);
+        coop.record::<_, 11, 12>(rec, field, shapes, mlp, first, &p, n)
     }
 
     /// Records the fused occupancy update of the window of `count` cells from `first`
