@@ -683,32 +683,19 @@ fn proposal_sampler_trains_on_the_demo_scene() {
     assert_no_validation_messages(ctx);
 }
 
-/// The fused step with the proposal sampler's samples gives the standalone chain's losses and
-/// gradient, the proposal field's included (both draw the same samples: the proposal field and
-/// the resampling run as the same kernels before either), in NDC with L2 and in contracted
-/// world space with Huber, both with the distortion loss (over bins of unequal width) and
-/// random parameters. With cooperative-matrix MLPs the step is the standalone chain's, saying
-/// why.
-#[test]
-fn fused_step_with_the_proposal_sampler_matches_the_standalone_chain() {
-    use extranerf_nerf::field::mlp::MlpMode;
-    use extranerf_nerf::model::{init_params, ModelConfig, ProposalConfig, Sampler};
-    use extranerf_nerf::renderer::Nerf;
-    use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer};
-    use extranerf_nerf::views::TrainData;
-    let e = engine();
-    let ctx = &e.ctx;
-    let proposal = Sampler::Proposal(ProposalConfig {
-        samples: 24,
-        levels: 2,
-        log2_table: 8,
-        min_res: 4,
-        max_res: 16,
-        width: 8,
-        ..ProposalConfig::default()
-    });
+/// The tiny test model with a small proposal field, in NDC and in contracted world space.
+fn tiny_proposal_models() -> [extranerf_nerf::model::ModelConfig; 2] {
+    use extranerf_nerf::model::{ModelConfig, ProposalConfig, Sampler};
     let ndc = ModelConfig {
-        sampler: proposal.clone(),
+        sampler: Sampler::Proposal(ProposalConfig {
+            samples: 24,
+            levels: 2,
+            log2_table: 8,
+            min_res: 4,
+            max_res: 16,
+            width: 8,
+            ..ProposalConfig::default()
+        }),
         ..extranerf_tests::tiny_model()
     };
     let world = ModelConfig {
@@ -719,21 +706,48 @@ fn fused_step_with_the_proposal_sampler_matches_the_standalone_chain() {
         contraction: extranerf_nerf::field::encodings::Contraction::L2,
         ..ndc.clone()
     };
+    [ndc, world]
+}
+
+/// `model`'s initial parameters with both hash tables (the main field's and the proposal's)
+/// drawn uniformly from [-1, 1] with `seed`: densities that vary along every ray.
+fn random_tables(model: &extranerf_nerf::model::ModelConfig, seed: u64) -> Vec<f32> {
+    let mut rng = Rng::new(seed);
+    let mut params = extranerf_nerf::model::init_params(model, 5);
+    let lay = extranerf_nerf::model::ParamLayout::new(model);
+    let [pt, _] = lay.proposal.expect("a model with the proposal sampler");
+    for (start, len) in [lay.table, pt] {
+        for v in &mut params[start..start + len] {
+            *v = rng.uniform(-1.0, 1.0);
+        }
+    }
+    params
+}
+
+/// The fused step with the proposal sampler's samples gives the standalone chain's losses and
+/// gradient, the proposal field's included (both draw the same samples: the proposal field and
+/// the resampling run as the same kernels before either), in NDC with L2 and in contracted
+/// world space with Huber, both with the distortion loss (over bins of unequal width) and
+/// random parameters. With cooperative-matrix MLPs the step is the standalone chain's, saying
+/// why.
+#[test]
+fn fused_step_with_the_proposal_sampler_matches_the_standalone_chain() {
+    use extranerf_nerf::field::mlp::MlpMode;
+    use extranerf_nerf::renderer::Nerf;
+    use extranerf_nerf::trainer::{RgbLossKind, TrainConfig, Trainer};
+    use extranerf_nerf::views::TrainData;
+    let e = engine();
+    let ctx = &e.ctx;
+    let [ndc, world] = tiny_proposal_models();
     for (ci, (model, rgb_loss)) in [(ndc, RgbLossKind::L2), (world, RgbLossKind::Huber)]
         .into_iter()
         .enumerate()
     {
         let views = extranerf_tests::demo_training_views("proposal-fused", &model);
         let data = TrainData::new(ctx, &views).unwrap();
-        let mut rng = Rng::new(60 + ci as u64);
-        let mut params = init_params(&model, 5);
+        let params = random_tables(&model, 60 + ci as u64);
         let lay = extranerf_nerf::model::ParamLayout::new(&model);
         let [pt, pm] = lay.proposal.unwrap();
-        for (start, len) in [lay.table, pt] {
-            for v in &mut params[start..start + len] {
-                *v = rng.uniform(-1.0, 1.0);
-            }
-        }
         let run = |fused: bool, mlp: MlpMode| {
             let cfg = TrainConfig {
                 mlp,
@@ -796,44 +810,17 @@ fn fused_step_with_the_proposal_sampler_matches_the_standalone_chain() {
 #[test]
 fn fused_march_with_the_proposal_sampler_matches_the_standalone_chain() {
     use extranerf_nerf::field::mlp::MlpMode;
-    use extranerf_nerf::model::{init_params, ModelConfig, ProposalConfig, Sampler};
+    use extranerf_nerf::model::{ModelConfig, Sampler};
     use extranerf_nerf::render::march::MarchCuts;
     use extranerf_nerf::render::occupancy::OccupancyConfig;
     use extranerf_nerf::renderer::{March, Nerf};
     let e = engine();
     let ctx = &e.ctx;
-    let ndc = ModelConfig {
-        sampler: Sampler::Proposal(ProposalConfig {
-            samples: 24,
-            levels: 2,
-            log2_table: 8,
-            min_res: 4,
-            max_res: 16,
-            width: 8,
-            ..ProposalConfig::default()
-        }),
-        ..extranerf_tests::tiny_model()
-    };
-    let world = ModelConfig {
-        space: extranerf_nerf::model::Space::World,
-        near: 0.5,
-        far: 8.0,
-        radius: 2.0,
-        contraction: extranerf_nerf::field::encodings::Contraction::L2,
-        ..ndc.clone()
-    };
+    let [ndc, world] = tiny_proposal_models();
     for (ci, (model, samples)) in [(ndc, 10u32), (world, 37)].into_iter().enumerate() {
         let views = extranerf_tests::demo_training_views("proposal-march", &model);
         let cam = &views[0].camera;
-        let mut rng = Rng::new(80 + ci as u64);
-        let mut params = init_params(&model, 5);
-        let lay = extranerf_nerf::model::ParamLayout::new(&model);
-        let [pt, _] = lay.proposal.unwrap();
-        for (start, len) in [lay.table, pt] {
-            for v in &mut params[start..start + len] {
-                *v = rng.uniform(-1.0, 1.0);
-            }
-        }
+        let params = random_tables(&model, 80 + ci as u64);
         let mut nerf = Nerf::new(ctx, model.clone(), &params, [0.2, 0.5, 0.9]).unwrap();
         nerf.set_mlp(ctx, MlpMode::Scalar).unwrap();
         assert_eq!(nerf.default_march(), March::default());

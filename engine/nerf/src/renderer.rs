@@ -612,6 +612,26 @@ impl Nerf {
         self.render_with(ctx, camera, chunk_rays, samples, self.default_march())
     }
 
+    /// A workspace for renders of `chunk_rays` rays of `samples` samples (no gradients), with
+    /// per-sample buffers or (for the rays the proposal sampler draws from) without.
+    fn render_workspace(
+        &self,
+        ctx: &Context,
+        chunk_rays: u32,
+        samples: u32,
+        per_sample: bool,
+    ) -> Result<Workspace> {
+        Workspace::new(
+            ctx,
+            &self.field,
+            self.field.config(),
+            chunk_rays,
+            samples,
+            false,
+            per_sample,
+        )
+    }
+
     /// [`Nerf::render`] with a choice of evaluation path.
     pub fn render_with(
         &self,
@@ -627,15 +647,7 @@ impl Nerf {
         // The standalone chain needs per-sample buffers; the fused march only per-ray ones.
         let io = match march {
             March::Standalone => RenderIo::Standalone(
-                Workspace::new(
-                    ctx,
-                    &self.field,
-                    self.field.config(),
-                    chunk_rays,
-                    samples,
-                    false,
-                    true,
-                )?,
+                self.render_workspace(ctx, chunk_rays, samples, true)?,
                 self.proposal
                     .as_ref()
                     .map(|ps| {
@@ -657,15 +669,7 @@ impl Nerf {
                             ));
                         }
                         Some((
-                            Workspace::new(
-                                ctx,
-                                &self.field,
-                                self.field.config(),
-                                chunk_rays,
-                                samples,
-                                false,
-                                false,
-                            )?,
+                            self.render_workspace(ctx, chunk_rays, samples, false)?,
                             ProposalWork::new(
                                 ctx,
                                 &ps.field,
