@@ -31,9 +31,8 @@ def step(run):
     with open(pathlib.Path(run) / "checkpoint.safetensors", "rb") as f:
         n = struct.unpack("<Q", f.read(8))[0]
         return json.loads(f.read(n))["__metadata__"]["step"]
-def sampler(run):
-    m = json.loads((pathlib.Path(run) / "config.json").read_text())["model"]
-    p = m.get("sampler", "uniform")
+def sampler(cfg):
+    p = cfg["model"].get("sampler", "uniform")
     return "uniform" if p == "uniform" else f"proposal, {p['proposal']['samples']} strata"
 lines = [
     "# Held-out views by render sample count (tools/proposal_eval.sh)",
@@ -46,11 +45,12 @@ lines = [
 ]
 for run in runs:
     cfg = json.loads((pathlib.Path(run) / "config.json").read_text())
-    kind = "strata" if sampler(run) == "uniform" else "proposal samples"
+    name, how = pathlib.Path(run).name, sampler(cfg)
+    kind = "strata" if how == "uniform" else "proposal samples"
     for label, suffix in [(f"{s} {kind}", f"_s{s}") for s in counts]:
-        t = json.loads((out / f"{pathlib.Path(run).name}{suffix}.metrics.json").read_text())["test"]
+        t = json.loads((out / f"{name}{suffix}.metrics.json").read_text())["test"]
         lines.append(
-            f"| {pathlib.Path(run).name} | {sampler(run)} | {cfg['train']['samples']} | {step(run)} | {label} | "
+            f"| {name} | {how} | {cfg['train']['samples']} | {step(run)} | {label} | "
             f"{t['psnr']:.2f} | {t['ssim']:.3f} | {t['lpips_alex']:.3f} |"
         )
 (out / "eval.md").write_text("\n".join(lines) + "\n")

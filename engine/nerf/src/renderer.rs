@@ -161,6 +161,15 @@ pub struct Nerf {
     pub(crate) proposal: Option<ProposalSampler>,
 }
 
+/// Where [`Nerf::record_forward`] takes a ray's samples from.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum SamplesFrom<'s, 'a> {
+    /// Uniform strata, over the occupied part of the ray with an occupancy grid.
+    Strata(Option<&'s SkipEmpty<'a>>),
+    /// The proposal sampler, with its buffers.
+    Proposal(&'a ProposalWork),
+}
+
 /// The proposal sampler of a field: the proposal field's kernels and the resampling's.
 #[derive(Debug)]
 pub(crate) struct ProposalSampler {
@@ -351,19 +360,8 @@ impl Nerf {
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         let ps = self.proposal_sampler()?;
-        self.sampler.record(
-            rec,
-            ws.origins.binding(),
-            ws.dirs.binding(),
-            ws.near_far.binding(),
-            &w.strata_outputs(),
-            n,
-            w.samples,
-            self.spacing(),
-            seed,
-            targets,
-            None,
-        )?;
+        let strata = w.strata_outputs();
+        self.record_stratified(rec, ws, &strata, n, w.samples, seed, targets, None)?;
         mark(prof, rec, "proposal strata")?;
         ps.field
             .forward(rec, self.proposal_sections(&self.params)?, w, n, prof)?;
@@ -387,9 +385,11 @@ impl Nerf {
         )?;
         mark(prof, rec, "proposal resampling")
     }
-    /// Records rays for `ws.pixels[..n]`, samples (jittered with `seed`; with `targets`, a
-    /// training batch's target colours, not on virtual views' rays: [`Sampler::record`]), the
-    /// field and the compositing into `ws.out_rgba` / `ws.out_depth`.
+
+    /// Records rays for `ws.pixels[..n]`, their samples from `from` (jittered with `seed`;
+    /// with `targets`, a training batch's target colours, not on virtual views' rays:
+    /// [`Sampler::record`]), the field and the compositing into `ws.out_rgba` /
+    /// `ws.out_depth`.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub(crate) fn record_forward<'a>(
         &'a self,
@@ -400,12 +400,29 @@ impl Nerf {
         n: u64,
         seed: Option<u32>,
         targets: Option<Binding<'a>>,
-        skip: Option<&SkipEmpty<'a>>,
+        from: SamplesFrom<'_, 'a>,
         background: Background,
         prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         self.record_rays(rec, ws, cameras, n_cameras, n, prof)?;
-        self.record_strata(rec, ws, n, seed, targets, skip, prof)?;
+        let out = self.sample_outputs(ws);
+        match from {
+            SamplesFrom::Strata(skip) => {
+                self.record_stratified(rec, ws, &out, n, ws.samples, seed, targets, skip)?;
+                mark(
+                    prof,
+                    rec,
+                    if skip.is_some() {
+                        "stratified samples (occupied space)"
+                    } else {
+                        "stratified samples"
+                    },
+                )?;
+            }
+            SamplesFrom::Proposal(w) => {
+                self.record_proposal_samples(rec, ws, w, n, seed, targets, &out, prof)?
+            }
+        }
         self.record_field_forward(rec, ws, n, background, prof)
     }
 
@@ -475,39 +492,33 @@ impl Nerf {
         }
     }
 
-    /// Records the stratified samples of the rays of [`Nerf::record_rays`] into `ws`.
+    /// Records `per_ray` stratified samples on each of the first `n` rays of `ws` (in the
+    /// field's space, [`Nerf::record_field_rays`]) into `out`, as [`Sampler::record`] places
+    /// them.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
-    pub(crate) fn record_strata<'a>(
+    fn record_stratified<'a>(
         &'a self,
         rec: &mut Recorder<'a>,
         ws: &'a Workspace,
+        out: &SampleOutputs<'a>,
         n: u64,
+        per_ray: u32,
         seed: Option<u32>,
         targets: Option<Binding<'a>>,
         skip: Option<&SkipEmpty<'a>>,
-        prof: &mut Option<Profiler<'a>>,
     ) -> Result<()> {
         self.sampler.record(
             rec,
             ws.origins.binding(),
             ws.dirs.binding(),
             ws.near_far.binding(),
-            &self.sample_outputs(ws),
+            out,
             n,
-            ws.samples,
+            per_ray,
             self.spacing(),
             seed,
             targets,
             skip,
-        )?;
-        mark(
-            prof,
-            rec,
-            if skip.is_some() {
-                "stratified samples (occupied space)"
-            } else {
-                "stratified samples"
-            },
         )
     }
 
@@ -751,35 +762,22 @@ impl Nerf {
                         pixels: ws.pixels.binding(),
                     };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
-                    let background = Background::Fixed(self.background);
-                    match proposal {
-                        None => self.record_forward(
-                            &mut rec,
-                            ws,
-                            cams.binding(),
-                            1,
-                            n,
-                            None,
-                            None,
-                            None,
-                            background,
-                            &mut None,
-                        )?,
-                        Some(w) => {
-                            self.record_rays(&mut rec, ws, cams.binding(), 1, n, &mut None)?;
-                            self.record_proposal_samples(
-                                &mut rec,
-                                ws,
-                                w,
-                                n,
-                                None,
-                                None,
-                                &self.sample_outputs(ws),
-                                &mut None,
-                            )?;
-                            self.record_field_forward(&mut rec, ws, n, background, &mut None)?;
-                        }
-                    }
+                    let from = match proposal {
+                        None => SamplesFrom::Strata(None),
+                        Some(w) => SamplesFrom::Proposal(w),
+                    };
+                    self.record_forward(
+                        &mut rec,
+                        ws,
+                        cams.binding(),
+                        1,
+                        n,
+                        None,
+                        None,
+                        from,
+                        Background::Fixed(self.background),
+                        &mut None,
+                    )?;
                     (ws.out_rgba.binding(), ws.out_depth.binding())
                 }
             };

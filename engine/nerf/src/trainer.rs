@@ -21,7 +21,7 @@ use crate::render::occupancy::{Occupancy, OccupancyConfig};
 use crate::render::proposal::MainBins;
 use crate::render::sample::{SkipEmpty, MAX_PROBES};
 use crate::render::train_step::{FusedStep, GivenSamples, StepLosses, StepOutputs};
-use crate::renderer::{Nerf, Workspace};
+use crate::renderer::{Nerf, SamplesFrom, Workspace};
 use crate::views::{DrawnBatch, TrainData};
 
 /// Steps whose loss and MSE the device keeps between progress reads.
@@ -703,34 +703,23 @@ impl Trainer {
         let n = ws.rays as u64;
         let ns = n * ws.samples as u64;
         let nerf = &self.nerf;
-        match &self.proposal {
-            None => nerf.record_forward(
-                rec,
-                ws,
-                data.cameras.binding(),
-                data.n_images,
-                n,
-                Some(seed),
-                Some(ws.target_rgb.binding()),
-                skip,
-                self.background(seed),
-                prof,
-            )?,
-            Some(w) => {
-                nerf.record_rays(rec, ws, data.cameras.binding(), data.n_images, n, prof)?;
-                nerf.record_proposal_samples(
-                    rec,
-                    ws,
-                    w,
-                    n,
-                    Some(seed),
-                    Some(ws.target_rgb.binding()),
-                    &nerf.sample_outputs(ws),
-                    prof,
-                )?;
-                nerf.record_field_forward(rec, ws, n, self.background(seed), prof)?;
-            }
-        }
+        // (The trainer refuses an occupancy grid with the proposal sampler: no skip then.)
+        let from = match &self.proposal {
+            None => SamplesFrom::Strata(skip),
+            Some(w) => SamplesFrom::Proposal(w),
+        };
+        nerf.record_forward(
+            rec,
+            ws,
+            data.cameras.binding(),
+            data.n_images,
+            n,
+            Some(seed),
+            Some(ws.target_rgb.binding()),
+            from,
+            self.background(seed),
+            prof,
+        )?;
         let samples = ws.samples(n);
         if self.cfg.distortion_lambda > 0.0 {
             nerf.comp.distortion(
