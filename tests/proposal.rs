@@ -698,14 +698,7 @@ fn tiny_proposal_models() -> [extranerf_nerf::model::ModelConfig; 2] {
         }),
         ..extranerf_tests::tiny_model()
     };
-    let world = ModelConfig {
-        space: extranerf_nerf::model::Space::World,
-        near: 0.5,
-        far: 8.0,
-        radius: 2.0,
-        contraction: extranerf_nerf::field::encodings::Contraction::L2,
-        ..ndc.clone()
-    };
+    let world = extranerf_tests::in_world(ndc.clone());
     [ndc, world]
 }
 

@@ -256,6 +256,19 @@ pub fn max_rel_err(a: &[f32], b: &[f32]) -> f64 {
         / scale
 }
 
+/// `model` in contracted world space (L2 contraction of radius 2, sampled from 0.5 to 8): the
+/// world-space twin of an NDC test field.
+pub fn in_world(model: extranerf_nerf::model::ModelConfig) -> extranerf_nerf::model::ModelConfig {
+    extranerf_nerf::model::ModelConfig {
+        space: extranerf_nerf::model::Space::World,
+        near: 0.5,
+        far: 8.0,
+        radius: 2.0,
+        contraction: extranerf_nerf::field::encodings::Contraction::L2,
+        ..model
+    }
+}
+
 /// A small field for training tests: 4 levels of a 2^10 table (N 4..64), MLPs 16 wide.
 pub fn tiny_model() -> extranerf_nerf::model::ModelConfig {
     extranerf_nerf::model::ModelConfig {

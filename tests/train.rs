@@ -626,14 +626,7 @@ fn fused_step_gradient_matches_the_standalone_chain() {
         false,
     );
     let loaded = spec.load().unwrap();
-    let world = ModelConfig {
-        space: extranerf_nerf::model::Space::World,
-        near: 0.5,
-        far: 8.0,
-        radius: 2.0,
-        contraction: extranerf_nerf::field::encodings::Contraction::L2,
-        ..tiny()
-    };
+    let world = extranerf_tests::in_world(tiny());
     // The last field: an occupancy grid of that many cells per axis (0: none), swept and
     // thresholded in the step itself, whose strata then cover only occupied probe intervals.
     let cases = [
