@@ -24,7 +24,7 @@ use extranerf_extrapolate::stage3::{
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
-use extranerf_nerf::model::ModelConfig;
+use extranerf_nerf::model::{ModelConfig, ProposalConfig, Sampler};
 use extranerf_nerf::run::training_views;
 use extranerf_nerf::run::{load_checkpoint, RunConfig};
 use extranerf_nerf::trainer::TrainConfig;
@@ -177,6 +177,15 @@ fn small_base(
     ctx: &extranerf_gpu::Context,
     dir: &Path,
 ) -> (std::path::PathBuf, std::path::PathBuf) {
+    small_base_sampled(ctx, dir, Sampler::Uniform)
+}
+
+/// [`small_base`] with the rays sampled by `sampler`.
+fn small_base_sampled(
+    ctx: &extranerf_gpu::Context,
+    dir: &Path,
+    sampler: Sampler,
+) -> (std::path::PathBuf, std::path::PathBuf) {
     let scene_dir = dir.join("scene");
     extranerf_nerf::demo::write_demo_scene(&scene_dir, 48, 36).unwrap();
     // A small BaseNeRF.
@@ -187,6 +196,7 @@ fn small_base(
             levels: 6,
             log2_table: 12,
             max_res: 128,
+            sampler,
             ..ModelConfig::default()
         },
         train: TrainConfig {
@@ -472,6 +482,71 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         e(&empty).contains("a 8x8 mask for a 48x36 view"),
         "{}",
         e(&empty)
+    );
+    assert_no_validation_messages(ctx);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The pipeline on a BaseNeRF trained with the proposal sampler: the visibility maps and every
+/// render take its samples, stage 2 trains with it (its checkpoint keeps it), the masks agree
+/// with the demo's exact visibility and the visible region stays close to the BaseNeRF as on
+/// uniform strata.
+#[test]
+fn the_pipeline_runs_on_a_proposal_base() {
+    let e = engine();
+    let ctx = &e.ctx;
+    let dir = scratch_dir("extrapolate-proposal");
+    let sampler = Sampler::Proposal(ProposalConfig {
+        samples: 32,
+        levels: 4,
+        log2_table: 12,
+        min_res: 8,
+        max_res: 64,
+        ..ProposalConfig::default()
+    });
+    let (scene_dir, base) = small_base_sampled(ctx, &dir, sampler.clone());
+    let a = dir.join("a");
+    let m = extrapolate(ctx, &options(&a, &base), &mut Record::default()).unwrap();
+    assert!(m.stages.iter().all(|s| s.done));
+    assert_eq!(
+        load_checkpoint(&a.join("stage2-harmonic"))
+            .unwrap()
+            .config
+            .model
+            .sampler,
+        sampler
+    );
+    let vis: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(a.join("visibility/visibility.json")).unwrap(),
+    )
+    .unwrap();
+    let acc = vis["exact_mean"]["accuracy"].as_f64().unwrap();
+    eprintln!("proposal base: masks against the exact visibility, accuracy {acc:.3}");
+    assert!(acc > 0.65, "accuracy {acc}");
+    let loaded = demo_scene_spec(scene_dir.to_path_buf()).load().unwrap();
+    let st = extranerf_nerf::safetensors::SafeTensors::read(&a.join("visibility/maps.safetensors"))
+        .unwrap();
+    let mut vis_psnr = 0.0;
+    for &i in &loaded.split.test {
+        let b = load_image(&a.join(format!("visibility/test_{i:03}_base.png"))).unwrap();
+        let s = load_image(&a.join(format!("stage2-harmonic/test_{i:03}.png"))).unwrap();
+        let map = extranerf_extrapolate::pipeline::load_map(
+            &st,
+            Path::new("maps"),
+            &format!("test_{i:03}"),
+        )
+        .unwrap();
+        let seen: Vec<bool> = VisSettings::default()
+            .mask(&map)
+            .iter()
+            .map(|&m| m < 0.5)
+            .collect();
+        vis_psnr += psnr_where(&s.rgb, &b.rgb, &seen) / loaded.split.test.len() as f64;
+    }
+    eprintln!("proposal base: stage 2 against the BaseNeRF in the visible region {vis_psnr:.2} dB");
+    assert!(
+        vis_psnr > 24.0,
+        "the visible region moved: {vis_psnr:.2} dB"
     );
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);

@@ -12,7 +12,8 @@ use glam::{DMat4, DVec3};
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::model::{init_params, ModelConfig, ParamLayout};
 use extranerf_nerf::reference::{
-    field_forward, transmittance_volume, visibility_pixel, visibility_pixel_volume, VisibilitySetup,
+    field_forward, transmittance_volume, visibility_pixel, visibility_pixel_given,
+    visibility_pixel_volume, VisibilitySetup,
 };
 use extranerf_nerf::render::visibility::{
     mask_all_but, AnalyticField, Density, Shape, TransmittanceVolume, Visibility, VisibilityConfig,
@@ -155,6 +156,189 @@ fn check(
         out.push([want[0], want[1]]);
     }
     out
+}
+
+/// The distance along a camera ray at sampling parameter `u` in [0, 1]: linear in NDC, in
+/// disparity in world space.
+fn sample_t(ndc: bool, near: f32, far: f32, u: f64) -> f64 {
+    let (near, far) = (near as f64, far as f64);
+    if ndc {
+        near + (far - near) * u
+    } else {
+        1.0 / (1.0 / near + (1.0 / far - 1.0 / near) * u)
+    }
+}
+
+/// Sorted samples `(t, dt)` per pixel that are not strata: `k` bins between random edges in
+/// the sampling parameter s (disparity for world space), each sample at its bin's midpoint in
+/// s, as the proposal sampler places them.
+fn random_samples(
+    rng: &mut Rng,
+    pixels: u32,
+    k: u32,
+    near: f32,
+    far: f32,
+    ndc: bool,
+) -> Vec<[f32; 2]> {
+    let t_of = |u| sample_t(ndc, near, far, u);
+    let mut out = Vec::new();
+    for _ in 0..pixels {
+        // Gaps from 0.2 to 1.8 times the even spacing: dense and sparse stretches.
+        let gaps: Vec<f64> = (0..k).map(|_| rng.uniform(0.2, 1.8) as f64).collect();
+        let sum: f64 = gaps.iter().sum();
+        let mut e = 0.0;
+        for g in gaps {
+            let e1 = (e + g / sum).min(1.0);
+            out.push([t_of(0.5 * (e + e1)) as f32, (t_of(e1) - t_of(e)) as f32]);
+            e = e1;
+        }
+    }
+    out
+}
+
+/// The visibility kernel at given samples (not strata), on the analytic scenes in world space
+/// and on a sphere in NDC, against the f64 reference at the same samples; the strata given as
+/// samples give the strata's map.
+#[test]
+fn given_samples_match_the_reference() {
+    use extranerf_gpu::Buffer;
+    use extranerf_nerf::render::rays::gpu_camera;
+    let ctx = &engine().ctx;
+    let v = Visibility::new(ctx).unwrap();
+    let mut rng = Rng::new(41);
+    let ndc_sphere = vec![Shape::Sphere {
+        centre: [0.05, 0.0, 0.3],
+        radius: 0.35,
+        sigma: 30.0,
+        soft: 0.05,
+    }];
+    for (name, shapes, ndc, near, far, eye, yaw) in [
+        (
+            "sphere before plane",
+            sphere_before_plane(),
+            false,
+            NEAR,
+            FAR,
+            [1.6, 0.1, 0.4],
+            0.35,
+        ),
+        (
+            "wall with hole",
+            wall_with_hole(),
+            false,
+            NEAR,
+            FAR,
+            [1.2, -0.1, 0.3],
+            0.3,
+        ),
+        (
+            "NDC sphere",
+            ndc_sphere,
+            true,
+            0.0,
+            1.0,
+            [0.3, 0.05, 0.0],
+            0.1,
+        ),
+    ] {
+        let field = AnalyticField::new(ctx, &shapes, ndc, near, far).unwrap();
+        let train = rig(&[-0.6, 0.0, 0.6]);
+        let cam = camera(eye, yaw, 16, 12, 11.0);
+        let n = cam.width * cam.height;
+        let c = cfg(40, 48, 2);
+        let mask = mask_all_but(train.len(), None);
+        let given = random_samples(&mut rng, n, c.samples, near, far, ndc);
+        let run = |given: &[[f32; 2]]| -> Result<Vec<[f32; 4]>, extranerf_gpu::GpuError> {
+            let cams = Buffer::from_slice(ctx, "camera", &[gpu_camera(&cam)]).unwrap();
+            let train_gpu: Vec<_> = train.iter().map(gpu_camera).collect();
+            let train_buf = Buffer::from_slice(ctx, "training cameras", &train_gpu).unwrap();
+            let px: Vec<[u32; 2]> = (0..n).map(|p| [0, p]).collect();
+            let pixels = Buffer::from_slice(ctx, "pixels", &px).unwrap();
+            let t_dt = Buffer::from_slice(ctx, "given samples", given).unwrap();
+            let out = Buffer::<[f32; 4]>::new(ctx, "visibility", n as usize).unwrap();
+            let mut rec = ctx.recorder("visibility at given samples")?;
+            v.record(
+                &mut rec,
+                &Density::Analytic(&field),
+                cams.binding(),
+                1,
+                pixels.binding(),
+                n as u64,
+                train_buf.binding(),
+                train.len() as u32,
+                mask,
+                &c,
+                None,
+                Some(t_dt.binding()),
+                out.binding(),
+            )?;
+            ctx.run(rec)?;
+            out.read()
+        };
+        let got = run(&given).unwrap();
+        let s = setup(ndc, near, far, &c, mask);
+        let (mut seen, mut hidden) = (0, 0);
+        for px in 0..n {
+            let g: Vec<[f64; 2]> = given
+                [(px * c.samples) as usize..((px + 1) * c.samples) as usize]
+                .iter()
+                .map(|v| [v[0] as f64, v[1] as f64])
+                .collect();
+            let want =
+                visibility_pixel_given(&|x| field.density(x), &cam, px, &train, &s, Some(&g));
+            let k = got[px as usize];
+            for q in 0..3 {
+                let scale = if q == 2 { 1.0 + want[2].abs() } else { 1.0 };
+                assert!(
+                    (k[q] as f64 - want[q]).abs() <= 2e-3 * scale,
+                    "{name} pixel {px} quantity {q}: kernel {:?} vs reference {want:?}",
+                    k
+                );
+            }
+            seen += usize::from(want[1] > 0.9 && want[0] > 0.8);
+            hidden += usize::from(want[1] > 0.9 && want[0] < 0.2);
+        }
+        assert!(
+            seen > 5 && (ndc || hidden > 5),
+            "{name}: {seen} visible, {hidden} hidden opaque pixels"
+        );
+        // The strata, given: the kernel's own strata's map (to f32 rounding of t and dt, which
+        // the kernel computes in f32 and the given ones come from f64).
+        let k = c.samples as f64;
+        let t_of = |u| sample_t(ndc, near, far, u);
+        let strata: Vec<[f32; 2]> = (0..n * c.samples)
+            .map(|i| {
+                let j = (i % c.samples) as f64;
+                let (s0, s1) = (j / k, (j + 1.0) / k);
+                [t_of(0.5 * (s0 + s1)) as f32, (t_of(s1) - t_of(s0)) as f32]
+            })
+            .collect();
+        let own = v
+            .map(
+                ctx,
+                &Density::Analytic(&field),
+                &cam,
+                &train,
+                mask,
+                &c,
+                None,
+                64,
+            )
+            .unwrap();
+        for (px, k) in run(&strata).unwrap().iter().enumerate() {
+            let o = [own.visibility[px], own.opacity[px], own.depth[px]];
+            for q in 0..3 {
+                assert!(
+                    (k[q] - o[q]).abs() <= 5e-3 * (1.0 + o[q].abs()),
+                    "{name} pixel {px}: strata given {k:?}, the kernel's strata {o:?}"
+                );
+            }
+        }
+        // Fewer given samples than the pixels need are refused.
+        let err = run(&given[..given.len() / 2]).unwrap_err().to_string();
+        assert!(err.contains("given samples"), "{err}");
+    }
+    assert_no_validation_messages(ctx);
 }
 
 #[test]

@@ -14,8 +14,11 @@
 #
 # Stage 3 runs too (the enhancer trained here from scratch) unless --no-stage3 is given.
 #
-# Usage: [PRIOR_STEPS=N] [OUT=results/...] [EXTRANERF_BIN=...] tools/extrapolate_fern.sh
-#        [extrapolate flags...]
+# BASE=RUN takes another trained fern run (extrapolation split) as the BaseNeRF instead; it
+# must exist.
+#
+# Usage: [PRIOR_STEPS=N] [OUT=results/...] [BASE=RUN] [RUN=runs/...] [EXTRANERF_BIN=...]
+#        tools/extrapolate_fern.sh [extrapolate flags...]
 #   (default: --inpainter harmonic,exemplar,diffusion; OUT: results/extrapolate_fern_lavapipe)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -23,8 +26,9 @@ data="${EXTRANERF_DATA:-../shared/data}"
 # EXTRANERF_BIN: a binary to use instead of building the release one.
 bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
 [ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
-base=runs/curve_fernx_steps6889
+base="${BASE:-runs/curve_fernx_steps6889}"
 if [ ! -f "$base/checkpoint.safetensors" ]; then
+    [ -z "${BASE:-}" ] || { echo "BASE=$base holds no checkpoint.safetensors" >&2; exit 2; }
     tools/curve.sh fernx steps6889 2000 --steps 6889
 fi
 steps="${PRIOR_STEPS:-1000}"

@@ -121,19 +121,21 @@ pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig, run_dir: &Path) -> an
     Ok(20.0 * trainer.samples_per_step() as f64 / t.elapsed().as_secs_f64())
 }
 
-/// Below this many samples processed (400 steps of 256 x 32) `--budget` shrinks the model
-/// first. On fern a smaller table or fewer levels cost about as much PSNR as the steps they buy
-/// (results/tradeoff_fern_lavapipe). With a 60 s budget, shrinking to 2^15 x 8 levels for 865
+/// Below this many rays processed (400 steps of 256 rays) `--budget` shrinks the model first.
+/// Counted in rays, not samples, since the proposal sampler became the default: its 16 samples
+/// per ray do the work of uniform 32 (`autoconfig::default_sampling`), so the floor stays where
+/// it was measured for uniform 32 (3.3 M samples then). On fern a smaller table or fewer
+/// levels cost about as much PSNR as the steps they buy (results/tradeoff_fern_lavapipe). With a 60 s budget, shrinking to 2^15 x 8 levels for 865
 /// steps of 256 x 32 scored 17.50 dB / LPIPS 0.865, and keeping the auto model for 744 steps
 /// 17.54 dB / 0.850.
-const MIN_BUDGET_SAMPLES: f64 = 400.0 * 256.0 * 32.0;
+const MIN_BUDGET_RAYS: f64 = 400.0 * 256.0;
 
 /// The most steps `--budget` sets. It used to stop at the paper's 5000, which at 256 rays per
 /// step ends long before a 15-minute budget on fern (about 0.12 s per step on two cores).
 const MAX_BUDGET_STEPS: f64 = 50000.0;
 
 /// `--budget`: sets the steps to what a measured probe says fits in `budget` seconds (at most
-/// 50000). Below [`MIN_BUDGET_SAMPLES`], and when `shrink` (no explicit table or level flags),
+/// 50000). Below [`MIN_BUDGET_RAYS`], and when `shrink` (no explicit table or level flags),
 /// the table and levels are reduced first, down to 2^15 and 8 levels.
 pub fn fit_budget(
     ctx: &Context,
@@ -153,7 +155,10 @@ pub fn fit_budget(
         let fit = (0.95 * budget * sps / per_step).floor();
         let steps = fit.clamp(1.0, MAX_BUDGET_STEPS) as u32;
         let m = &cfg.model;
-        if fit * per_step < MIN_BUDGET_SAMPLES && shrink && (m.log2_table > 15 || m.levels > 8) {
+        if fit * (cfg.train.rays as f64) < MIN_BUDGET_RAYS
+            && shrink
+            && (m.log2_table > 15 || m.levels > 8)
+        {
             // Only what is above its floor shrinks.
             let table = if m.log2_table > 15 {
                 m.log2_table - 1

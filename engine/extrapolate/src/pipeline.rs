@@ -262,8 +262,9 @@ pub struct BaseStage {
     pub virt: VirtualSpec,
 }
 
-/// The default training configuration for a scene (as `extranerf train` with no flags), its
-/// grid box also holding the virtual views of `virt`.
+/// The default training configuration for a scene (as `extranerf train` with no flags: the
+/// proposal sampler, [`extranerf_nerf::autoconfig::default_sampling`]), its grid box also
+/// holding the virtual views of `virt`.
 pub fn default_run_config(
     scene: &SceneSpec,
     virt: &VirtualSpec,
@@ -281,10 +282,17 @@ pub fn default_run_config(
     for r in &choice.reasons {
         rep.note(&format!("auto-config: {r}"));
     }
+    let mut model = choice.model;
+    let (sampler, samples, why) = extranerf_nerf::autoconfig::default_sampling(&model);
+    rep.note(&format!("auto-config: {why}"));
+    model.sampler = sampler;
     Ok(RunConfig {
         scene: scene.clone(),
-        model: choice.model,
-        train: TrainConfig::default(),
+        model,
+        train: TrainConfig {
+            samples,
+            ..TrainConfig::default()
+        },
     })
 }
 

@@ -10,13 +10,12 @@ use anyhow::bail;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::depth_completion::DepthCompletion;
-use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::render::occupancy::OccupancyConfig;
 use extranerf_nerf::render::visibility::{
-    Density, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap, VisibilityMeasure,
-    MAX_RANK, MAX_TRAIN_CAMERAS,
+    Density, RaySamples, TransmittanceVolume, Visibility, VisibilityConfig, VisibilityMap,
+    VisibilityMeasure, MAX_RANK, MAX_TRAIN_CAMERAS,
 };
-use extranerf_nerf::renderer::{March, Nerf, OccupancyStats};
+use extranerf_nerf::renderer::{Nerf, OccupancyStats};
 use extranerf_nerf::run::{
     ray_depth_to_view_depth, write_depth_exr, write_exr_channels, write_png, write_ray_depth_exr,
 };
@@ -174,9 +173,10 @@ impl FieldVisibility {
         cfg: &VisibilityConfig,
         chunk: u32,
     ) -> anyhow::Result<VisibilityMap> {
-        Ok(self.vis.map(
+        Ok(self.vis.map_with(
             ctx,
             &density(nerf)?,
+            RaySamples::of(nerf),
             cam,
             &self.train,
             mask,
@@ -358,9 +358,10 @@ impl RunVisibility {
         } else {
             None
         };
-        Ok(self.vis.map(
+        Ok(self.vis.map_with(
             ctx,
             &density(&self.base.nerf)?,
+            RaySamples::of(&self.base.nerf),
             cam,
             train,
             mask,
@@ -494,9 +495,7 @@ pub fn complete_depth(
             cam.height
         );
     }
-    let (rgb, depth, _) =
-        base.nerf
-            .render_with(ctx, cam, chunk, samples, March::Fused(MarchCuts::EXACT))?;
+    let (rgb, depth, _) = base.nerf.render(ctx, cam, chunk, samples)?;
     let known: Vec<u32> = m
         .visibility
         .iter()

@@ -8,7 +8,7 @@ use glam::DVec3;
 
 use crate::data::{Camera, Scene};
 use crate::field::encodings::Contraction;
-use crate::model::{ModelConfig, Space};
+use crate::model::{ModelConfig, ProposalConfig, Sampler, Space};
 
 /// What [`auto_model`] chose and why.
 #[derive(Clone, Debug, PartialEq)]
@@ -19,6 +19,37 @@ pub struct AutoModel {
     pub cascades: u32,
     /// One line per choice.
     pub reasons: Vec<String>,
+}
+
+/// Main samples per ray with the proposal sampler unless told ([`default_sampling`]).
+pub const PROPOSAL_MAIN_SAMPLES: u32 = 16;
+
+/// The proposal sampler for a main grid of finest resolution `max_res` (its own grid is no
+/// finer), with `samples` strata per ray or [`ProposalConfig::default`]'s 32.
+pub fn proposal_for(max_res: u32, samples: Option<u32>) -> ProposalConfig {
+    let mut p = ProposalConfig::default();
+    if let Some(s) = samples {
+        p.samples = s;
+    }
+    p.max_res = p.max_res.min(max_res);
+    p.min_res = p.min_res.min(p.max_res);
+    p
+}
+
+/// The sampler and the main samples per ray `train` and `extrapolate` use unless told, with
+/// the reason: the proposal sampler, 32 strata of its field and 16 main samples per ray
+/// ([`proposal_for`] the model's grid). Measured on fern few-shot 17 with 2 cores
+/// (`results/proposal_lavapipe/`): a step takes 0.70x the time of uniform 32 samples, and the
+/// held-out PSNR passes the uniform recipe's final 24.14 dB by step 2121 of 4242 (0.35x its
+/// training time) and ends at 25.54 dB; 64 strata for 32 samples costs 1.27x per step, and 32
+/// for 8 falls short (22.54 dB in 2121 steps).
+pub fn default_sampling(model: &ModelConfig) -> (Sampler, u32, String) {
+    let p = proposal_for(model.max_res, None);
+    let reason = format!(
+        "sampler: proposal, {} strata of its field for {PROPOSAL_MAIN_SAMPLES} samples per ray (fern few-shot 17: the uniform 32's PSNR in 0.35x its time; --sampler uniform for strata)",
+        p.samples
+    );
+    (Sampler::Proposal(p), PROPOSAL_MAIN_SAMPLES, reason)
 }
 
 /// The coarsest resolution; the growth factor between levels aims at this.

@@ -1146,6 +1146,7 @@ fn visibility_march(
     pixel: u32,
     n_train: usize,
     s: &VisibilitySetup,
+    given: Option<&[[f64; 2]]>,
     transmittance: &dyn Fn(usize, glam::DVec3, glam::DVec3, glam::DVec3, glam::DVec3) -> f64,
 ) -> [f64; 3] {
     let px = [
@@ -1158,8 +1159,25 @@ fn visibility_march(
     let (mut tau, mut vis, mut opacity, mut depth) = (0.0f64, 0.0, 0.0, 0.0);
     for j in 0..s.samples {
         let (s0, s1) = (j as f64 / k, (j + 1) as f64 / k);
-        let t = sample_t(s, 0.5 * (s0 + s1));
-        let dt = sample_t(s, s1) - sample_t(s, s0);
+        // Every segment starts at the previous sample (the near end for the first).
+        let (t, dt, t_prev) = match given {
+            Some(g) => (
+                g[j as usize][0],
+                g[j as usize][1],
+                match j {
+                    0 => sample_t(s, 0.0),
+                    _ => g[j as usize - 1][0],
+                },
+            ),
+            None => (
+                sample_t(s, 0.5 * (s0 + s1)),
+                sample_t(s, s1) - sample_t(s, s0),
+                match j {
+                    0 => sample_t(s, 0.0),
+                    _ => sample_t(s, s0 - 0.5 / k),
+                },
+            ),
+        };
         let x = o + t * d;
         let xo = (density(x.to_array()).max(0.0) * dt).max(0.0);
         let own = (-tau).exp();
@@ -1167,12 +1185,6 @@ fn visibility_march(
         tau += xo;
         opacity += w;
         depth += w * t;
-        // Every segment starts at the previous sample (the near end for the first).
-        let t_prev = if j == 0 {
-            sample_t(s, 0.0)
-        } else {
-            sample_t(s, s0 - 0.5 / k)
-        };
         let xs = o + t_prev * d;
         let (p, ps) = (frame.to_world(x), frame.to_world(xs));
         if w.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
@@ -1214,6 +1226,24 @@ pub fn visibility_pixel(
     train: &[crate::data::Camera],
     s: &VisibilitySetup,
 ) -> [f64; 3] {
+    visibility_pixel_given(density, cam, pixel, train, s, None)
+}
+
+/// [`visibility_pixel`] at the pixel ray's samples `given` (`(t, dt)`, `s.samples` of them,
+/// sorted along the ray; each segment starts at the previous given sample, the first at the
+/// near end) in place of the strata, or at the strata for `None`.
+///
+/// # Panics
+/// When `given` holds fewer than `s.samples` samples (a test's own mistake: the reference
+/// takes no user input).
+pub fn visibility_pixel_given(
+    density: &dyn Fn([f64; 3]) -> f64,
+    cam: &crate::data::Camera,
+    pixel: u32,
+    train: &[crate::data::Camera],
+    s: &VisibilitySetup,
+    given: Option<&[[f64; 2]]>,
+) -> [f64; 3] {
     let frame = Frame::new(cam, s.ndc);
     let segment = |k: usize, _x, p, xs: glam::DVec3, ps: glam::DVec3| -> f64 {
         let c = &train[k];
@@ -1253,7 +1283,7 @@ pub fn visibility_pixel(
             .sum();
         (-od).exp()
     };
-    visibility_march(density, cam, pixel, train.len(), s, &segment)
+    visibility_march(density, cam, pixel, train.len(), s, given, &segment)
 }
 
 /// Transmittance volumes (`render/visibility.wgsl`'s `transmittance_volume`) in f64: per
@@ -1343,7 +1373,7 @@ pub fn visibility_pixel_volume(
         let bottom = at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx;
         top * (1.0 - ty) + bottom * ty
     };
-    visibility_march(density, cam, pixel, train.len(), s, &lookup)
+    visibility_march(density, cam, pixel, train.len(), s, None, &lookup)
 }
 
 /// Plane-sweep stereo (`depth/mvs.wgsl`'s `mvs_sweep`) of reference pixel (x, y) of view `r`

@@ -177,6 +177,9 @@ pub(crate) struct ProposalSampler {
     pub(crate) kernels: Proposal,
 }
 
+/// Why a field with the proposal sampler has no occupancy grid.
+const PROPOSAL_WITHOUT_OCCUPANCY: &str = "the field samples its rays with the proposal sampler, whose samples already lie where its weights are: it renders, and its visibility is computed, without an occupancy grid (set the occupancy resolution to 0)";
+
 /// How [`Nerf::render_with`] evaluates the field ([`Nerf::default_march`] chooses for
 /// [`Nerf::render`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -197,6 +200,22 @@ impl Default for March {
     }
 }
 
+/// The proposal sampler's samples for a kernel that takes given samples (the fused march, the
+/// visibility kernel), per chunk of rays: the rays, in a workspace without per-sample buffers
+/// whose pixels the kernel then reads, and the proposal's buffers, whose main samples it takes.
+pub(crate) struct GivenSamples {
+    ws: Workspace,
+    work: ProposalWork,
+}
+
+impl GivenSamples {
+    /// The pixels the samples are drawn for: written first (as (camera, pixel) pairs), then
+    /// read by [`Nerf::record_given_samples`] and by the kernel that takes the samples.
+    pub(crate) fn pixels(&self) -> Binding<'_> {
+        self.ws.pixels.binding()
+    }
+}
+
 /// The per-chunk buffers of one render path.
 #[allow(clippy::large_enum_variant)] // one short-lived value per render call
 enum RenderIo {
@@ -210,7 +229,7 @@ enum RenderIo {
         pixels: Buffer<[u32; 2]>,
         rgba: Buffer<[f32; 4]>,
         depth: Buffer<f32>,
-        proposal: Option<(Workspace, ProposalWork)>,
+        proposal: Option<GivenSamples>,
     },
 }
 
@@ -558,7 +577,8 @@ impl Nerf {
 
     /// Builds the occupancy grid from the field: `passes` jittered density evaluations per
     /// cell (the maximum is kept), thresholded as [`Occupancy::record_bits`] does. Fused
-    /// renders skip the empty cells from then on; `None` removes the grid.
+    /// renders skip the empty cells from then on; `None` removes the grid. A field with the
+    /// proposal sampler refuses a grid: its samples already lie where its weights are.
     pub fn build_occupancy(
         &mut self,
         ctx: &Context,
@@ -570,6 +590,9 @@ impl Nerf {
             self.occupancy = None;
             return Ok(None);
         };
+        if self.proposal.is_some() {
+            return Err(GpuError::Usage(PROPOSAL_WITHOUT_OCCUPANCY.into()));
+        }
         if passes == 0 {
             return Err(GpuError::Usage(
                 "the occupancy grid needs at least one pass".into(),
@@ -643,6 +666,48 @@ impl Nerf {
         )
     }
 
+    /// Buffers for the proposal sampler's samples of chunks of `chunk_rays` rays, `samples`
+    /// main samples each, when the field has the sampler ([`Nerf::record_given_samples`]).
+    pub(crate) fn given_samples(
+        &self,
+        ctx: &Context,
+        chunk_rays: u32,
+        samples: u32,
+    ) -> Result<Option<GivenSamples>> {
+        let Some(ps) = &self.proposal else {
+            return Ok(None);
+        };
+        Ok(Some(GivenSamples {
+            ws: self.render_workspace(ctx, chunk_rays, samples, false)?,
+            work: ProposalWork::new(ctx, &ps.field, chunk_rays, samples, ProposalUse::March)?,
+        }))
+    }
+
+    /// Records the proposal sampler's centred samples of the rays of `g.pixels()[..n]` (written
+    /// before) through `cameras`; returns their `(t, dt)`, `g`'s samples per ray for each ray in
+    /// order, sorted along it, as the fused march and the visibility kernel take them.
+    pub(crate) fn record_given_samples<'a>(
+        &'a self,
+        rec: &mut Recorder<'a>,
+        g: &'a GivenSamples,
+        cameras: Binding<'a>,
+        n_cameras: u32,
+        n: u64,
+    ) -> Result<Binding<'a>> {
+        self.record_field_rays(rec, &g.ws, cameras, n_cameras, n)?;
+        self.record_proposal_samples(
+            rec,
+            &g.ws,
+            &g.work,
+            n,
+            None,
+            None,
+            &g.work.main_outputs(),
+            &mut None,
+        )?;
+        Ok(g.work.main_t_dt.binding())
+    }
+
     /// [`Nerf::render`] with a choice of evaluation path.
     pub fn render_with(
         &self,
@@ -671,26 +736,7 @@ impl Nerf {
                 pixels: Buffer::new(ctx, "march pixels", chunk_rays as usize)?,
                 rgba: Buffer::new(ctx, "march colour", chunk_rays as usize)?,
                 depth: Buffer::new(ctx, "march depth", chunk_rays as usize)?,
-                proposal: match &self.proposal {
-                    None => None,
-                    Some(ps) => {
-                        if self.occupancy.is_some() {
-                            return Err(GpuError::Usage(
-                                "a field with the proposal sampler renders without an occupancy grid (its samples lie where the proposal's weights are)".into(),
-                            ));
-                        }
-                        Some((
-                            self.render_workspace(ctx, chunk_rays, samples, false)?,
-                            ProposalWork::new(
-                                ctx,
-                                &ps.field,
-                                chunk_rays,
-                                samples,
-                                ProposalUse::March,
-                            )?,
-                        ))
-                    }
-                },
+                proposal: self.given_samples(ctx, chunk_rays, samples)?,
             },
         };
         let cams = Buffer::from_slice(ctx, "render camera", &[gpu_camera(camera)])?;
@@ -717,26 +763,15 @@ impl Nerf {
                     proposal,
                 } => {
                     let pixels = match proposal {
-                        Some((ws, _)) => ws.pixels.binding(),
+                        Some(g) => g.pixels(),
                         None => pixels.binding(),
                     };
                     let b = kp::pixel_range::Bindings { pixels };
                     rec.dispatch(&self.pixel_range, b.into_array(), &p, n)?;
                     let given = match proposal {
                         None => None,
-                        Some((ws, w)) => {
-                            self.record_field_rays(&mut rec, ws, cams.binding(), 1, n)?;
-                            self.record_proposal_samples(
-                                &mut rec,
-                                ws,
-                                w,
-                                n,
-                                None,
-                                None,
-                                &w.main_outputs(),
-                                &mut None,
-                            )?;
-                            Some(w.main_t_dt.binding())
+                        Some(g) => {
+                            Some(self.record_given_samples(&mut rec, g, cams.binding(), 1, n)?)
                         }
                     };
                     self.marcher.render(

@@ -752,7 +752,7 @@ mod tests {
         let mut with = config();
         with.model.sampler = Sampler::Proposal(ProposalConfig::default());
         let json = serde_json::to_value(&with).unwrap();
-        assert_eq!(json["model"]["sampler"]["proposal"]["samples"], 64);
+        assert_eq!(json["model"]["sampler"]["proposal"]["samples"], 32);
         let back: RunConfig = serde_json::from_value(json).unwrap();
         assert_eq!(back, with);
         // A value that names no choice is refused, naming the choices.

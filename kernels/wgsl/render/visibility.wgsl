@@ -1,7 +1,8 @@
 // Multi-view transmittance visibility (ExtraNeRF): one thread per pixel of a view.
 //
 // The thread marches the pixel's ray as render/march.wgsl does (same samples, same weights
-// w_j). For every sample with w_j > min_weight it marches again, from the sample toward the
+// w_j): uniform strata, or (flag VIS_GIVEN) the samples given per pixel, `(t, dt)` sorted along
+// the ray, as the proposal sampler draws them for the march. For every sample with w_j > min_weight it marches again, from the sample toward the
 // centre of each selected training camera, and takes the transmittance T_jk of that segment.
 // A camera for which the sample is behind it or outside its image has T_jk = 0. The sample's
 // visibility v_j is the rank-th largest T_jk over the selected cameras (rank 2: a point counts
@@ -18,8 +19,8 @@
 // opacity; an occluder that only camera k looks through still drives T_jk, and v_j, to 0.
 // The cut `min_transmittance` then applies to the ratio, so its bound stays the same.
 //
-// The segment toward a camera starts at the previous sample's position (the near end for the
-// first sample), for every camera, and ends at the camera centre, or where it crosses the plane
+// The segment toward a camera starts at the previous sample's position (the near end of the
+// sampled range for the first sample), for every camera, and ends at the camera centre, or where it crosses the plane
 // where the sampled range starts (NDC t = near; for near 0 the NDC near plane z = -ndc_near,
 // beyond which an NDC field is not defined) for forward-facing scenes, or `near` before the
 // camera centre for world-space scenes. Starting there, a surface
@@ -81,7 +82,8 @@ struct Params {
     spacing: u32,
     // Bit 0: the field lives in NDC (near plane at `ndc_near`); bit 1: the density is
     // `n_shapes` analytic shapes, not the trained field; bit 2: look transmittances up in the
-    // volume (its size per camera below).
+    // volume (its size per camera below); bit 3: the relative measure; bit 4: the samples of
+    // each pixel's ray are given (`given_t_dt`).
     flags: u32,
     near: f32,
     far: f32,
@@ -120,6 +122,7 @@ const VIS_NDC: u32 = 1u;
 const VIS_ANALYTIC: u32 = 2u;
 const VIS_VOLUME: u32 = 4u;
 const VIS_RELATIVE: u32 = 8u;
+const VIS_GIVEN: u32 = 16u;
 
 // Whether the field lives in NDC.
 fn in_ndc() -> bool {
@@ -143,6 +146,8 @@ fn in_ndc() -> bool {
 @group(0) @binding(10) var<storage, read_write> tvol: array<f32>;
 // The second part of a split hash table (common/hash_grid.wgsl).
 @group(0) @binding(11) var<storage, read> table_hi: array<f32>;
+// With VIS_GIVEN: (t, dt) of sample j of pixel i at i * samples + j, sorted along the ray.
+@group(0) @binding(12) var<storage, read> given_t_dt: array<vec2<f32>>;
 
 // Fraction of a soft edge at signed distance `inside` (positive inside) for edge width `soft`.
 fn edge(inside: f32, soft: f32) -> f32 {
@@ -331,14 +336,29 @@ fn visibility_map(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     var opacity = 0.0;
     var evals = 0.0;
     var a: Act;
+    let given = (params.flags & VIS_GIVEN) != 0u;
     for (var j = 0u; j < params.samples; j += 1u) {
-        let s0 = f32(j) * inv_k;
-        let s1 = f32(j + 1u) * inv_k;
-        let t = t_of(mix(s0, s1, 0.5));
-        let dt = t_of(s1) - t_of(s0);
-        let x = ray[0] + t * ray[1];
+        var t: f32;
+        var dt: f32;
         // Where the previous sample was (the near end for the first).
-        let t_prev = select(t_of(s0 - 0.5 * inv_k), t_of(0.0), j == 0u);
+        var t_prev = t_of(0.0);
+        if given {
+            let td = given_t_dt[i * params.samples + j];
+            t = td.x;
+            dt = td.y;
+            if j > 0u {
+                t_prev = given_t_dt[i * params.samples + j - 1u].x;
+            }
+        } else {
+            let s0 = f32(j) * inv_k;
+            let s1 = f32(j + 1u) * inv_k;
+            t = t_of(mix(s0, s1, 0.5));
+            dt = t_of(s1) - t_of(s0);
+            if j > 0u {
+                t_prev = t_of(s0 - 0.5 * inv_k);
+            }
+        }
+        let x = ray[0] + t * ray[1];
         // The relative measure's unit: the ray's own transmittance in front of the sample.
         var t_own = 1.0;
         if (params.flags & VIS_RELATIVE) != 0u {

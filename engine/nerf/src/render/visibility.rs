@@ -18,14 +18,16 @@ use crate::model::Field;
 use crate::render::march::{check_sampling_range, UNIFORM_LUT};
 use crate::render::occupancy::Occupancy;
 use crate::render::rays::{gpu_camera, GpuCamera};
+use crate::renderer::Nerf;
 
 /// Bits of the visibility kernel's `flags` (`VIS_*` in `kernels/wgsl/render/visibility.wgsl`):
 /// the field lives in NDC, the density is analytic shapes, transmittances come from volumes,
-/// the relative measure.
+/// the relative measure, the samples of each pixel's ray are given.
 const VIS_NDC: u32 = 1;
 const VIS_ANALYTIC: u32 = 2;
 const VIS_VOLUME: u32 = 4;
 const VIS_RELATIVE: u32 = 8;
+const VIS_GIVEN: u32 = 16;
 
 /// 4-byte words of one `GpuCamera`.
 const CAMERA_WORDS: u64 = (std::mem::size_of::<GpuCamera>() / 4) as u64;
@@ -49,10 +51,34 @@ pub enum VisibilityMeasure {
     Relative,
 }
 
+/// Where the samples of a view's rays come from.
+#[derive(Clone, Copy, Debug, Default)]
+pub enum RaySamples<'a> {
+    /// Uniform strata of the sampling range (stratum midpoints, as the fused march places them
+    /// without the proposal sampler).
+    #[default]
+    Strata,
+    /// The proposal sampler of this field, centred, as its renders take them
+    /// ([`crate::renderer::Nerf::render`]); [`VisibilityConfig::samples`] main samples per ray.
+    Proposal(&'a Nerf),
+}
+
+impl<'a> RaySamples<'a> {
+    /// The samples `nerf` renders with: its proposal sampler's when it has one, else strata.
+    pub fn of(nerf: &'a Nerf) -> RaySamples<'a> {
+        if nerf.has_proposal() {
+            RaySamples::Proposal(nerf)
+        } else {
+            RaySamples::Strata
+        }
+    }
+}
+
 /// How visibility is computed.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VisibilityConfig {
-    /// Samples per camera ray (stratum midpoints, as the fused march places them).
+    /// Samples per camera ray (stratum midpoints, as the fused march places them, or the
+    /// samples given per ray: [`RaySamples`]).
     pub samples: u32,
     /// Samples per segment from a ray sample toward a training camera.
     pub vis_samples: u32,
@@ -370,6 +396,8 @@ pub struct Visibility {
     pixel_range: Kernel,
     no_bits: Buffer<u32>,
     no_shapes: Buffer<[f32; 4]>,
+    /// Bound in place of the given samples when the kernel places strata.
+    no_given: Buffer<[f32; 2]>,
     mlp_block: Buffer<f32>,
 }
 
@@ -383,6 +411,7 @@ impl Visibility {
             pixel_range: Kernel::new(ctx, &kp::pixel_range::DESC)?,
             no_bits: Buffer::from_slice(ctx, "no occupancy bits", &[u32::MAX])?,
             no_shapes: Buffer::from_slice(ctx, "no shapes", &[[0.0f32; 4]])?,
+            no_given: Buffer::new(ctx, "no given samples", 1)?,
             mlp_block: Buffer::new(ctx, "visibility MLP weights", BLOCK_FLOATS)?,
         })
     }
@@ -557,7 +586,8 @@ impl Visibility {
     /// `out[n]` = (visibility, opacity, depth, evaluations). `train` holds `n_train` training
     /// cameras, of which those whose bit is set in `mask` count. With `volume` (built by
     /// [`Visibility::record_volume`] for the same cameras) transmittances are looked up
-    /// instead of marched.
+    /// instead of marched. With `given`, `(t, dt)` of `cfg.samples` samples per pixel
+    /// (`[n * samples, 2]`, sorted along each ray) take the place of the strata.
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn record<'a>(
         &'a self,
@@ -572,6 +602,7 @@ impl Visibility {
         mask: u32,
         cfg: &VisibilityConfig,
         volume: Option<&'a TransmittanceVolume>,
+        given: Option<Binding<'a>>,
         out: Binding<'a>,
     ) -> Result<()> {
         cfg.validate()?;
@@ -602,6 +633,14 @@ impl Visibility {
         if cfg.measure == VisibilityMeasure::Relative {
             p.flags |= VIS_RELATIVE;
         }
+        let given_t_dt = match given {
+            Some(g) => {
+                g.check_fits(2 * n * cfg.samples as u64, 4, "visibility given samples")?;
+                p.flags |= VIS_GIVEN;
+                g
+            }
+            None => self.no_given.binding(),
+        };
         let tvol = match volume {
             Some(v) => {
                 if v.cameras != n_train {
@@ -629,17 +668,46 @@ impl Visibility {
             out_vis: out,
             mlp: self.mlp_block.binding(),
             tvol,
+            given_t_dt,
         };
         rec.dispatch(&self.kernel, b.into_array(), &p, n)
     }
 
     /// The visibility of a whole view against the training cameras `train` selected by `mask`,
-    /// `chunk` pixels per submission.
+    /// `chunk` pixels per submission, at uniform strata ([`Visibility::map_with`]).
     #[allow(clippy::too_many_arguments)] // each is a distinct operand
     pub fn map(
         &self,
         ctx: &Context,
         density: &Density<'_>,
+        camera: &Camera,
+        train: &[Camera],
+        mask: u32,
+        cfg: &VisibilityConfig,
+        volume: Option<&TransmittanceVolume>,
+        chunk: u32,
+    ) -> Result<VisibilityMap> {
+        self.map_with(
+            ctx,
+            density,
+            RaySamples::Strata,
+            camera,
+            train,
+            mask,
+            cfg,
+            volume,
+            chunk,
+        )
+    }
+
+    /// [`Visibility::map`] with the view's ray samples from `samples` (the proposal sampler's
+    /// must be the field's of `density`).
+    #[allow(clippy::too_many_arguments)] // each is a distinct operand
+    pub fn map_with(
+        &self,
+        ctx: &Context,
+        density: &Density<'_>,
+        samples: RaySamples<'_>,
         camera: &Camera,
         train: &[Camera],
         mask: u32,
@@ -664,6 +732,22 @@ impl Visibility {
         let total = camera.width as u64 * camera.height as u64;
         count_u32(total, "pixels")?;
         let n_chunk = (chunk as u64).min(total.max(1)) as usize;
+        let given = match samples {
+            RaySamples::Strata => None,
+            RaySamples::Proposal(nerf) => {
+                let same = matches!(density, Density::Field { field, .. } if std::ptr::eq(*field, nerf.field()));
+                if !same {
+                    return Err(GpuError::Usage(
+                        "visibility with the proposal sampler's samples needs that field's density"
+                            .into(),
+                    ));
+                }
+                let g = nerf.given_samples(ctx, n_chunk as u32, cfg.samples)?;
+                Some((nerf, g.ok_or_else(|| {
+                    GpuError::Usage("visibility at the proposal sampler's samples: the field has no proposal sampler".into())
+                })?))
+            }
+        };
         let pixels = Buffer::<[u32; 2]>::new(ctx, "visibility pixels", n_chunk)?;
         let out = Buffer::<[f32; 4]>::new(ctx, "visibility chunk", n_chunk)?;
         let all = Buffer::<[f32; 4]>::new(ctx, "visibility map", total.max(1) as usize)?;
@@ -677,22 +761,31 @@ impl Visibility {
                 first: first as u32,
                 _pad: 0,
             };
-            let b = kp::pixel_range::Bindings {
-                pixels: pixels.binding(),
+            let px = match &given {
+                Some((_, g)) => g.pixels(),
+                None => pixels.binding(),
             };
+            let b = kp::pixel_range::Bindings { pixels: px };
             rec.dispatch(&self.pixel_range, b.into_array(), &pr, n)?;
+            let t_dt = match &given {
+                Some((nerf, g)) => {
+                    Some(nerf.record_given_samples(&mut rec, g, cams.binding(), 1, n)?)
+                }
+                None => None,
+            };
             self.record(
                 &mut rec,
                 density,
                 cams.binding(),
                 1,
-                pixels.binding(),
+                px,
                 n,
                 train_buf.binding(),
                 train.len() as u32,
                 mask,
                 cfg,
                 volume,
+                t_dt,
                 out.binding(),
             )?;
             rec.copy(out.binding(), 0, all.binding(), first * 16, n * 16)?;
