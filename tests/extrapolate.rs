@@ -173,6 +173,22 @@ fn psnr_where(a: &[f32], b: &[f32], keep: &[bool]) -> f64 {
 }
 
 /// The demo scene at 48x36 in `dir/scene` and a small BaseNeRF of it in `dir/base`.
+/// The pixels of held-out view `view` that its stored visibility map (`RUN/visibility/maps`
+/// in `st`) leaves out of the inpainting mask, at the default settings.
+fn seen_pixels(st: &extranerf_nerf::safetensors::SafeTensors, view: usize) -> Vec<bool> {
+    let map = extranerf_extrapolate::pipeline::load_map(
+        st,
+        Path::new("maps"),
+        &format!("test_{view:03}"),
+    )
+    .unwrap();
+    VisSettings::default()
+        .mask(&map)
+        .iter()
+        .map(|&m| m < 0.5)
+        .collect()
+}
+
 fn small_base(
     ctx: &extranerf_gpu::Context,
     dir: &Path,
@@ -293,14 +309,7 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     for &i in &loaded.split.test {
         let b = load_image(&a.join(format!("visibility/test_{i:03}_base.png"))).unwrap();
         let s = load_image(&a.join(format!("stage2-harmonic/test_{i:03}.png"))).unwrap();
-        let map = extranerf_extrapolate::pipeline::load_map(
-            &st,
-            Path::new("maps"),
-            &format!("test_{i:03}"),
-        )
-        .unwrap();
-        let mask = VisSettings::default().mask(&map);
-        let seen: Vec<bool> = mask.iter().map(|&m| m < 0.5).collect();
+        let seen = seen_pixels(&st, i);
         let unseen: Vec<bool> = seen.iter().map(|&v| !v).collect();
         vis_psnr.push(psnr_where(&s.rgb, &b.rgb, &seen));
         if unseen.iter().any(|&u| u) {
@@ -530,17 +539,7 @@ fn the_pipeline_runs_on_a_proposal_base() {
     for &i in &loaded.split.test {
         let b = load_image(&a.join(format!("visibility/test_{i:03}_base.png"))).unwrap();
         let s = load_image(&a.join(format!("stage2-harmonic/test_{i:03}.png"))).unwrap();
-        let map = extranerf_extrapolate::pipeline::load_map(
-            &st,
-            Path::new("maps"),
-            &format!("test_{i:03}"),
-        )
-        .unwrap();
-        let seen: Vec<bool> = VisSettings::default()
-            .mask(&map)
-            .iter()
-            .map(|&m| m < 0.5)
-            .collect();
+        let seen = seen_pixels(&st, i);
         vis_psnr += psnr_where(&s.rgb, &b.rgb, &seen) / loaded.split.test.len() as f64;
     }
     eprintln!("proposal base: stage 2 against the BaseNeRF in the visible region {vis_psnr:.2} dB");
@@ -770,17 +769,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     for &i in &loaded.split.test {
         let s2 = load_image(&a.join(format!("stage2-harmonic/test_{i:03}.png"))).unwrap();
         let s3 = load_image(&a.join(format!("stage3-harmonic/test_{i:03}.png"))).unwrap();
-        let map = extranerf_extrapolate::pipeline::load_map(
-            &st,
-            Path::new("maps"),
-            &format!("test_{i:03}"),
-        )
-        .unwrap();
-        let seen: Vec<bool> = VisSettings::default()
-            .mask(&map)
-            .iter()
-            .map(|&m| m < 0.5)
-            .collect();
+        let seen = seen_pixels(&st, i);
         vis_psnr.push(psnr_where(&s3.rgb, &s2.rgb, &seen));
     }
     let pv = vis_psnr.iter().sum::<f64>() / vis_psnr.len() as f64;

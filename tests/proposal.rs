@@ -985,7 +985,10 @@ fn fused_march_with_the_proposal_sampler_matches_the_standalone_chain() {
                 .build_occupancy(ctx, &e.prims, Some(occ), 1)
                 .unwrap_err()
                 .to_string();
-            assert!(err.contains("proposal") && err.contains("occupancy"), "{err}");
+            assert!(
+                err.contains("proposal") && err.contains("occupancy"),
+                "{err}"
+            );
             assert!(nerf.occupancy().is_none());
             nerf.build_occupancy(ctx, &e.prims, None, 1).unwrap();
             if extranerf_tests::coop_tile_or_skip(ctx).is_some() {
