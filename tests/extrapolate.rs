@@ -18,12 +18,13 @@ use extranerf_extrapolate::pipeline::{
     extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec,
 };
 use extranerf_extrapolate::stage3::{
-    check_triplets, collector_views, unsharp, EnhancerCheck, Stage3Enhancer, Stage3Gate,
-    Stage3Spec, Triplets, CHECK_FILE,
+    check_triplets, collector_views, EnhancerCheck, Stage3Enhancer, Stage3Gate, Stage3Spec,
+    Triplets, CHECK_FILE,
 };
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
+use extranerf_nerf::image_ops::unsharp;
 use extranerf_nerf::model::{ModelConfig, ProposalConfig, Sampler};
 use extranerf_nerf::run::training_views;
 use extranerf_nerf::run::{load_checkpoint, RunConfig};

@@ -8,7 +8,8 @@
 use glam::{DMat4, DVec3};
 
 use extranerf_nerf::data::Camera;
-use extranerf_nerf::mvs::{downscale_rgb, grey as luminance, Mvs, MvsConfig};
+use extranerf_nerf::image_ops::{downscale_rgb, grey as luminance};
+use extranerf_nerf::mvs::{Mvs, MvsConfig};
 use extranerf_nerf::reference::{camera_ray, mvs_consistency_pixel, mvs_pixel};
 use extranerf_prims::reference::Rng;
 use extranerf_tests::{assert_no_validation_messages, engine};

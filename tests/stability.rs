@@ -203,7 +203,7 @@ fn coincident_cameras_train_and_give_finite_visibility_and_stereo() {
     let grey: Vec<Vec<f32>> = views
         .iter()
         .take(2)
-        .map(|v| extranerf_nerf::mvs::grey(&v.image.rgb))
+        .map(|v| extranerf_nerf::image_ops::grey(&v.image.rgb))
         .collect();
     let cams = vec![views[0].camera.clone(), views[0].camera.clone()];
     let grey = vec![grey[0].clone(), grey[0].clone()];

@@ -24,7 +24,7 @@ use extranerf_diffusion::unet::UNet2DConditionModel;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::load_image;
 use extranerf_nerf::data::split::SplitKind;
-use extranerf_nerf::mvs::downscale_rgb;
+use extranerf_nerf::image_ops::{crop, downscale_rgb};
 use extranerf_nerf::run::{write_png, SceneSpec};
 
 use crate::bench::write_json;
@@ -602,14 +602,6 @@ fn write_curve(out: &Path, curve: &[(usize, f64)], title: &str) -> anyhow::Resul
     Ok(())
 }
 
-fn crop(rgb: &[f32], w: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> Vec<f32> {
-    let mut out = Vec::with_capacity(cw * ch * 3);
-    for y in y0..y0 + ch {
-        out.extend_from_slice(&rgb[3 * (y * w + x0)..3 * (y * w + x0 + cw)]);
-    }
-    out
-}
-
 fn mse_in(a: &[f32], b: &[f32], mask: &[f32]) -> f64 {
     let mut s = 0f64;
     let mut n = 0usize;
@@ -678,7 +670,7 @@ fn windows_for(
                 set,
                 view: v.name.clone(),
                 hole: *h,
-                gt: crop(&v.rgb, v.width, ox, oy, window, window),
+                gt: crop(&v.rgb, v.width, (ox, ox + window, oy, oy + window)),
                 unknown,
                 this_hole,
                 lpips_origin: (cx, cy),
@@ -976,7 +968,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
             refined[i].clone(),
         ];
         let (cx, cy) = w.lpips_origin;
-        let gt_crop = crop(&w.gt, window, cx, cy, lp, lp);
+        let gt_crop = crop(&w.gt, window, (cx, cx + lp, cy, cy + lp));
         let mut row = serde_json::Map::new();
         row.insert("set".into(), w.set.into());
         row.insert("view".into(), w.view.clone().into());
@@ -993,7 +985,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
         for (k, r) in results.iter().enumerate() {
             let p = psnr(mse_in(r, &w.gt, &w.this_hole));
             let l = lpips.distance(
-                &crop(r, window, cx, cy, lp, lp),
+                &crop(r, window, (cx, cx + lp, cy, cy + lp)),
                 &gt_crop,
                 lp as u32,
                 lp as u32,

@@ -19,6 +19,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context as _};
 use extranerf_nerf::data::load_image;
+use extranerf_nerf::image_ops::{bbox, crop, resize_mask};
 use extranerf_nerf::metrics::kid::{kid, masked_crops, max_coverage, KidConfig};
 use extranerf_nerf::metrics::{psnr, ssim, Lpips};
 use extranerf_nerf::safetensors::SafeTensors;
@@ -285,51 +286,6 @@ fn to_psnr(mse: f64) -> f64 {
     }
 }
 
-/// The mask's bounding box grown to at least `min` pixels a side (within the image).
-fn bbox(mask: &[bool], w: usize, h: usize, min: usize) -> Option<(usize, usize, usize, usize)> {
-    let (mut x0, mut x1, mut y0, mut y1) = (w, 0, h, 0);
-    for (i, &m) in mask.iter().enumerate() {
-        if m {
-            let (x, y) = (i % w, i / w);
-            (x0, x1, y0, y1) = (x0.min(x), x1.max(x + 1), y0.min(y), y1.max(y + 1));
-        }
-    }
-    if x1 == 0 {
-        return None;
-    }
-    let grow = |lo: usize, hi: usize, size: usize| {
-        let want = min.min(size);
-        if hi - lo >= want {
-            return (lo, hi);
-        }
-        let lo = lo.saturating_sub((want - (hi - lo)).div_ceil(2));
-        let lo = lo.min(size - want);
-        (lo, lo + want)
-    };
-    let (x0, x1) = grow(x0, x1, w);
-    let (y0, y1) = grow(y0, y1, h);
-    Some((x0, x1, y0, y1))
-}
-
-fn crop(img: &[f32], w: usize, b: (usize, usize, usize, usize)) -> Vec<f32> {
-    let mut v = Vec::new();
-    for y in b.2..b.3 {
-        v.extend_from_slice(&img[3 * (y * w + b.0)..3 * (y * w + b.1)]);
-    }
-    v
-}
-
-/// A `sw x sh` mask resized to `w x h` by nearest neighbour.
-fn upsample(mask: &[f32], sw: usize, sh: usize, w: usize, h: usize) -> Vec<bool> {
-    (0..w * h)
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let (sx, sy) = ((x * sw / w).min(sw - 1), (y * sh / h).min(sh - 1));
-            mask[sy * sw + sx] >= 0.5
-        })
-        .collect()
-}
-
 fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
@@ -380,13 +336,16 @@ pub fn compare(
         let cam = &loaded.scene.cameras[i];
         let img = load_image(&cam.image)?;
         let m = load_map(&st, &maps_path, &format!("test_{i:03}"))?;
-        let mask = upsample(
+        let mask: Vec<bool> = resize_mask(
             &settings.mask(&m),
             m.width as usize,
             m.height as usize,
             cam.width as usize,
             cam.height as usize,
-        );
+        )
+        .iter()
+        .map(|&v| v >= 0.5)
+        .collect();
         truths.push((i, cam.clone(), img, mask));
     }
     // The exact masks (true: seen), per held-out view where the folder has one.
@@ -701,21 +660,6 @@ mod tests {
     }
 
     #[test]
-    fn boxes_grow_to_the_smallest_input_inside_the_image() {
-        let (w, h) = (40, 30);
-        let mut mask = vec![false; w * h];
-        assert_eq!(bbox(&mask, w, h, 16), None);
-        mask[2 * w + 1] = true;
-        let b = bbox(&mask, w, h, 16).unwrap();
-        assert_eq!((b.1 - b.0, b.3 - b.2), (16, 16));
-        assert!(b.0 <= 1 && b.1 > 1 && b.2 <= 2 && b.3 > 2);
-        mask[29 * w + 39] = true;
-        assert_eq!(bbox(&mask, w, h, 16), Some((1, 40, 2, 30)));
-        // Larger than the image: the whole image.
-        assert_eq!(bbox(&mask, w, h, 100), Some((0, 40, 0, 30)));
-    }
-
-    #[test]
     fn masked_and_visible_errors_split_the_image() {
         let a = vec![0.5f32; 4 * 3];
         let mut b = a.clone();
@@ -725,7 +669,5 @@ mod tests {
         assert!((m - 0.01 / 3.0).abs() < 1e-7, "{m}");
         assert_eq!(mse_where(&a, &b, &mask, false), Some(0.0));
         assert_eq!(mse_where(&a, &b, &[false; 4], true), None);
-        let up = upsample(&[1.0, 0.0], 2, 1, 4, 2);
-        assert_eq!(up, [true, true, false, false, true, true, false, false]);
     }
 }

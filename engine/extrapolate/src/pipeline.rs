@@ -45,6 +45,7 @@ use crate::driver::{fit_budget, train_loop, Progress, Reporter, TrainRun, Unit};
 use crate::inpaint::{Fill, InpainterKind, Source, Target};
 use crate::manifest::{Manifest, StageRecord};
 use crate::visibility::{FieldVisibility, VisSettings};
+use extranerf_nerf::image_ops::{downscale_image, grey_to_rgb};
 use extranerf_nerf::trainer::StepStats;
 
 /// Where the BaseNeRF comes from.
@@ -489,10 +490,6 @@ fn test_index(name: &str) -> Option<usize> {
 /// The maps file of the visibility stage.
 pub const MAPS_FILE: &str = "maps.safetensors";
 
-fn grey(v: &[f32]) -> Vec<f32> {
-    v.iter().flat_map(|&x| [x, x, x]).collect()
-}
-
 impl Stage for VisibilityStage {
     fn name(&self) -> String {
         "visibility".into()
@@ -543,13 +540,13 @@ impl Stage for VisibilityStage {
                 &out.join(format!("{name}_vis.png")),
                 m.width,
                 m.height,
-                &grey(&m.visibility),
+                &grey_to_rgb(&m.visibility),
             )?;
             write_png(
                 &out.join(format!("{name}_mask.png")),
                 m.width,
                 m.height,
-                &grey(&mask),
+                &grey_to_rgb(&mask),
             )?;
             let (rgb, _, _) = render(ctx, &base.nerf, full, cfg.samples)?;
             write_png(
@@ -1052,7 +1049,7 @@ impl Stage for InpaintStage {
                     &round_dir.join(format!("virtual_{k:03}_mask.png")),
                     cam.width,
                     cam.height,
-                    &grey(&masks[k]),
+                    &grey_to_rgb(&masks[k]),
                 )?;
                 filled.push((cam.clone(), fill, masks[k].clone()));
                 rep.progress(&Progress {
@@ -1258,39 +1255,6 @@ impl Stage for FlythroughStage {
             t.elapsed().as_secs_f64()
         ));
         Ok(json!({"frames": frames.len(), "width": w, "height": h, "field_step": step}))
-    }
-}
-
-/// `img` resized to `w x h` by area averaging (box filter over the covered source pixels), its
-/// alpha too when it has one.
-pub fn downscale_image(img: &Image, w: u32, h: u32) -> Image {
-    let (sw, sh) = (img.width as usize, img.height as usize);
-    let box_filter = |src: &[f32], ch: usize| {
-        let (w, h) = (w as usize, h as usize);
-        let mut out = vec![0f32; w * h * ch];
-        for y in 0..h {
-            let (y0, y1) = (y * sh / h, ((y + 1) * sh / h).max(y * sh / h + 1));
-            for x in 0..w {
-                let (x0, x1) = (x * sw / w, ((x + 1) * sw / w).max(x * sw / w + 1));
-                let n = ((y1.min(sh) - y0) * (x1.min(sw) - x0)).max(1) as f32;
-                for c in 0..ch {
-                    let mut acc = 0f32;
-                    for yy in y0..y1.min(sh) {
-                        for xx in x0..x1.min(sw) {
-                            acc += src[ch * (yy * sw + xx) + c];
-                        }
-                    }
-                    out[ch * (y * w + x) + c] = acc / n;
-                }
-            }
-        }
-        out
-    };
-    Image {
-        width: w,
-        height: h,
-        rgb: box_filter(&img.rgb, 3),
-        alpha: img.alpha.as_ref().map(|a| box_filter(a, 1)),
     }
 }
 

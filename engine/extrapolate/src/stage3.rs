@@ -40,11 +40,12 @@ use crate::base::BaseField;
 use crate::driver::{default_lpips_dir, lpips_alex, Progress, Reporter, Unit};
 use crate::inpaint::{Fill, InpainterKind, Source, Target};
 use crate::pipeline::{
-    build_inpainter, downscale_image, load_map, load_round, make_virtual, render, train_round,
-    train_steps, write_test_renders, DiffusionSpec, RoundSink, RunDir, Stage, Stage2Spec,
-    VirtualSpec, MAPS_FILE,
+    build_inpainter, load_map, load_round, make_virtual, render, train_round, train_steps,
+    write_test_renders, DiffusionSpec, RoundSink, RunDir, Stage, Stage2Spec, VirtualSpec,
+    MAPS_FILE,
 };
 use crate::visibility::{FieldVisibility, VisSettings};
+use extranerf_nerf::image_ops::{detail_energy, downscale_image, resize_mask, unsharp};
 
 /// Stage 3's settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -133,16 +134,6 @@ pub enum Stage3Enhancer {
     /// An unsharp mask of the render, `render + amount * (render - blur(render))` ([`unsharp`]):
     /// no model, no training data, no noise; it sharpens what is there and invents nothing.
     Unsharp,
-}
-
-/// An unsharp mask of an `[h, w, 3]` image: `img + amount * (img - blur(img))` with the tent
-/// blur of radius `radius` ([`crate::inpaint::blur`]), clamped to [0, 1].
-pub fn unsharp(img: &[f32], w: usize, h: usize, amount: f32, radius: usize) -> Vec<f32> {
-    let b = crate::inpaint::blur(img, w, h, 3, radius);
-    img.iter()
-        .zip(&b)
-        .map(|(&x, &y)| (x + amount * (x - y)).clamp(0.0, 1.0))
-        .collect()
 }
 
 /// Whether stage 3 first checks that its enhancer helps.
@@ -314,30 +305,6 @@ impl Stage3Spec {
 /// The largest `--stage3-anchor` and `--stage3-smooth` radius (a blur wider than this is
 /// most of a virtual view).
 pub const MAX_RADIUS: usize = 64;
-
-/// Mean squared discrete Laplacian (4 x centre minus the 4 neighbours) of an `[h, w, 3]` image
-/// over its interior pixels and channels: the energy of its finest detail (and of its pixel
-/// noise). 0 for an image narrower or shorter than 3 pixels.
-pub fn detail_energy(rgb: &[f32], w: usize, h: usize) -> f64 {
-    if w < 3 || h < 3 {
-        return 0.0;
-    }
-    let at = |x: usize, y: usize, c: usize| f64::from(rgb[(y * w + x) * 3 + c]);
-    let mut sum = 0.0;
-    for y in 1..h - 1 {
-        for x in 1..w - 1 {
-            for c in 0..3 {
-                let l = 4.0 * at(x, y, c)
-                    - at(x - 1, y, c)
-                    - at(x + 1, y, c)
-                    - at(x, y - 1, c)
-                    - at(x, y + 1, c);
-                sum += l * l;
-            }
-        }
-    }
-    sum / ((w - 2) * (h - 2) * 3) as f64
-}
 
 /// Stage 3's colour target of a virtual view from its `render` and the enhancer's output
 /// (`[h, w, 3]` each): the enhanced view, colour-anchored when `anchor` > 0 (the render's blur
@@ -704,17 +671,6 @@ pub fn check_enhancer(
     };
     extranerf_nerf::safetensors::write_atomic(&path, serde_json::to_string_pretty(&c)?.as_bytes())?;
     Ok(c)
-}
-
-/// A `sw x sh` mask resized to `w x h` by nearest neighbour (>= 0.5: 1).
-pub fn resize_mask(mask: &[f32], sw: usize, sh: usize, w: usize, h: usize) -> Vec<f32> {
-    (0..w * h)
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let (sx, sy) = ((x * sw / w).min(sw - 1), (y * sh / h).min(sh - 1));
-            f32::from(mask[sy * sw + sx] >= 0.5)
-        })
-        .collect()
 }
 
 /// The supervision of one training view in the data collector: the captured view with its

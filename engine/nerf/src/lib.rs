@@ -24,6 +24,7 @@ pub mod data;
 pub mod demo;
 pub mod depth_completion;
 pub mod field;
+pub mod image_ops;
 pub mod metrics;
 pub mod model;
 pub mod mvs;

@@ -102,54 +102,6 @@ impl MvsDepth {
     }
 }
 
-/// Luminance (Rec. 601) of RGB pixels.
-pub fn grey(rgb: &[f32]) -> Vec<f32> {
-    rgb.chunks_exact(3)
-        .map(|p| 0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2])
-        .collect()
-}
-
-/// A `width` x `height` RGB image shrunk by an integer `factor` (box filter over whole
-/// blocks; the last partial row and column are dropped). Returns (rgb, width, height).
-///
-/// # Errors
-/// When `rgb` does not hold `width * height * 3` values.
-pub fn downscale_rgb(
-    rgb: &[f32],
-    width: u32,
-    height: u32,
-    factor: u32,
-) -> Result<(Vec<f32>, u32, u32)> {
-    if rgb.len() as u64 != width as u64 * height as u64 * 3 {
-        return Err(GpuError::Usage(format!(
-            "{} values for a {width}x{height} RGB image",
-            rgb.len()
-        )));
-    }
-    let f = factor.max(1);
-    let (w, h) = ((width / f).max(1), (height / f).max(1));
-    let mut out = vec![0.0f32; w as usize * h as usize * 3];
-    for y in 0..h {
-        for x in 0..w {
-            for c in 0..3 {
-                let mut s = 0.0;
-                let mut n = 0.0;
-                for dy in 0..f {
-                    for dx in 0..f {
-                        let (sx, sy) = (x * f + dx, y * f + dy);
-                        if sx < width && sy < height {
-                            s += rgb[(sy as usize * width as usize + sx as usize) * 3 + c as usize];
-                            n += 1.0;
-                        }
-                    }
-                }
-                out[(y as usize * w as usize + x as usize) * 3 + c as usize] = s / n;
-            }
-        }
-    }
-    Ok((out, w, h))
-}
-
 /// The kernels.
 #[derive(Debug)]
 pub struct Mvs {

@@ -13,7 +13,8 @@ use sha2::{Digest, Sha256};
 use crate::data::depth::read_depth_exr;
 use crate::data::{load_image, Camera, DataError};
 use crate::depth_completion::DepthCompletion;
-use crate::mvs::{downscale_rgb, grey, Mvs, MvsConfig, MvsDepth};
+use crate::image_ops::{downscale_rgb, grey};
+use crate::mvs::{Mvs, MvsConfig, MvsDepth};
 use crate::run::{write_depth_exr, Result, RunError};
 use extranerf_gpu::Context;
 

@@ -13,6 +13,8 @@ pub mod harmonic;
 
 use std::fmt;
 
+use extranerf_nerf::image_ops::blur;
+
 /// Why an inpainting could not be done.
 #[derive(Debug, thiserror::Error, PartialEq)]
 #[error("inpainting: {0}")]
@@ -227,37 +229,6 @@ pub fn check(target: &Target<'_>, sources: &[Source<'_>]) -> Result<()> {
 /// Whether pixel `i` is to be filled.
 pub fn is_hole(mask: &[f32], i: usize) -> bool {
     mask[i] >= 0.5
-}
-
-/// A separable box blur of radius `r` (applied twice: a tent) over an `[h, w, c]` image.
-pub fn blur(img: &[f32], w: usize, h: usize, c: usize, r: usize) -> Vec<f32> {
-    let pass = |src: &[f32], horizontal: bool| -> Vec<f32> {
-        let mut out = vec![0f32; src.len()];
-        for y in 0..h {
-            for x in 0..w {
-                let (lo, hi) = if horizontal {
-                    (x.saturating_sub(r), (x + r).min(w - 1))
-                } else {
-                    (y.saturating_sub(r), (y + r).min(h - 1))
-                };
-                for ch in 0..c {
-                    let mut s = 0f32;
-                    for k in lo..=hi {
-                        let j = if horizontal { y * w + k } else { k * w + x };
-                        s += src[j * c + ch];
-                    }
-                    out[(y * w + x) * c + ch] = s / (hi - lo + 1) as f32;
-                }
-            }
-        }
-        out
-    };
-    let mut v = img.to_vec();
-    for _ in 0..2 {
-        v = pass(&v, true);
-        v = pass(&v, false);
-    }
-    v
 }
 
 /// `low`'s low frequencies plus `detail`'s high frequencies: the box blur (radius `r`, applied
