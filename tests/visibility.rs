@@ -12,7 +12,7 @@ use glam::{DMat4, DVec3};
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::model::{init_params, ModelConfig, ParamLayout};
 use extranerf_nerf::reference::{
-    field_forward, transmittance_volume, visibility_pixel, visibility_pixel_given,
+    field_forward, sample_t, transmittance_volume, visibility_pixel, visibility_pixel_given,
     visibility_pixel_volume, VisibilitySetup,
 };
 use extranerf_nerf::render::visibility::{
@@ -158,29 +158,11 @@ fn check(
     out
 }
 
-/// The distance along a camera ray at sampling parameter `u` in [0, 1]: linear in NDC, in
-/// disparity in world space.
-fn sample_t(ndc: bool, near: f32, far: f32, u: f64) -> f64 {
-    let (near, far) = (near as f64, far as f64);
-    if ndc {
-        near + (far - near) * u
-    } else {
-        1.0 / (1.0 / near + (1.0 / far - 1.0 / near) * u)
-    }
-}
-
 /// Sorted samples `(t, dt)` per pixel that are not strata: `k` bins between random edges in
 /// the sampling parameter s (disparity for world space), each sample at its bin's midpoint in
 /// s, as the proposal sampler places them.
-fn random_samples(
-    rng: &mut Rng,
-    pixels: u32,
-    k: u32,
-    near: f32,
-    far: f32,
-    ndc: bool,
-) -> Vec<[f32; 2]> {
-    let t_of = |u| sample_t(ndc, near, far, u);
+fn random_samples(rng: &mut Rng, pixels: u32, s: &VisibilitySetup) -> Vec<[f32; 2]> {
+    let (k, t_of) = (s.samples, |u| sample_t(s, u));
     let mut out = Vec::new();
     for _ in 0..pixels {
         // Gaps from 0.2 to 1.8 times the even spacing: dense and sparse stretches.
@@ -247,7 +229,8 @@ fn given_samples_match_the_reference() {
         let n = cam.width * cam.height;
         let c = cfg(40, 48, 2);
         let mask = mask_all_but(train.len(), None);
-        let given = random_samples(&mut rng, n, c.samples, near, far, ndc);
+        let s = setup(ndc, near, far, &c, mask);
+        let given = random_samples(&mut rng, n, &s);
         let run = |given: &[[f32; 2]]| -> Result<Vec<[f32; 4]>, extranerf_gpu::GpuError> {
             let cams = Buffer::from_slice(ctx, "camera", &[gpu_camera(&cam)]).unwrap();
             let train_gpu: Vec<_> = train.iter().map(gpu_camera).collect();
@@ -276,7 +259,6 @@ fn given_samples_match_the_reference() {
             out.read()
         };
         let got = run(&given).unwrap();
-        let s = setup(ndc, near, far, &c, mask);
         let (mut seen, mut hidden) = (0, 0);
         for px in 0..n {
             let g: Vec<[f64; 2]> = given
@@ -305,7 +287,7 @@ fn given_samples_match_the_reference() {
         // The strata, given: the kernel's own strata's map (to f32 rounding of t and dt, which
         // the kernel computes in f32 and the given ones come from f64).
         let k = c.samples as f64;
-        let t_of = |u| sample_t(ndc, near, far, u);
+        let t_of = |u| sample_t(&s, u);
         let strata: Vec<[f32; 2]> = (0..n * c.samples)
             .map(|i| {
                 let j = (i % c.samples) as f64;

@@ -442,8 +442,7 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
                 SamplerArg::Uniform
             }
             None => {
-                let (_, _, why) = extranerf_nerf::autoconfig::default_sampling(&model);
-                eprintln!("{why}");
+                eprintln!("{}", extranerf_nerf::autoconfig::DEFAULT_SAMPLER_WHY);
                 SamplerArg::Proposal
             }
         };

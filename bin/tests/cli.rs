@@ -284,7 +284,8 @@ fn train_resume_render_eval_on_fern() {
         err.contains("step     6/6")
             && err.contains("samples/s")
             && err.contains("training step: fused kernel")
-            && err.contains("sampler: proposal, 32 strata of its field for 16 samples per ray"),
+            && err.contains("sampler: proposal, the default")
+            && err.contains("at 32 strata per ray; the 8 samples per ray drawn"),
         "{err}"
     );
     // --depth auto (the default) on fern: MVS depth of the six training views, computed once

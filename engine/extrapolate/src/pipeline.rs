@@ -284,8 +284,11 @@ pub fn default_run_config(
         rep.note(&format!("auto-config: {r}"));
     }
     let mut model = choice.model;
-    let (sampler, samples, why) = extranerf_nerf::autoconfig::default_sampling(&model);
-    rep.note(&format!("auto-config: {why}"));
+    let (sampler, samples) = extranerf_nerf::autoconfig::default_sampling(&model);
+    rep.note(&format!(
+        "auto-config: {}",
+        extranerf_nerf::autoconfig::DEFAULT_SAMPLER_WHY
+    ));
     model.sampler = sampler;
     Ok(RunConfig {
         scene: scene.clone(),

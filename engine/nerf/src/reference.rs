@@ -1081,7 +1081,9 @@ fn field_ray(cam: &crate::data::Camera, px: [f64; 2], ndc: bool) -> (glam::DVec3
     (glam::DVec3::from(o), glam::DVec3::from(d))
 }
 
-fn sample_t(s: &VisibilitySetup, u: f64) -> f64 {
+/// The distance along a camera ray of `s` at sampling parameter `u` in [0, 1]: linear in NDC,
+/// in disparity in world space (the kernels' `t_of`).
+pub fn sample_t(s: &VisibilitySetup, u: f64) -> f64 {
     if s.ndc {
         s.near + (s.far - s.near) * u
     } else {

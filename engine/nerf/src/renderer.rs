@@ -177,8 +177,9 @@ pub(crate) struct ProposalSampler {
     pub(crate) kernels: Proposal,
 }
 
-/// Why a field with the proposal sampler has no occupancy grid.
-const PROPOSAL_WITHOUT_OCCUPANCY: &str = "the field samples its rays with the proposal sampler, whose samples already lie where its weights are: it renders, and its visibility is computed, without an occupancy grid (set the occupancy resolution to 0)";
+/// Why a field with the proposal sampler has no occupancy grid (its trainer and its renders
+/// refuse one).
+pub(crate) const PROPOSAL_WITHOUT_OCCUPANCY: &str = "the field samples its rays with the proposal sampler, whose samples already lie where its weights are: it trains, renders and computes visibility without an occupancy grid (set the occupancy resolution to 0)";
 
 /// How [`Nerf::render_with`] evaluates the field ([`Nerf::default_march`] chooses for
 /// [`Nerf::render`]).

@@ -346,7 +346,7 @@ impl Trainer {
         let total = nerf.field.layout().total;
         if nerf.proposal.is_some() && cfg.occupancy_res > 0 {
             return Err(GpuError::Usage(
-                "the proposal sampler places the samples where its field's weights are; it does not use an occupancy grid (set the occupancy resolution to 0)".into(),
+                crate::renderer::PROPOSAL_WITHOUT_OCCUPANCY.into(),
             ));
         }
         let why_not = if !cfg.fused_step {
