@@ -10,17 +10,17 @@ use std::path::Path;
 
 use extranerf_diffusion::device::Backend;
 use extranerf_diffusion::enhancer::EnhancerSpec;
-use extranerf_extrapolate::driver::{train_loop, Progress, Reporter, TrainRun, Unit};
 use extranerf_extrapolate::inpaint::Fill;
 use extranerf_extrapolate::inpaint::InpainterKind;
 use extranerf_extrapolate::manifest::Manifest;
-use extranerf_extrapolate::pipeline::{
-    extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec,
-};
+use extranerf_extrapolate::rounds::Stage2Spec;
+use extranerf_extrapolate::run::{extrapolate, Options};
+use extranerf_extrapolate::stage::VirtualSpec;
 use extranerf_extrapolate::stage3::{
     check_triplets, collector_views, EnhancerCheck, Stage3Enhancer, Stage3Gate, Stage3Spec,
     Triplets, CHECK_FILE,
 };
+use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
@@ -28,6 +28,7 @@ use extranerf_nerf::image_ops::unsharp;
 use extranerf_nerf::model::{ModelConfig, ProposalConfig, Sampler};
 use extranerf_nerf::run::training_views;
 use extranerf_nerf::run::{load_checkpoint, RunConfig};
+use extranerf_nerf::train::{train_loop, Progress, Reporter, TrainRun, Unit};
 use extranerf_nerf::trainer::TrainConfig;
 use extranerf_nerf::views::ViewKind;
 use extranerf_tests::{assert_no_validation_messages, demo_scene_spec, engine, scratch_dir};
@@ -177,7 +178,7 @@ fn psnr_where(a: &[f32], b: &[f32], keep: &[bool]) -> f64 {
 /// The pixels of held-out view `view` that its stored visibility map (`RUN/visibility/maps`
 /// in `st`) leaves out of the inpainting mask, at the default settings.
 fn seen_pixels(st: &extranerf_nerf::safetensors::SafeTensors, view: usize) -> Vec<bool> {
-    let map = extranerf_extrapolate::pipeline::load_map(
+    let map = extranerf_extrapolate::visibility::load_map(
         st,
         Path::new("maps"),
         &format!("test_{view:03}"),
@@ -231,7 +232,7 @@ fn small_base_sampled(
         log_every: 50,
         checkpoint_every: 300,
         eval_every: 0,
-        eval_views: extranerf_extrapolate::driver::ViewSet::Test,
+        eval_views: extranerf_nerf::train::ViewSet::Test,
         budget: None,
     };
     train_loop(ctx, &cfg, &run, None, None, &mut Record::default()).unwrap();
@@ -689,7 +690,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     extranerf_diffusion::enhancer::train_enhancer(&images, &spec, &edir, &dev, &mut |_| {})
         .unwrap();
     let pipe = extranerf_diffusion::enhancer::load(&edir, &dev).unwrap();
-    let lp = extranerf_extrapolate::driver::lpips_alex(Some(
+    let lp = extranerf_nerf::train::lpips_alex(Some(
         &extranerf_tests::shared_data().join("../models/lpips"),
     ))
     .unwrap();
@@ -876,7 +877,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
 
     // `eval`: stage 3's field is a row of its own, with both KID protocols (small crops: the
     // demo views are small).
-    let net = extranerf_extrapolate::inception::Inception::load(
+    let net = extranerf_extrapolate::eval::inception::Inception::load(
         &extranerf_tests::inception_weights(),
         &burn::tensor::Device::flex(),
     )
@@ -914,7 +915,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
 
     // The report: self-contained (every image inlined, nothing fetched), the stages, the table,
     // five images per held-out view and the three fly-throughs.
-    let page = extranerf_extrapolate::report::write_report(&a, Some(&t)).unwrap();
+    let page = extranerf_extrapolate::eval::report::write_report(&a, Some(&t)).unwrap();
     let html = std::fs::read_to_string(&page).unwrap();
     for want in [
         "stage3-enhancer",

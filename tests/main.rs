@@ -16,6 +16,7 @@ mod extrapolate;
 mod field;
 mod fuzz;
 mod gpu;
+mod layout;
 mod march;
 mod metrics;
 mod mvs;

@@ -142,7 +142,7 @@ fn golden_image(w: u32, h: u32, k: u32) -> Vec<f32> {
 
 #[test]
 fn inception_features_match_the_torchscript_module() {
-    use extranerf_extrapolate::inception::{preprocess, ImageRef, Inception, FEATURES};
+    use extranerf_extrapolate::eval::inception::{preprocess, ImageRef, Inception, FEATURES};
     let golden: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(
             PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/inception_golden.json"),
@@ -230,7 +230,7 @@ fn inception_features_match_the_torchscript_module() {
 
 #[test]
 fn inception_weight_errors_name_the_file() {
-    use extranerf_extrapolate::inception::Inception;
+    use extranerf_extrapolate::eval::inception::Inception;
     let dev = burn::tensor::Device::flex();
     let dir = extranerf_tests::scratch_dir("inception-weights");
     let missing = dir.join("none.safetensors");

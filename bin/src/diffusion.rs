@@ -713,7 +713,7 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     if !(a.refine_strength > 0.0 && a.refine_strength <= 1.0) {
         bail!("--refine-strength {} must be in (0, 1]", a.refine_strength);
     }
-    let lpips = extranerf_extrapolate::driver::lpips_alex(a.lpips.as_deref())?;
+    let lpips = extranerf_nerf::train::lpips_alex(a.lpips.as_deref())?;
     let (backend, dev) = a.backend.device(ctx)?;
     let (views, test_views) = load_view_sets(&a.scene, a.split, a.factor, a.downscale)?;
     std::fs::create_dir_all(a.out.join("eval"))

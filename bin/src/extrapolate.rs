@@ -5,22 +5,23 @@ use std::path::{Path, PathBuf};
 use anyhow::Context as _;
 use extranerf_diffusion::device::Backend;
 use extranerf_diffusion::enhancer::{EnhancerOutput, EnhancerSpec};
-use extranerf_extrapolate::driver::{default_lpips_dir, Reporter};
+use extranerf_extrapolate::eval::inception::{default_weights as default_inception, Inception};
 use extranerf_extrapolate::eval::{compare, KidEval, KidSpec};
-use extranerf_extrapolate::inception::{default_weights as default_inception, Inception};
+use extranerf_extrapolate::inpaint::DiffusionSpec;
 use extranerf_extrapolate::inpaint::InpainterKind;
-use extranerf_extrapolate::pipeline::{
-    extrapolate as run_pipeline, BaseSpec, DiffusionSpec, FlythroughSpec, Options, Stage2Spec,
-    VirtualSpec,
-};
+use extranerf_extrapolate::rounds::Stage2Spec;
+use extranerf_extrapolate::run::{extrapolate as run_pipeline, Options};
+use extranerf_extrapolate::stage::VirtualSpec;
 use extranerf_extrapolate::stage3::{Stage3Enhancer, Stage3Gate, Stage3Spec};
+use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::demo::GT_VISIBILITY_DIR;
 use extranerf_nerf::metrics::{Lpips, LpipsNet};
+use extranerf_nerf::train::{default_lpips_dir, Reporter};
 
-use crate::nerf::SplitArgs;
+use crate::args::SplitArgs;
 use crate::report::{Console, Logged};
 use crate::visibility::Measure;
 
@@ -304,7 +305,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
                 spec.mvs_depth = r.mvs_depth.clone();
             } else {
                 let loaded = spec.load()?;
-                let line = crate::nerf::depth_request(&a.depth, &a.depth_dir).resolve(
+                let line = crate::args::depth_request(&a.depth, &a.depth_dir).resolve(
                     &mut spec,
                     &loaded,
                     Default::default(),

@@ -6,6 +6,7 @@ use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use extranerf_gpu::{Context, ContextDesc, Validation};
 
+mod args;
 mod bench;
 mod diffusion;
 mod extrapolate;

@@ -3,7 +3,7 @@
 
 use std::io::IsTerminal;
 
-use extranerf_extrapolate::driver::{Progress, Reporter, Unit};
+use extranerf_nerf::train::{Progress, Reporter, Unit};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 /// Progress on stderr.
@@ -147,7 +147,7 @@ impl<R: Reporter> Reporter for Logged<R> {
 #[cfg(test)]
 mod tests {
     use super::Logged;
-    use extranerf_extrapolate::driver::{Progress, Quiet, Reporter, Unit};
+    use extranerf_nerf::train::{Progress, Quiet, Reporter, Unit};
 
     #[test]
     fn the_log_gives_model_steps_no_psnr_or_pace() {

@@ -352,7 +352,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         mvs_depth: None,
     };
     let loaded = spec.load()?;
-    let lpips = extranerf_extrapolate::driver::lpips_alex(a.lpips.as_deref())?;
+    let lpips = extranerf_nerf::train::lpips_alex(a.lpips.as_deref())?;
     // Held-out views and their ground truth at the scoring resolution, loaded once.
     let mut tests = Vec::new();
     for &i in &loaded.split.test {
@@ -525,7 +525,7 @@ fn run_point(
     lpips: &Lpips,
     out: &std::path::Path,
 ) -> anyhow::Result<(f64, f64, f64, f64, f64, f64)> {
-    let (mut trainer, data) = extranerf_extrapolate::driver::fresh_trainer(ctx, cfg, loaded, out)?;
+    let (mut trainer, data) = extranerf_nerf::train::fresh_trainer(ctx, cfg, loaded, out)?;
     let mut peak = ctx.allocated_bytes()?.0;
     let t = Instant::now();
     while trainer.step() < cfg.train.steps {

@@ -5,7 +5,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context as _};
-use extranerf_extrapolate::driver::ViewSet;
 use extranerf_extrapolate::visibility::{
     complete_depth, map_summary, write_map, QuerySettings, RunVisibility,
 };
@@ -14,8 +13,9 @@ use extranerf_nerf::data::Camera;
 use extranerf_nerf::render::visibility::{
     mask_all_but, VisibilityMap, VisibilityMeasure, MAX_RANK,
 };
+use extranerf_nerf::train::ViewSet;
 
-use crate::nerf::MarchArgs;
+use crate::args::MarchArgs;
 
 /// Where the training cameras' transmittances come from.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]

@@ -29,6 +29,7 @@ pub mod pipeline;
 pub mod scheduler;
 pub mod text;
 pub mod train;
+pub mod train_spec;
 pub mod train_state;
 pub mod unet;
 pub mod vae;

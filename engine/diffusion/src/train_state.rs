@@ -18,7 +18,7 @@ use burn::tensor::{Bytes, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::lora::count_lora;
-use crate::train::{Augment, TrainImage, TrainSettings, Trainable};
+use crate::train_spec::{Augment, TrainImage, TrainSettings, Trainable};
 use crate::weights::is_lora_path;
 use crate::{DiffusionError, Result};
 

@@ -28,13 +28,16 @@ use extranerf_nerf::run::{write_png, RunConfig, SceneSpec};
 use extranerf_nerf::safetensors::write_atomic;
 use extranerf_nerf::trainer::TrainConfig;
 
-use crate::driver::{train_loop, Reporter, TrainRun, ViewSet};
 use crate::eval::{compare, write_table, Table};
 use crate::inpaint::InpainterKind;
 use crate::manifest::Manifest;
-use crate::pipeline::{extrapolate, BaseSpec, FlythroughSpec, Options, Stage2Spec, VirtualSpec};
+use crate::rounds::Stage2Spec;
+use crate::run::{extrapolate, Options};
+use crate::stage::VirtualSpec;
 use crate::stage3::{Stage3Enhancer, Stage3Spec};
+use crate::stages::{BaseSpec, FlythroughSpec};
 use crate::visibility::VisSettings;
+use extranerf_nerf::train::{train_loop, Reporter, TrainRun, ViewSet};
 
 /// The file that marks a folder as one the demo made (and may replace).
 pub const DEMO_FOLDER_MARKER: &str = ".extranerf-demo";
@@ -93,7 +96,7 @@ impl Default for DemoSpec {
             stage3: Some(Self::DEFAULT_STAGE3),
             virtual_downscale: 2,
             flythrough: FlythroughSpec::default().frames,
-            lpips: crate::driver::default_lpips_dir(),
+            lpips: extranerf_nerf::train::default_lpips_dir(),
             stop_after: DemoStop::default(),
         }
     }
@@ -336,7 +339,7 @@ pub fn outside_views_picture(run: &Path) -> anyhow::Result<PathBuf> {
         bail!("{}: no extrapolate manifest", run.display());
     };
     let loaded = m.scene.load()?;
-    let fin = crate::report::final_field(&m)
+    let fin = crate::eval::report::final_field(&m)
         .with_context(|| format!("{}: no stage-2 or stage-3 field", run.display()))?;
     let views = &loaded.split.test;
     let Some(first) = views.first() else {

@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::bail;
+use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::depth_completion::DepthCompletion;
@@ -19,6 +19,7 @@ use extranerf_nerf::renderer::{Nerf, OccupancyStats};
 use extranerf_nerf::run::{
     ray_depth_to_view_depth, write_depth_exr, write_exr_channels, write_png, write_ray_depth_exr,
 };
+use extranerf_nerf::safetensors::{SafeTensors, Tensor};
 use extranerf_prims::Prims;
 use serde::{Deserialize, Serialize};
 
@@ -531,4 +532,130 @@ pub fn complete_depth(
         view_depth,
         mean_abs_change,
     })
+}
+
+/// The maps file of the visibility stage.
+pub const MAPS_FILE: &str = "maps.safetensors";
+
+/// Saves maps into a safetensors file (`NAME.visibility`, `NAME.opacity`, `NAME.depth`).
+pub(crate) fn save_maps(path: &Path, maps: &[(String, VisibilityMap)]) -> anyhow::Result<()> {
+    let mut st = SafeTensors::default();
+    for (name, m) in maps {
+        let shape = vec![m.height as usize, m.width as usize];
+        for (what, v) in [
+            ("visibility", &m.visibility),
+            ("opacity", &m.opacity),
+            ("depth", &m.depth),
+        ] {
+            st.tensors.insert(
+                format!("{name}.{what}"),
+                Tensor {
+                    shape: shape.clone(),
+                    data: v.clone(),
+                },
+            );
+        }
+    }
+    st.write(path)?;
+    Ok(())
+}
+
+/// Reads map `name` from a `save_maps` file.
+pub fn load_map(st: &SafeTensors, path: &Path, name: &str) -> anyhow::Result<VisibilityMap> {
+    let get = |what: &str| -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
+        let t = st
+            .tensors
+            .get(&format!("{name}.{what}"))
+            .with_context(|| format!("{}: no map {name}.{what}", path.display()))?;
+        Ok((t.shape.clone(), t.data.clone()))
+    };
+    let (shape, visibility) = get("visibility")?;
+    let (_, opacity) = get("opacity")?;
+    let (_, depth) = get("depth")?;
+    if shape.len() != 2 || opacity.len() != visibility.len() || depth.len() != visibility.len() {
+        bail!("{}: map {name} is malformed", path.display());
+    }
+    Ok(VisibilityMap {
+        width: shape[1] as u32,
+        height: shape[0] as u32,
+        evals: vec![0.0; visibility.len()],
+        visibility,
+        opacity,
+        depth,
+    })
+}
+
+/// A mask against the truly unseen pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct MaskScore {
+    /// Intersection over union of the masked and the truly unseen pixels (1 when both are
+    /// empty).
+    pub iou: f64,
+    /// Share of pixels on which mask and truth agree.
+    pub accuracy: f64,
+    /// Masked share, truly unseen share.
+    pub masked: f64,
+    pub unseen: f64,
+}
+
+impl MaskScore {
+    /// Scores `mask` (>= 0.5: to inpaint) against `unseen`.
+    pub fn new(mask: &[f32], unseen: &[bool]) -> MaskScore {
+        let (mut inter, mut union, mut agree, mut m, mut u) =
+            (0usize, 0usize, 0usize, 0usize, 0usize);
+        for (&x, &t) in mask.iter().zip(unseen) {
+            let x = x >= 0.5;
+            inter += usize::from(x && t);
+            union += usize::from(x || t);
+            agree += usize::from(x == t);
+            m += usize::from(x);
+            u += usize::from(t);
+        }
+        let n = mask.len().max(1) as f64;
+        MaskScore {
+            iou: if union == 0 {
+                1.0
+            } else {
+                inter as f64 / union as f64
+            },
+            accuracy: agree as f64 / n,
+            masked: m as f64 / n,
+            unseen: u as f64 / n,
+        }
+    }
+
+    /// The mean of several views' scores.
+    pub fn mean(v: &[MaskScore]) -> MaskScore {
+        let n = v.len().max(1) as f64;
+        let f = |g: fn(&MaskScore) -> f64| v.iter().map(g).sum::<f64>() / n;
+        MaskScore {
+            iou: f(|s| s.iou),
+            accuracy: f(|s| s.accuracy),
+            masked: f(|s| s.masked),
+            unseen: f(|s| s.unseen),
+        }
+    }
+}
+
+/// The inpainting masks of the virtual views `virt` (`virtual_NNN` in the visibility stage's
+/// maps file under `vis_dir`), each checked to be its view's size.
+pub fn virtual_masks(
+    vis_dir: &Path,
+    virt: &[Camera],
+    vis: &VisSettings,
+) -> anyhow::Result<Vec<Vec<f32>>> {
+    let maps_path = vis_dir.join(MAPS_FILE);
+    let st = SafeTensors::read(&maps_path)?;
+    (0..virt.len())
+        .map(|i| {
+            let m = load_map(&st, &maps_path, &format!("virtual_{i:03}"))?;
+            if (m.width, m.height) != (virt[i].width, virt[i].height) {
+                bail!(
+                    "{}: virtual view {i}'s map has another size",
+                    maps_path.display()
+                );
+            }
+            Ok(vis.mask(&m))
+        })
+        .collect()
 }

@@ -261,6 +261,10 @@ pub(crate) struct Inner {
     wgpu: Option<crate::wgpu_share::WgpuHandles>,
 }
 
+/// A submission's place on the context's timeline; wait on it with [`Context::wait`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Ticket(pub u64);
+
 /// The engine's Vulkan device: cheap to clone, shared by every resource made from it.
 #[derive(Clone)]
 pub struct Context {
@@ -795,9 +799,7 @@ impl Context {
 
     /// Blocks until all submitted work has finished and frees what waited on it.
     pub fn wait_idle(&self) -> Result<()> {
-        self.wait(crate::Ticket(
-            self.inner.last_submitted.load(Ordering::Acquire),
-        ))
+        self.wait(Ticket(self.inner.last_submitted.load(Ordering::Acquire)))
     }
 
     pub(crate) fn allocator(&self) -> Result<MutexGuard<'_, Option<Allocator>>> {

@@ -20,18 +20,22 @@ pub mod files;
 mod kernel;
 mod recorder;
 #[cfg(feature = "wgpu")]
+mod shared_buffer;
+#[cfg(feature = "wgpu")]
 mod wgpu_share;
 
 pub use buffer::{Binding, Buffer, BUFFER_ALIGN};
 pub use context::{
     list_devices, Context, ContextDesc, CoopMatrixShape, DeviceInfo, DeviceListing, HeapInfo,
-    Validation, ValidationLogHandle, ValidationMessage,
+    Ticket, Validation, ValidationLogHandle, ValidationMessage,
 };
 pub use error::{count_u32, GpuError, Result};
 pub use extranerf_kernels as kernels;
 pub use kernel::Kernel;
-pub use recorder::{fold_groups, GpuTimer, Recorder, Ticket};
+pub use recorder::{fold_groups, GpuTimer, Recorder};
 #[cfg(feature = "wgpu")]
-pub use wgpu_share::{SharedBuffer, WgpuHandles};
+pub use shared_buffer::SharedBuffer;
+#[cfg(feature = "wgpu")]
+pub use wgpu_share::WgpuHandles;
 #[cfg(feature = "wgpu")]
 pub use {wgpu, wgpu_hal, wgpu_types};

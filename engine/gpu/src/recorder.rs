@@ -6,13 +6,9 @@ use ash::vk;
 use bytemuck::Pod;
 
 use crate::buffer::{Binding, RawBuffer};
-use crate::context::{Context, Garbage, WAIT_TIMEOUT_S};
+use crate::context::{Context, Garbage, Ticket, WAIT_TIMEOUT_S};
 use crate::error::{GpuError, Result, VkContext};
 use crate::kernel::Kernel;
-
-/// A submission's place on the context's timeline; wait on it with [`Context::wait`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub struct Ticket(pub u64);
 
 /// Records dispatches, copies and timestamps into one command buffer.
 ///

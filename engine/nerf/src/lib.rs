@@ -3,8 +3,11 @@
 //! [`data`]: scene loaders (LLFF, `transforms.json`, COLMAP) and splits; [`field`] and
 //! [`render`]: the device kernels (hash grid, MLPs, rays, sampling, compositing, losses,
 //! occupancy); [`model`]: the BaseNeRF field over one flat parameter buffer; [`trainer`]: the
-//! training step; [`renderer`]: rendering a field; [`views`]: the views training reads;
-//! [`run`]: run folders and checkpoints; [`metrics`]: PSNR, SSIM, LPIPS; [`reference`](mod@reference): plain-Rust f64 definitions the kernels are tested against.
+//! training step; [`train`]: the BaseNeRF training driver (budgets, the training loop, held-out
+//! curves); [`renderer`]: rendering a field; [`views`]: the views training reads; [`run`]: run
+//! folders and checkpoints ([`write`](mod@write): the images and depth maps they hold); [`metrics`]: PSNR,
+//! SSIM, LPIPS; [`reference`](mod@reference): plain-Rust f64 definitions the kernels are tested
+//! against.
 #![forbid(unsafe_code)]
 
 /// `Display` as the enum's `name()`, the name its configs and reports use.
@@ -34,9 +37,12 @@ pub mod reference;
 pub mod render;
 pub mod renderer;
 pub mod run;
+pub mod run_error;
 pub mod safetensors;
+pub mod train;
 pub mod trainer;
 pub mod views;
+pub mod write;
 
 display_by_name!(
     model::Space,

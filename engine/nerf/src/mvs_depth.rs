@@ -15,7 +15,8 @@ use crate::data::{load_image, Camera, DataError};
 use crate::depth_completion::DepthCompletion;
 use crate::image_ops::{downscale_rgb, grey};
 use crate::mvs::{Mvs, MvsConfig, MvsDepth};
-use crate::run::{write_depth_exr, Result, RunError};
+use crate::run_error::{Result, RunError};
+use crate::write::write_depth_exr;
 use extranerf_gpu::Context;
 
 /// Folder of the cache inside a run folder.

@@ -11,8 +11,10 @@ use burn::tensor::Device;
 use extranerf_diffusion::inpaint::SampleSettings;
 use extranerf_diffusion::pipeline::Pipeline;
 
+use super::api::{
+    check, is_hole, Fill, InpaintError, Inpainter, InpainterKind, Result, Source, Target,
+};
 use super::harmonic::{far_side_seeds, solve};
-use super::{check, is_hole, Fill, InpaintError, Inpainter, InpainterKind, Result, Source, Target};
 
 /// A loaded inpainting model and how it samples.
 pub struct DiffusionInpainter {

@@ -11,8 +11,10 @@
 //! follows the same correspondences: each hole pixel's depth is the mean depth that its voting
 //! patches copy, where the source has depth, else the harmonic fill's.
 
+use super::api::{
+    check, is_hole, Fill, InpaintError, Inpainter, InpainterKind, Result, Source, Target,
+};
 use super::harmonic::{far_side_seeds, solve};
-use super::{check, is_hole, Fill, InpaintError, Inpainter, InpainterKind, Result, Source, Target};
 
 /// Settings of the exemplar inpainter.
 #[derive(Clone, Debug, PartialEq)]
@@ -140,7 +142,24 @@ struct Search<'a> {
     centres: Vec<Vec<(usize, usize)>>,
 }
 
-impl Search<'_> {
+impl<'a> Search<'a> {
+    /// The search of a level whose view is `t` (its hole holding the current estimate).
+    fn new(
+        r: usize,
+        t: &'a Level,
+        src: &[&'a Level],
+        valid: &[Vec<bool>],
+        centres: &[Vec<(usize, usize)>],
+    ) -> Search<'a> {
+        Search {
+            r,
+            t,
+            src: src.to_vec(),
+            valid: valid.to_vec(),
+            centres: centres.to_vec(),
+        }
+    }
+
     fn is_valid(&self, m: Match) -> bool {
         let s = self.src[m.s];
         m.x < s.w && m.y < s.h && self.valid[m.s][m.y * s.w + m.x]
@@ -192,6 +211,10 @@ impl Exemplar {
     }
 }
 
+/// A level's nearest-neighbour field: per pixel (the patch centres over the hole), its match
+/// and cost.
+type Field = Vec<Option<(Match, f32)>>;
+
 impl Inpainter for Exemplar {
     fn kind(&self) -> InpainterKind {
         InpainterKind::Exemplar
@@ -212,19 +235,101 @@ impl Inpainter for Exemplar {
         // The low frequencies and the depth fallback: the depth-aware harmonic fill.
         let (seeds, _) = far_side_seeds(target, 0.1);
         let (base_rgb, base_depth) = solve(target, &seeds, 5000, 1e-5)?;
-        let r = self.radius;
-        let side = 2 * r + 1;
+        let side = 2 * self.radius + 1;
         if w < side || h < side {
             return Ok(Fill {
                 rgb: base_rgb,
                 depth: base_depth,
             });
         }
-        // Pyramids of the view (hole pre-filled harmonically), its mask and the sources.
+        let (mut views, masks, srcs) = self.pyramids(target, base_rgb, hole0, sources);
+        let levels = views.len();
+        let mut rng = Rng(seed ^ 0x5eed_ce11);
+        let mut nnf: Field = Vec::new();
+        let mut prev_w = 0;
+        let mut votes_depth: Vec<(f32, f32)> = Vec::new();
+        for l in (0..levels).rev() {
+            // The hole's estimate at this level: carried up from the coarser level's result.
+            if l + 1 < levels {
+                let (fine, coarse) = views.split_at_mut(l + 1);
+                carry_up(&mut fine[l], &coarse[0], &masks[l]);
+            }
+            let level_srcs: Vec<&Level> = srcs.iter().map(|s| &s[l]).collect();
+            let Some((cur, field, votes)) =
+                self.level(&views[l], &masks[l], &level_srcs, (&nnf, prev_w), &mut rng)
+            else {
+                // Nothing to copy from at this level (a hole that leaves no whole patch).
+                continue;
+            };
+            if l == 0 {
+                votes_depth = votes;
+            }
+            prev_w = cur.w;
+            views[l] = cur;
+            nnf = field;
+        }
+        // The finest level's colours, and depth from the same votes.
+        let mut rgb = target.rgb.to_vec();
+        let mut depth = target.depth.to_vec();
+        for i in 0..n {
+            if is_hole(target.mask, i) {
+                rgb[3 * i..3 * i + 3].copy_from_slice(&views[0].rgb[3 * i..3 * i + 3]);
+                depth[i] = match votes_depth.get(i) {
+                    Some(&(d, k)) if k > 0.0 && d.is_finite() => d / k,
+                    _ => base_depth[i],
+                };
+            }
+        }
+        Ok(Fill { rgb, depth })
+    }
+}
+
+/// Fills `fine`'s hole pixels (`mask`) from the coarser level `coarse`'s result.
+fn carry_up(fine: &mut Level, coarse: &Level, mask: &[bool]) {
+    let (lw, lh, cw) = (fine.w, fine.h, coarse.w);
+    for y in 0..lh {
+        for x in 0..lw {
+            let i = y * lw + x;
+            if mask[i] {
+                let j = (y / 2) * cw + x / 2;
+                fine.rgb[3 * i..3 * i + 3].copy_from_slice(&coarse.rgb[3 * j..3 * j + 3]);
+            }
+        }
+    }
+}
+
+/// The pixels within `r` of a hole pixel of `mask` (`lw` x `lh`).
+fn near_hole(mask: &[bool], lw: usize, lh: usize, r: usize) -> Vec<bool> {
+    let mut near = vec![false; lw * lh];
+    for y in 0..lh {
+        for x in 0..lw {
+            if mask[y * lw + x] {
+                for yy in y.saturating_sub(r)..(y + r + 1).min(lh) {
+                    for xx in x.saturating_sub(r)..(x + r + 1).min(lw) {
+                        near[yy * lw + xx] = true;
+                    }
+                }
+            }
+        }
+    }
+    near
+}
+
+impl Exemplar {
+    /// The pyramids of the view (its hole pre-filled by `base_rgb`), of its mask `hole0`, and
+    /// of the sources large enough for a patch, down to `min_side`.
+    fn pyramids(
+        &self,
+        target: &Target<'_>,
+        base_rgb: Vec<f32>,
+        hole0: Vec<bool>,
+        sources: &[Source<'_>],
+    ) -> (Vec<Level>, Vec<Vec<bool>>, Vec<Vec<Level>>) {
+        let side = 2 * self.radius + 1;
         let mut views = vec![Level {
-            w,
-            h,
-            rgb: base_rgb.clone(),
+            w: target.width,
+            h: target.height,
+            rgb: base_rgb,
             depth: Some(target.depth.to_vec()),
         }];
         let mut masks = vec![hole0];
@@ -263,256 +368,229 @@ impl Inpainter for Exemplar {
                 s.push(half);
             }
         }
-        let levels = views.len();
-        let mut rng = Rng(seed ^ 0x5eed_ce11);
-        let mut nnf: Vec<Option<(Match, f32)>> = Vec::new();
-        let mut prev_w = 0;
-        let mut votes_depth: Vec<(f32, f32)> = Vec::new();
-        for l in (0..levels).rev() {
-            let (lw, lh) = (views[l].w, views[l].h);
-            let mask = masks[l].clone();
-            // The hole's estimate at this level: carried up from the coarser level's result.
-            if l + 1 < levels {
-                let coarse = views[l + 1].rgb.clone();
-                let cw = views[l + 1].w;
-                let v = &mut views[l];
-                for y in 0..lh {
-                    for x in 0..lw {
-                        let i = y * lw + x;
-                        if mask[i] {
-                            let j = (y / 2) * cw + x / 2;
-                            v.rgb[3 * i..3 * i + 3].copy_from_slice(&coarse[3 * j..3 * j + 3]);
+        (views, masks, srcs)
+    }
+
+    /// One pyramid level: the view `view` (hole `mask`) filled from itself and `srcs` by
+    /// PatchMatch with EM voting, its field started from the coarser level's `nnf` (of width
+    /// `prev_w`; 0: none) or at random. Returns the filled view, its field and the last
+    /// round's depth votes (sum, count) per pixel; None when no whole patch can be copied.
+    #[allow(clippy::type_complexity)] // the level's three results
+    fn level(
+        &self,
+        view: &Level,
+        mask: &[bool],
+        srcs: &[&Level],
+        (nnf, prev_w): (&[Option<(Match, f32)>], usize),
+        rng: &mut Rng,
+    ) -> Option<(Level, Field, Vec<(f32, f32)>)> {
+        let r = self.radius;
+        let (lw, lh) = (view.w, view.h);
+        // Valid source centres: the view's patches that hold no hole pixel, and every
+        // source patch inside its image.
+        let inside =
+            |x: usize, y: usize, sw: usize, sh: usize| x >= r && y >= r && x + r < sw && y + r < sh;
+        let near_hole = near_hole(mask, lw, lh, r);
+        let mut valid = vec![(0..lw * lh)
+            .map(|i| inside(i % lw, i / lw, lw, lh) && !near_hole[i])
+            .collect::<Vec<bool>>()];
+        for s in srcs {
+            valid.push(
+                (0..s.w * s.h)
+                    .map(|i| inside(i % s.w, i / s.w, s.w, s.h))
+                    .collect(),
+            );
+        }
+        // The view as a source is a snapshot: only its seen pixels are ever read from it.
+        let snapshot = view.clone();
+        let mut src_refs: Vec<&Level> = vec![&snapshot];
+        src_refs.extend_from_slice(srcs);
+        let centres: Vec<Vec<(usize, usize)>> = valid
+            .iter()
+            .zip(&src_refs)
+            .map(|(v, s)| {
+                (0..s.w * s.h)
+                    .filter(|&i| v[i])
+                    .map(|i| (i % s.w, i / s.w))
+                    .collect()
+            })
+            .collect();
+        if centres.iter().all(Vec::is_empty) {
+            return None;
+        }
+        // Target centres: patches that overlap the hole.
+        let targets: Vec<(usize, usize)> = (0..lw * lh)
+            .filter(|&i| near_hole[i])
+            .map(|i| ((i / lw).clamp(r, lh - 1 - r), (i % lw).clamp(r, lw - 1 - r)))
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .map(|(y, x)| (x, y))
+            .collect();
+        let mut cur = view.clone();
+        // Initial field: from the coarser level's, else random.
+        let mut field: Field = vec![None; lw * lh];
+        {
+            let search = Search::new(r, &cur, &src_refs, &valid, &centres);
+            for &(x, y) in &targets {
+                let mut m = None;
+                if prev_w > 0 {
+                    let j = (y / 2) * prev_w + x / 2;
+                    if let Some(Some((c, _))) = nnf.get(j) {
+                        let up = Match {
+                            s: c.s,
+                            x: 2 * c.x + x % 2,
+                            y: 2 * c.y + y % 2,
+                        };
+                        if search.is_valid(up) {
+                            m = Some(up);
                         }
                     }
                 }
+                let m = m.unwrap_or_else(|| search.random(rng));
+                field[y * lw + x] = Some((m, search.cost(x, y, m, f32::INFINITY)));
             }
-            // Valid source centres: the view's patches that hold no hole pixel, and every
-            // source patch inside its image.
-            let inside = |x: usize, y: usize, sw: usize, sh: usize| {
-                x >= r && y >= r && x + r < sw && y + r < sh
-            };
-            let mut near_hole = vec![false; lw * lh];
-            for y in 0..lh {
-                for x in 0..lw {
-                    if mask[y * lw + x] {
-                        for yy in y.saturating_sub(r)..(y + r + 1).min(lh) {
-                            for xx in x.saturating_sub(r)..(x + r + 1).min(lw) {
-                                near_hole[yy * lw + xx] = true;
-                            }
-                        }
+        }
+        let mut votes = Vec::new();
+        for _round in 0..self.em_rounds {
+            {
+                let search = Search::new(r, &cur, &src_refs, &valid, &centres);
+                // Costs against the current estimate.
+                for &(x, y) in &targets {
+                    if let Some((m, c)) = &mut field[y * lw + x] {
+                        *c = search.cost(x, y, *m, f32::INFINITY);
+                    }
+                }
+                for sweep in 0..self.sweeps {
+                    improve(&search, &mut field, &targets, sweep % 2 == 0, rng);
+                }
+            }
+            // Vote: each hole pixel is the mean of what the patches covering it copy.
+            let acc = vote(&field, &targets, &src_refs, mask, r, lw * lh);
+            for i in 0..lw * lh {
+                if mask[i] && acc[i][3] > 0.0 {
+                    for c in 0..3 {
+                        cur.rgb[3 * i + c] = acc[i][c] / acc[i][3];
                     }
                 }
             }
-            let mut valid = vec![(0..lw * lh)
-                .map(|i| inside(i % lw, i / lw, lw, lh) && !near_hole[i])
-                .collect::<Vec<bool>>()];
-            for s in &srcs {
-                let s = &s[l];
-                valid.push(
-                    (0..s.w * s.h)
-                        .map(|i| inside(i % s.w, i / s.w, s.w, s.h))
-                        .collect(),
-                );
+            votes = acc.iter().map(|a| (a[4], a[3])).collect();
+        }
+        Some((cur, field, votes))
+    }
+}
+
+/// One PatchMatch sweep over `targets` (in order when `forward`, reversed otherwise):
+/// propagation from the neighbours already visited, then random search around each best
+/// match in halving windows and one draw anywhere.
+fn improve(
+    search: &Search<'_>,
+    field: &mut [Option<(Match, f32)>],
+    targets: &[(usize, usize)],
+    forward: bool,
+    rng: &mut Rng,
+) {
+    let (lw, lh) = (search.t.w, search.t.h);
+    let order: Box<dyn Iterator<Item = &(usize, usize)>> = if forward {
+        Box::new(targets.iter())
+    } else {
+        Box::new(targets.iter().rev())
+    };
+    for &(x, y) in order {
+        let i = y * lw + x;
+        let Some((mut best, mut best_cost)) = field[i] else {
+            continue;
+        };
+        let try_m = |m: Match, best: &mut Match, best_cost: &mut f32| {
+            if search.is_valid(m) {
+                let c = search.cost(x, y, m, *best_cost);
+                if c < *best_cost {
+                    *best = m;
+                    *best_cost = c;
+                }
             }
-            // The view as a source is a snapshot: only its seen pixels are ever read from it.
-            let snapshot = views[l].clone();
-            let mut src_refs: Vec<&Level> = vec![&snapshot];
-            for s in &srcs {
-                src_refs.push(&s[l]);
-            }
-            let centres: Vec<Vec<(usize, usize)>> = valid
-                .iter()
-                .zip(&src_refs)
-                .map(|(v, s)| {
-                    (0..s.w * s.h)
-                        .filter(|&i| v[i])
-                        .map(|i| (i % s.w, i / s.w))
-                        .collect()
-                })
-                .collect();
-            if centres.iter().all(Vec::is_empty) {
-                // Nothing to copy from at this level (a hole that leaves no whole patch).
+        };
+        // Propagation from the neighbours already visited in this order.
+        let step: isize = if forward { -1 } else { 1 };
+        for (nx, ny) in [
+            (x as isize + step, y as isize),
+            (x as isize, y as isize + step),
+        ] {
+            if nx < 0 || ny < 0 || nx as usize >= lw || ny as usize >= lh {
                 continue;
             }
-            // Target centres: patches that overlap the hole.
-            let targets: Vec<(usize, usize)> = (0..lw * lh)
-                .filter(|&i| near_hole[i])
-                .map(|i| ((i / lw).clamp(r, lh - 1 - r), (i % lw).clamp(r, lw - 1 - r)))
-                .collect::<std::collections::BTreeSet<_>>()
-                .into_iter()
-                .map(|(y, x)| (x, y))
-                .collect();
-            let mut cur = views[l].clone();
-            // Initial field: from the coarser level's, else random.
-            let mut field: Vec<Option<(Match, f32)>> = vec![None; lw * lh];
-            {
-                let search = Search {
-                    r,
-                    t: &cur,
-                    src: src_refs.clone(),
-                    valid: valid.clone(),
-                    centres: centres.clone(),
+            if let Some((m, _)) = field[ny as usize * lw + nx as usize] {
+                let cand = Match {
+                    s: m.s,
+                    x: (m.x as isize + x as isize - nx) as usize,
+                    y: (m.y as isize + y as isize - ny) as usize,
                 };
-                for &(x, y) in &targets {
-                    let mut m = None;
-                    if prev_w > 0 {
-                        let j = (y / 2) * prev_w + x / 2;
-                        if let Some(Some((c, _))) = nnf.get(j) {
-                            let up = Match {
-                                s: c.s,
-                                x: 2 * c.x + x % 2,
-                                y: 2 * c.y + y % 2,
-                            };
-                            if search.is_valid(up) {
-                                m = Some(up);
-                            }
-                        }
-                    }
-                    let m = m.unwrap_or_else(|| search.random(&mut rng));
-                    field[y * lw + x] = Some((m, search.cost(x, y, m, f32::INFINITY)));
-                }
-            }
-            for _round in 0..self.em_rounds {
-                {
-                    let search = Search {
-                        r,
-                        t: &cur,
-                        src: src_refs.clone(),
-                        valid: valid.clone(),
-                        centres: centres.clone(),
-                    };
-                    // Costs against the current estimate.
-                    for &(x, y) in &targets {
-                        if let Some((m, c)) = &mut field[y * lw + x] {
-                            *c = search.cost(x, y, *m, f32::INFINITY);
-                        }
-                    }
-                    for sweep in 0..self.sweeps {
-                        let forward = sweep % 2 == 0;
-                        let order: Box<dyn Iterator<Item = &(usize, usize)>> = if forward {
-                            Box::new(targets.iter())
-                        } else {
-                            Box::new(targets.iter().rev())
-                        };
-                        for &(x, y) in order {
-                            let i = y * lw + x;
-                            let Some((mut best, mut best_cost)) = field[i] else {
-                                continue;
-                            };
-                            let try_m = |m: Match, best: &mut Match, best_cost: &mut f32| {
-                                if search.is_valid(m) {
-                                    let c = search.cost(x, y, m, *best_cost);
-                                    if c < *best_cost {
-                                        *best = m;
-                                        *best_cost = c;
-                                    }
-                                }
-                            };
-                            // Propagation from the neighbours already visited in this order.
-                            let step: isize = if forward { -1 } else { 1 };
-                            for (nx, ny) in [
-                                (x as isize + step, y as isize),
-                                (x as isize, y as isize + step),
-                            ] {
-                                if nx < 0 || ny < 0 || nx as usize >= lw || ny as usize >= lh {
-                                    continue;
-                                }
-                                if let Some((m, _)) = field[ny as usize * lw + nx as usize] {
-                                    let cand = Match {
-                                        s: m.s,
-                                        x: (m.x as isize + x as isize - nx) as usize,
-                                        y: (m.y as isize + y as isize - ny) as usize,
-                                    };
-                                    try_m(cand, &mut best, &mut best_cost);
-                                }
-                            }
-                            // Random search around the best, in halving windows, and one
-                            // draw anywhere.
-                            let s = search.src[best.s];
-                            let mut radius = s.w.max(s.h) as isize;
-                            while radius >= 1 {
-                                let cx = best.x as isize
-                                    + rng.below(2 * radius as usize + 1) as isize
-                                    - radius;
-                                let cy = best.y as isize
-                                    + rng.below(2 * radius as usize + 1) as isize
-                                    - radius;
-                                if cx >= 0 && cy >= 0 {
-                                    try_m(
-                                        Match {
-                                            s: best.s,
-                                            x: cx as usize,
-                                            y: cy as usize,
-                                        },
-                                        &mut best,
-                                        &mut best_cost,
-                                    );
-                                }
-                                radius /= 2;
-                            }
-                            let any = search.random(&mut rng);
-                            try_m(any, &mut best, &mut best_cost);
-                            field[i] = Some((best, best_cost));
-                        }
-                    }
-                }
-                // Vote: each hole pixel is the mean of what the patches covering it copy.
-                let mut acc = vec![[0f32; 5]; lw * lh];
-                let ri = r as isize;
-                for &(x, y) in &targets {
-                    let Some((m, _)) = field[y * lw + x] else {
-                        continue;
-                    };
-                    let s = src_refs[m.s];
-                    for dy in -ri..=ri {
-                        for dx in -ri..=ri {
-                            let ti = ((y as isize + dy) as usize) * lw + (x as isize + dx) as usize;
-                            if !mask[ti] {
-                                continue;
-                            }
-                            let si =
-                                ((m.y as isize + dy) as usize) * s.w + (m.x as isize + dx) as usize;
-                            for c in 0..3 {
-                                acc[ti][c] += s.rgb[3 * si + c];
-                            }
-                            acc[ti][3] += 1.0;
-                            if let Some(d) = &s.depth {
-                                acc[ti][4] += d[si];
-                            } else {
-                                acc[ti][4] = f32::NAN;
-                            }
-                        }
-                    }
-                }
-                for i in 0..lw * lh {
-                    if mask[i] && acc[i][3] > 0.0 {
-                        for c in 0..3 {
-                            cur.rgb[3 * i + c] = acc[i][c] / acc[i][3];
-                        }
-                    }
-                }
-                if l == 0 {
-                    votes_depth = acc.iter().map(|a| (a[4], a[3])).collect();
-                }
-            }
-            views[l] = cur;
-            nnf = field;
-            prev_w = lw;
-        }
-        // The finest level's colours, and depth from the same votes.
-        let mut rgb = target.rgb.to_vec();
-        let mut depth = target.depth.to_vec();
-        for i in 0..n {
-            if is_hole(target.mask, i) {
-                rgb[3 * i..3 * i + 3].copy_from_slice(&views[0].rgb[3 * i..3 * i + 3]);
-                depth[i] = match votes_depth.get(i) {
-                    Some(&(d, k)) if k > 0.0 && d.is_finite() => d / k,
-                    _ => base_depth[i],
-                };
+                try_m(cand, &mut best, &mut best_cost);
             }
         }
-        Ok(Fill { rgb, depth })
+        // Random search around the best, in halving windows, and one draw anywhere.
+        let s = search.src[best.s];
+        let mut radius = s.w.max(s.h) as isize;
+        while radius >= 1 {
+            let cx = best.x as isize + rng.below(2 * radius as usize + 1) as isize - radius;
+            let cy = best.y as isize + rng.below(2 * radius as usize + 1) as isize - radius;
+            if cx >= 0 && cy >= 0 {
+                try_m(
+                    Match {
+                        s: best.s,
+                        x: cx as usize,
+                        y: cy as usize,
+                    },
+                    &mut best,
+                    &mut best_cost,
+                );
+            }
+            radius /= 2;
+        }
+        let any = search.random(rng);
+        try_m(any, &mut best, &mut best_cost);
+        field[i] = Some((best, best_cost));
     }
+}
+
+/// The votes of the patches at `targets` for the hole pixels of `mask` (a level of `n` pixels):
+/// per pixel the sums of the copied colours, the count, and the sum of the copied depths (NaN
+/// where a source has none).
+fn vote(
+    field: &[Option<(Match, f32)>],
+    targets: &[(usize, usize)],
+    src_refs: &[&Level],
+    mask: &[bool],
+    r: usize,
+    n: usize,
+) -> Vec<[f32; 5]> {
+    let mut acc = vec![[0f32; 5]; n];
+    let lw = src_refs[0].w;
+    let ri = r as isize;
+    for &(x, y) in targets {
+        let Some((m, _)) = field[y * lw + x] else {
+            continue;
+        };
+        let s = src_refs[m.s];
+        for dy in -ri..=ri {
+            for dx in -ri..=ri {
+                let ti = ((y as isize + dy) as usize) * lw + (x as isize + dx) as usize;
+                if !mask[ti] {
+                    continue;
+                }
+                let si = ((m.y as isize + dy) as usize) * s.w + (m.x as isize + dx) as usize;
+                for c in 0..3 {
+                    acc[ti][c] += s.rgb[3 * si + c];
+                }
+                acc[ti][3] += 1.0;
+                if let Some(d) = &s.depth {
+                    acc[ti][4] += d[si];
+                } else {
+                    acc[ti][4] = f32::NAN;
+                }
+            }
+        }
+    }
+    acc
 }
 
 #[cfg(test)]

@@ -11,7 +11,9 @@
 
 use std::collections::VecDeque;
 
-use super::{check, is_hole, Fill, InpaintError, Inpainter, InpainterKind, Result, Source, Target};
+use super::api::{
+    check, is_hole, Fill, InpaintError, Inpainter, InpainterKind, Result, Source, Target,
+};
 
 /// Settings of the depth-aware harmonic fill.
 #[derive(Clone, Debug, PartialEq)]

@@ -7,144 +7,27 @@
 //! masks `[h, w]` with values >= 0.5 meaning "fill". Pixels outside the mask come back
 //! unchanged.
 
+pub mod api;
 pub mod diffusion;
 pub mod exemplar;
 pub mod harmonic;
+pub mod hybrid;
 
-use std::fmt;
+pub use api::{
+    check, is_hole, low_plus_detail, rect_mask, Fill, InpaintError, Inpainter, InpainterKind,
+    Result, Source, Target,
+};
+pub use hybrid::Hybrid;
 
-use extranerf_nerf::image_ops::blur;
+use std::path::PathBuf;
 
-/// Why an inpainting could not be done.
-#[derive(Debug, thiserror::Error, PartialEq)]
-#[error("inpainting: {0}")]
-pub struct InpaintError(pub String);
+use anyhow::bail;
+use extranerf_gpu::Context;
+use serde::{Deserialize, Serialize};
 
-/// Result alias of inpainting.
-pub type Result<T, E = InpaintError> = std::result::Result<T, E>;
-
-/// The view to fill.
-#[derive(Clone, Copy, Debug)]
-pub struct Target<'a> {
-    pub width: usize,
-    pub height: usize,
-    /// The render, `[h, w, 3]`.
-    pub rgb: &'a [f32],
-    /// The rendered depth, `[h, w]` (larger is farther).
-    pub depth: &'a [f32],
-    /// `[h, w]`, >= 0.5 where the pixel is to be filled.
-    pub mask: &'a [f32],
-    /// The round's noise level in [0, 1) (where the diffusion inpainter starts sampling;
-    /// the others ignore it).
-    pub t: f32,
-}
-
-impl<'a> Target<'a> {
-    /// The view `width x height` with its render, depth, mask and noise level (checked when an
-    /// inpainter runs).
-    pub fn new(
-        width: usize,
-        height: usize,
-        rgb: &'a [f32],
-        depth: &'a [f32],
-        mask: &'a [f32],
-        t: f32,
-    ) -> Target<'a> {
-        Target {
-            width,
-            height,
-            rgb,
-            depth,
-            mask,
-            t,
-        }
-    }
-}
-
-/// A `[h, w]` mask that is 1 inside the rectangle `x` by `y` (pixel ranges) and 0 outside.
-pub fn rect_mask(
-    w: usize,
-    h: usize,
-    x: std::ops::Range<usize>,
-    y: std::ops::Range<usize>,
-) -> Vec<f32> {
-    (0..w * h)
-        .map(|i| f32::from(x.contains(&(i % w)) && y.contains(&(i / w))))
-        .collect()
-}
-
-/// An image whose texture an exemplar-based inpainter may copy (an input photo at the target's
-/// scale), with its depth when known.
-#[derive(Clone, Copy, Debug)]
-pub struct Source<'a> {
-    pub width: usize,
-    pub height: usize,
-    pub rgb: &'a [f32],
-    pub depth: Option<&'a [f32]>,
-}
-
-/// An inpainted view: the target's pixels with the masked ones filled.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Fill {
-    pub rgb: Vec<f32>,
-    pub depth: Vec<f32>,
-}
-
-/// Which inpainter.
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    PartialEq,
-    Eq,
-    Hash,
-    PartialOrd,
-    Ord,
-    clap::ValueEnum,
-    serde::Serialize,
-    serde::Deserialize,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum InpainterKind {
-    /// Laplace's equation seeded only from the far side of each hole's boundary (a
-    /// disocclusion shows what lies behind the occluder), in colour and depth.
-    Harmonic,
-    /// Multi-scale PatchMatch with EM voting (Wexler et al. 2007, Barnes et al. 2009): copies
-    /// texture from the view's visible part and the input photos; depth follows the same
-    /// correspondences.
-    Exemplar,
-    /// The harmonic fill's low frequencies with the exemplar fill's high frequencies.
-    Hybrid,
-    /// An inpainting diffusion model (`--diffusion-model`, with its `--diffusion-lora`
-    /// adapters when given), from the render noised to the round's t; depth from the
-    /// depth-aware harmonic fill.
-    Diffusion,
-    /// The same diffusion model without the `--diffusion-lora` adapters: the paper's
-    /// "un-fine-tuned" ablation row beside `diffusion`'s fine-tuned one.
-    #[serde(rename = "diffusion-base")]
-    DiffusionBase,
-}
+use extranerf_nerf::train::Reporter;
 
 impl InpainterKind {
-    /// The name on the command line and in run folders.
-    pub fn name(self) -> &'static str {
-        match self {
-            InpainterKind::Harmonic => "harmonic",
-            InpainterKind::Exemplar => "exemplar",
-            InpainterKind::Hybrid => "hybrid",
-            InpainterKind::Diffusion => "diffusion",
-            InpainterKind::DiffusionBase => "diffusion-base",
-        }
-    }
-
-    /// Whether this inpainter is a diffusion model (loaded from `--diffusion-model`).
-    pub fn uses_diffusion(self) -> bool {
-        matches!(
-            self,
-            InpainterKind::Diffusion | InpainterKind::DiffusionBase
-        )
-    }
-
     /// The inpainter with its default settings; None for `diffusion` and `diffusion-base`,
     /// which need a model ([`diffusion::DiffusionInpainter::load`]).
     pub fn build(self) -> Option<Box<dyn Inpainter>> {
@@ -157,136 +40,55 @@ impl InpainterKind {
     }
 }
 
-impl fmt::Display for InpainterKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
+/// The diffusion inpainter's model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiffusionSpec {
+    /// A diffusers inpainting folder.
+    pub model: PathBuf,
+    /// LoRA adapters (`diffusion finetune`).
+    pub lora: Option<PathBuf>,
+    /// DDIM steps per inpainting.
+    pub steps: usize,
+    /// burn backend.
+    pub backend: extranerf_diffusion::device::Backend,
 }
 
-/// Fills the masked pixels of a view.
-pub trait Inpainter {
-    /// Which inpainter this is.
-    fn kind(&self) -> InpainterKind;
-    /// Fills `target`'s masked pixels; `sources` are extra images to copy from, `seed` makes
-    /// randomised inpainters repeatable. An empty mask returns the target unchanged; a mask
-    /// that leaves nothing to start from is an error.
-    fn inpaint(&mut self, target: &Target<'_>, sources: &[Source<'_>], seed: u64) -> Result<Fill>;
-}
-
-/// Checks the sizes of a target and its sources.
-pub fn check(target: &Target<'_>, sources: &[Source<'_>]) -> Result<()> {
-    let n = target.width * target.height;
-    if n == 0 {
-        return Err(InpaintError(format!(
-            "the view is {}x{}; it has no pixels",
-            target.width, target.height
-        )));
-    }
-    if target.rgb.len() != 3 * n || target.depth.len() != n || target.mask.len() != n {
-        return Err(InpaintError(format!(
-            "a {}x{} view needs {} colour values, {n} depths and {n} mask values; got {}, {} and {}",
-            target.width,
-            target.height,
-            3 * n,
-            target.rgb.len(),
-            target.depth.len(),
-            target.mask.len()
-        )));
-    }
-    if target
-        .rgb
-        .iter()
-        .chain(target.depth)
-        .chain(target.mask)
-        .any(|v| !v.is_finite())
-    {
-        return Err(InpaintError(
-            "the view's colour, depth or mask holds NaN or infinity".into(),
-        ));
-    }
-    for (i, s) in sources.iter().enumerate() {
-        let m = s.width * s.height;
-        if m == 0
-            || s.rgb.len() != 3 * m
-            || s.depth.is_some_and(|d| d.len() != m)
-            || s.rgb.iter().any(|v| !v.is_finite())
-        {
-            return Err(InpaintError(format!(
-                "source image {i} ({}x{}) has {} colour values{}; want {} finite ones",
-                s.width,
-                s.height,
-                s.rgb.len(),
-                s.depth
-                    .map(|d| format!(" and {} depths", d.len()))
-                    .unwrap_or_default(),
-                3 * m
-            )));
-        }
-    }
-    Ok(())
-}
-
-/// Whether pixel `i` is to be filled.
-pub fn is_hole(mask: &[f32], i: usize) -> bool {
-    mask[i] >= 0.5
-}
-
-/// `low`'s low frequencies plus `detail`'s high frequencies: the box blur (radius `r`, applied
-/// twice) of `low`, plus `detail` minus its own blur, clamped to [0, 1]; `[h, w, 3]` images. A
-/// constant colour shift between `detail` and `low` cancels exactly. The hybrid inpainter's
-/// fill, and stage 3's colour anchoring (`--stage3-anchor`).
-pub fn low_plus_detail(low: &[f32], detail: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
-    let low_blur = blur(low, w, h, 3, r);
-    let detail_blur = blur(detail, w, h, 3, r);
-    low_blur
-        .iter()
-        .zip(detail.iter().zip(&detail_blur))
-        .map(|(&lb, (&d, &db))| (lb + d - db).clamp(0.0, 1.0))
-        .collect()
-}
-
-/// The hybrid inpainter: the harmonic fill's low frequencies (its colour blurred) plus the
-/// exemplar fill's high frequencies (the exemplar fill minus its blur), depth from the
-/// harmonic fill.
-#[derive(Clone, Debug)]
-pub struct Hybrid {
-    pub harmonic: harmonic::Harmonic,
-    pub exemplar: exemplar::Exemplar,
-    /// Box-blur radius (applied twice) that separates low from high frequencies, in pixels.
-    pub radius: usize,
-}
-
-impl Default for Hybrid {
-    fn default() -> Self {
-        Hybrid {
-            harmonic: harmonic::Harmonic::default(),
-            exemplar: exemplar::Exemplar::default(),
-            radius: 3,
+impl DiffusionSpec {
+    /// What the inpainter `kind` uses of it: `diffusion-base` leaves the adapters out.
+    pub fn for_kind(&self, kind: InpainterKind) -> DiffusionSpec {
+        DiffusionSpec {
+            lora: if kind == InpainterKind::DiffusionBase {
+                None
+            } else {
+                self.lora.clone()
+            },
+            ..self.clone()
         }
     }
 }
 
-impl Inpainter for Hybrid {
-    fn kind(&self) -> InpainterKind {
-        InpainterKind::Hybrid
+/// The inpainter of `kind` (the diffusion one loaded from `diffusion`).
+pub fn build_inpainter(
+    ctx: &Context,
+    kind: InpainterKind,
+    diffusion: Option<&DiffusionSpec>,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<Box<dyn Inpainter>> {
+    if let Some(i) = kind.build() {
+        return Ok(i);
     }
-
-    fn inpaint(&mut self, target: &Target<'_>, sources: &[Source<'_>], seed: u64) -> Result<Fill> {
-        let low = self.harmonic.inpaint(target, sources, seed)?;
-        let ex = self.exemplar.inpaint(target, sources, seed)?;
-        let (w, h) = (target.width, target.height);
-        let mixed = low_plus_detail(&low.rgb, &ex.rgb, w, h, self.radius);
-        let mut rgb = target.rgb.to_vec();
-        for i in 0..w * h {
-            if is_hole(target.mask, i) {
-                rgb[3 * i..3 * i + 3].copy_from_slice(&mixed[3 * i..3 * i + 3]);
-            }
-        }
-        Ok(Fill {
-            rgb,
-            depth: low.depth,
-        })
-    }
+    let Some(d) = diffusion.map(|d| d.for_kind(kind)) else {
+        bail!("--inpainter {kind} needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
+    };
+    let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, d.backend)?;
+    let inp = diffusion::DiffusionInpainter::load(&d.model, d.lora.as_deref(), device, d.steps)?;
+    rep.note(&format!(
+        "{kind} inpainter on {}: {}",
+        b.name(),
+        inp.notes.join("; ")
+    ));
+    Ok(Box::new(inp))
 }
 
 #[cfg(test)]
@@ -365,7 +167,7 @@ mod tests {
         assert!(!InpainterKind::Hybrid.uses_diffusion());
         assert!(k.build().is_none());
         // The adapters are left out of its model, kept for `diffusion`.
-        let d = crate::pipeline::DiffusionSpec {
+        let d = DiffusionSpec {
             model: "m".into(),
             lora: Some("l".into()),
             steps: 10,

@@ -9,8 +9,11 @@ pub mod colmap;
 pub mod depth;
 pub mod llff;
 pub mod npy;
+pub mod scene;
 pub mod split;
 pub mod transforms;
+
+pub use scene::{Scene, SplitIndices};
 
 use std::path::{Path, PathBuf};
 
@@ -163,34 +166,6 @@ pub fn depth_bounds(cameras: &[Camera]) -> Option<(f64, f64)> {
         .filter_map(|c| c.bounds.map(|b| b.1))
         .fold(0.0f64, f64::max);
     (near.is_finite() && near > 0.0 && far > near).then_some((near, far))
-}
-
-/// A loaded scene: cameras in file order plus how the world was transformed on load.
-#[derive(Clone, Debug)]
-pub struct Scene {
-    /// The folder or file it came from.
-    pub source: PathBuf,
-    /// One camera per image, in file order.
-    pub cameras: Vec<Camera>,
-    /// Maps the source's world coordinates (e.g. COLMAP points) into the scene's.
-    pub world_from_source: DMat4,
-    /// Forward-facing capture (LLFF): NDC applies; otherwise a 360 or object capture.
-    pub forward_facing: bool,
-    /// The split the data set gives (NeRF-synthetic's split files), for `--split given`.
-    pub given: Option<split::SplitIndices>,
-    /// An object on a transparent background (NeRF-synthetic): nothing lies beyond what the
-    /// views frame around the rig's centre, so rays need sampling only there.
-    pub bounded_object: bool,
-}
-
-impl Scene {
-    /// Maps COLMAP sparse points into the scene's world and keeps their colours.
-    pub fn transform_points(&self, points: &[colmap::Point3D]) -> Vec<DVec3> {
-        points
-            .iter()
-            .map(|p| self.world_from_source.transform_point3(p.xyz))
-            .collect()
-    }
 }
 
 /// An RGB image as linear-in-file f32 values in [0, 1], row-major, 3 channels, with its alpha

@@ -3,16 +3,8 @@
 
 use std::path::Path;
 
+pub use super::scene::SplitIndices;
 use super::{Camera, DataError, Result, Scene};
-
-/// Train and test views (indices into the scene's cameras, ascending).
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct SplitIndices {
-    /// Training views.
-    pub train: Vec<usize>,
-    /// Held-out views.
-    pub test: Vec<usize>,
-}
 
 /// Which split to use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -7,8 +7,7 @@ use std::path::{Path, PathBuf};
 use glam::DMat4;
 use serde_json::Value;
 
-use super::split::SplitIndices;
-use super::{read_file, Camera, DataError, Result, Scene};
+use super::{read_file, Camera, DataError, Result, Scene, SplitIndices};
 
 /// NeRF-synthetic's split files, in the order [`load_split_transforms`] joins their cameras.
 pub const SPLIT_FILES: [&str; 3] = [

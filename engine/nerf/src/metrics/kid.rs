@@ -17,7 +17,7 @@
 
 use extranerf_prims::reference::Rng;
 
-use super::{MetricsError, Result};
+use super::error::{MetricsError, Result};
 
 /// How the subsets are drawn.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -8,7 +8,7 @@
 
 use std::path::Path;
 
-use super::{check_images, MetricsError, Result};
+use super::error::{check_images, MetricsError, Result};
 use crate::data::DataError;
 use crate::safetensors::SafeTensors;
 

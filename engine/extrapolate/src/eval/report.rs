@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _};
 
-use crate::eval::Table;
+use crate::eval::table::Table;
 use crate::manifest::Manifest;
 
 /// The report's file name inside a run folder.
@@ -80,7 +80,7 @@ pub fn final_field(m: &Manifest) -> Option<String> {
             .rev()
             .filter(|s| s.done && s.name.starts_with(p))
             .filter(|s| {
-                s.name != crate::stage3::DATA_STAGE && s.name != crate::stage3::ENHANCER_STAGE
+                s.name != crate::stage::DATA_STAGE && s.name != crate::stage::ENHANCER_STAGE
             })
             .map(|s| s.name.clone())
             .next()

@@ -1,0 +1,305 @@
+//! `extranerf extrapolate`: the ExtraNeRF pipeline as stages over one run folder. This is
+//! the one file that knows every stage: it assembles them from the [`Options`] and runs them.
+//!
+//! - [`BaseStage`]: the BaseNeRF (trained into `RUN/base` under a time budget, or an existing
+//!   run reused with `--base`);
+//! - [`VisibilityStage`]: virtual cameras beyond the rig, and the visibility of the virtual and
+//!   the held-out views against the training cameras (`RUN/visibility`);
+//! - [`InpaintStage`]: the stage-2 loop for one inpainter (`RUN/stage2-NAME`): rounds of
+//!   render, mask, inpaint and train on the virtual views mixed with the captured ones;
+//! - stage 3 ([`crate::stage3`]): the enhancer's training data (`RUN/stage3-data`), the
+//!   enhancer (`RUN/stage3-enhancer`), and per stage-2 variant the enhancement loop
+//!   (`RUN/stage3-NAME`);
+//! - [`FlythroughStage`]: frames along the virtual trajectory and a looping GIF, for the
+//!   BaseNeRF and each variant (`RUN/flythrough`).
+//!
+//! Each stage records its resolved configuration in `extrapolate.json` ([`Manifest`]); a
+//! resumed run skips the stages done, refuses one asked for with other settings, and continues
+//! an unfinished stage 2 from its last finished round.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use extranerf_gpu::Context;
+use extranerf_nerf::run::{load_checkpoint, SceneSpec};
+use serde_json::Value;
+
+use crate::inpaint::{DiffusionSpec, InpainterKind};
+use crate::manifest::{Manifest, StageRecord};
+use crate::rounds::Stage2Spec;
+use crate::stage::{FieldRef, RunDir, Stage, VirtualSpec};
+use crate::stage3::{EnhanceStage, EnhancerDataStage, EnhancerStage, Stage3Enhancer, Stage3Spec};
+use crate::stages::{
+    BaseSpec, BaseStage, FlythroughSpec, FlythroughStage, InpaintStage, VisibilityStage,
+};
+use crate::visibility::VisSettings;
+use extranerf_nerf::train::Reporter;
+
+/// Everything `extranerf extrapolate` was asked to do.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// Run folder.
+    pub out: PathBuf,
+    /// The scene (ignored with `base.from`, whose scene is used).
+    pub scene: Option<SceneSpec>,
+    pub base: BaseSpec,
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+    pub stage2: Stage2Spec,
+    /// One stage-2 variant per inpainter, each from the same BaseNeRF.
+    pub inpainters: Vec<InpainterKind>,
+    /// The diffusion inpainter's model (needed when `inpainters` holds it).
+    pub diffusion: Option<DiffusionSpec>,
+    /// Stage 3 (None: stop after stage 2).
+    pub stage3: Option<Stage3Spec>,
+    /// The fly-through of the BaseNeRF and each variant.
+    pub flythrough: FlythroughSpec,
+    /// Continue a run folder that holds a manifest.
+    pub resume: bool,
+    /// Stages to run again from nothing (with `resume`), whatever their record says; their
+    /// settings may differ from the recorded ones. The stages that read them run again too.
+    pub redo: Vec<String>,
+}
+
+/// Runs the pipeline: the base, the visibility stage, one stage-2 variant per inpainter, then
+/// stage 3 (its data from the first inpainter's supervision, the enhancer, and one stage-3
+/// field per variant) and the fly-throughs, skipping the stages a resumed run has done.
+pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow::Result<Manifest> {
+    if o.inpainters.is_empty() {
+        bail!("give at least one --inpainter");
+    }
+    o.stage2.validate()?;
+    let existing = Manifest::load(&o.out)?;
+    if existing.is_some() && !o.resume {
+        bail!(
+            "{} already holds an extrapolate run; pass --resume to continue it or choose another --out",
+            o.out.display()
+        );
+    }
+    if existing.is_none() && o.resume {
+        bail!(
+            "--resume: {} holds no {}",
+            o.out.display(),
+            crate::manifest::MANIFEST_FILE
+        );
+    }
+    let base_dir = o.base.from.clone().unwrap_or_else(|| o.out.join("base"));
+    let scene = match (&o.base.from, &o.scene) {
+        (Some(from), _) => {
+            load_checkpoint(from)
+                .with_context(|| format!("--base {}", from.display()))?
+                .config
+                .scene
+        }
+        (None, Some(s)) => s.clone(),
+        (None, None) => bail!("give --scene, or --base with a trained run"),
+    };
+    let mut manifest = match existing {
+        Some(m) => {
+            m.check_scene(&o.out, &scene)?;
+            m
+        }
+        None => Manifest::new(scene.clone()),
+    };
+    std::fs::create_dir_all(&o.out).with_context(|| format!("creating {}", o.out.display()))?;
+    let dir = RunDir {
+        root: o.out.clone(),
+        base: base_dir,
+    };
+    let stages = stages(o, scene)?;
+    let names: Vec<String> = stages.iter().map(|s| s.name()).collect();
+    check_redo(&o.redo, &names, o.base.from.is_some())?;
+    // Every stage's settings are checked before anything runs (a stage to redo may differ).
+    for s in &stages {
+        if !o.redo.contains(&s.name()) {
+            manifest.stage(&o.out, &s.name(), &s.config())?;
+        }
+    }
+    let mut ran: Vec<String> = Vec::new();
+    for s in &stages {
+        run_stage(ctx, o, &dir, s.as_ref(), &mut manifest, &mut ran, rep)?;
+    }
+    Ok(manifest)
+}
+
+/// The stages `o` asks for, in the order they run.
+fn stages(o: &Options, scene: SceneSpec) -> anyhow::Result<Vec<Box<dyn Stage>>> {
+    let mut stages: Vec<Box<dyn Stage>> = vec![
+        Box::new(BaseStage {
+            spec: o.base.clone(),
+            scene,
+            virt: o.virt.clone(),
+        }),
+        Box::new(VisibilityStage {
+            virt: o.virt.clone(),
+            vis: o.vis.clone(),
+        }),
+    ];
+    for &kind in &o.inpainters {
+        stages.push(Box::new(InpaintStage {
+            kind,
+            diffusion: o.diffusion.clone(),
+            spec: o.stage2.clone(),
+            virt: o.virt.clone(),
+            vis: o.vis.clone(),
+        }));
+    }
+    if let Some(s3) = &o.stage3 {
+        s3.validate()?;
+        // A fixed filter needs no training data and no model.
+        if s3.enhance == Stage3Enhancer::Diffusion {
+            stages.push(Box::new(EnhancerDataStage {
+                spec: s3.clone(),
+                inpainter: o.inpainters[0],
+                diffusion: o.diffusion.clone(),
+                stage2: o.stage2.clone(),
+                virt: o.virt.clone(),
+                vis: o.vis.clone(),
+            }));
+            stages.push(Box::new(EnhancerStage { spec: s3.clone() }));
+        }
+        for &kind in &o.inpainters {
+            stages.push(Box::new(EnhanceStage {
+                kind,
+                spec: s3.clone(),
+                virt: o.virt.clone(),
+                vis: o.vis.clone(),
+            }));
+        }
+    }
+    if o.flythrough.frames > 0 {
+        let mut fields = vec![FieldRef::Base];
+        fields.extend(o.inpainters.iter().map(|&k| FieldRef::Stage2(k)));
+        if o.stage3.is_some() {
+            fields.extend(o.inpainters.iter().map(|&k| FieldRef::Stage3(k)));
+        }
+        for field in fields {
+            stages.push(Box::new(FlythroughStage {
+                field,
+                virt: o.virt.clone(),
+                spec: o.flythrough.clone(),
+            }));
+        }
+    }
+    Ok(stages)
+}
+
+/// Runs stage `s` unless the manifest says it is done with these settings and none of the
+/// stages it reads ran in this invocation (`ran`, which it joins when it runs); its record is
+/// saved before it runs (not done) and after.
+fn run_stage(
+    ctx: &Context,
+    o: &Options,
+    dir: &RunDir,
+    s: &dyn Stage,
+    manifest: &mut Manifest,
+    ran: &mut Vec<String>,
+    rep: &mut dyn Reporter,
+) -> anyhow::Result<()> {
+    let name = s.name();
+    let config = s.config();
+    let redo = o.redo.contains(&name);
+    let prior = if redo {
+        None
+    } else {
+        manifest.stage(&o.out, &name, &config)?.cloned()
+    };
+    // The stages it reads that ran in this invocation: its output is stale.
+    let rerun: Vec<String> = s.inputs().into_iter().filter(|i| ran.contains(i)).collect();
+    let stale = !rerun.is_empty();
+    if prior.as_ref().is_some_and(|r| r.done) && !stale {
+        rep.note(&format!("stage {name}: done, skipped"));
+        return Ok(());
+    }
+    ran.push(name.clone());
+    rep.stage(&name);
+    // Its state from an earlier run was made from other inputs or settings: start over.
+    let prior = if redo || stale {
+        // (A stage that never ran before has nothing to discard, and says nothing.)
+        if redo || prior.is_some() {
+            rep.note(&format!(
+                "stage {name}: {}, its earlier output discarded",
+                if redo {
+                    "redone (--redo)".to_string()
+                } else {
+                    format!("runs again after {}", rerun.join(", "))
+                }
+            ));
+        }
+        s.reset(dir)?;
+        None
+    } else {
+        prior
+    };
+    let before = prior.as_ref().map_or(0.0, |r| r.seconds);
+    manifest.record(StageRecord {
+        name: name.clone(),
+        config: config.clone(),
+        done: false,
+        seconds: before,
+        report: Value::Null,
+    });
+    manifest.save(&o.out)?;
+    let t = Instant::now();
+    let report = s
+        .run(ctx, dir, rep)
+        .with_context(|| format!("stage {name}"))?;
+    let seconds = before + t.elapsed().as_secs_f64();
+    rep.note(&format!("stage {name}: done in {seconds:.1} s"));
+    manifest.record(StageRecord {
+        name,
+        config,
+        done: true,
+        seconds,
+        report,
+    });
+    manifest.save(&o.out)?;
+    Ok(())
+}
+
+/// Refuses `--redo` names that are not stages of this run, or the BaseNeRF of another run.
+pub fn check_redo(redo: &[String], stages: &[String], base_reused: bool) -> anyhow::Result<()> {
+    for r in redo {
+        if !stages.contains(r) {
+            bail!(
+                "--redo {r}: this run has no such stage (its stages: {})",
+                stages.join(", ")
+            );
+        }
+        if r == "base" && base_reused {
+            bail!("--redo base: the BaseNeRF is --base's run, not this one's; retrain it there");
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_redo;
+
+    #[test]
+    fn redo_names_a_stage_of_the_run_and_not_a_reused_base() {
+        let stages: Vec<String> = ["base", "visibility", "stage2-harmonic"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        assert!(check_redo(&["stage2-harmonic".into()], &stages, true).is_ok());
+        assert!(check_redo(&["base".into()], &stages, false).is_ok());
+        let e = check_redo(&["stage3-harmonic".into()], &stages, false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--redo stage3-harmonic: this run has no such stage"),
+            "{e}"
+        );
+        assert!(e.contains("base, visibility, stage2-harmonic"), "{e}");
+        let e = check_redo(&["base".into()], &stages, true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--redo base: the BaseNeRF is --base's run"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,160 @@
+//! The enhancer's training data on disk: per training view its photo and pseudo mask, and the
+//! corrupted renders (`RUN/stage3-data/triplets.*`).
+
+use std::path::Path;
+
+use anyhow::{bail, Context as _};
+use extranerf_diffusion::train::{Guide, TrainImage};
+use extranerf_nerf::safetensors::{SafeTensors, Tensor};
+use serde::{Deserialize, Serialize};
+
+/// The triplets' tensors.
+pub const TRIPLETS_FILE: &str = "triplets.safetensors";
+/// Where each triplet came from.
+pub const TRIPLETS_INDEX: &str = "triplets.json";
+
+/// One entry of [`TRIPLETS_INDEX`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TripletEntry {
+    /// Key of its tensors (`KEY.render`, `KEY.mask`).
+    pub key: String,
+    /// The training view (its slot in the split's training list).
+    pub slot: usize,
+    /// What rendered it: `fresh@STEPS`, `base` or `inpainted@ROUND`.
+    pub source: String,
+}
+
+/// The training data of the enhancer: per training view its photo and pseudo mask at the
+/// virtual views' scale, and the corrupted renders.
+#[derive(Clone, Debug)]
+pub struct Triplets {
+    pub width: usize,
+    pub height: usize,
+    /// `[h, w, 3]` per training view.
+    pub photos: Vec<Vec<f32>>,
+    /// `[h, w]` per training view: 1 where no other training camera saw it.
+    pub masks: Vec<Vec<f32>>,
+    pub entries: Vec<TripletEntry>,
+    /// `[h, w, 3]` render and `[h, w]` mask (where the inpainter supervised it) per entry.
+    pub renders: Vec<(Vec<f32>, Vec<f32>)>,
+}
+
+impl Triplets {
+    /// Writes `dir/triplets.safetensors` and `dir/triplets.json`.
+    pub fn save(&self, dir: &Path) -> anyhow::Result<()> {
+        let (w, h) = (self.width, self.height);
+        let mut st = SafeTensors::default();
+        let mut put = |name: String, shape: Vec<usize>, data: &[f32]| {
+            st.tensors.insert(
+                name,
+                Tensor {
+                    shape,
+                    data: data.to_vec(),
+                },
+            );
+        };
+        for (i, (p, m)) in self.photos.iter().zip(&self.masks).enumerate() {
+            put(format!("photo_{i:03}"), vec![h, w, 3], p);
+            put(format!("pseudo_mask_{i:03}"), vec![h, w], m);
+        }
+        for (e, (r, m)) in self.entries.iter().zip(&self.renders) {
+            put(format!("{}.render", e.key), vec![h, w, 3], r);
+            put(format!("{}.mask", e.key), vec![h, w], m);
+        }
+        st.write(&dir.join(TRIPLETS_FILE))?;
+        extranerf_nerf::safetensors::write_atomic(
+            &dir.join(TRIPLETS_INDEX),
+            serde_json::to_string_pretty(&self.entries)?.as_bytes(),
+        )?;
+        Ok(())
+    }
+
+    /// Reads what [`Triplets::save`] wrote.
+    pub fn load(dir: &Path) -> anyhow::Result<Triplets> {
+        let path = dir.join(TRIPLETS_FILE);
+        let index = dir.join(TRIPLETS_INDEX);
+        let st = SafeTensors::read(&path)?;
+        let entries: Vec<TripletEntry> = serde_json::from_str(
+            &std::fs::read_to_string(&index)
+                .with_context(|| format!("reading {}", index.display()))?,
+        )
+        .with_context(|| format!("{}: malformed", index.display()))?;
+        let get = |name: &str, want: &[usize]| -> anyhow::Result<Vec<f32>> {
+            let t = st
+                .tensors
+                .get(name)
+                .with_context(|| format!("{}: no tensor {name}", path.display()))?;
+            if t.shape != want {
+                bail!(
+                    "{}: {name} has shape {:?}, not {want:?}",
+                    path.display(),
+                    t.shape
+                );
+            }
+            Ok(t.data.clone())
+        };
+        let first = st
+            .tensors
+            .get("photo_000")
+            .with_context(|| format!("{}: no photos", path.display()))?;
+        let [h, w, 3] = first.shape[..] else {
+            bail!("{}: photo_000 is not [h, w, 3]", path.display());
+        };
+        let mut photos = Vec::new();
+        let mut masks = Vec::new();
+        while st
+            .tensors
+            .contains_key(&format!("photo_{:03}", photos.len()))
+        {
+            let i = photos.len();
+            photos.push(get(&format!("photo_{i:03}"), &[h, w, 3])?);
+            masks.push(get(&format!("pseudo_mask_{i:03}"), &[h, w])?);
+        }
+        let mut renders = Vec::new();
+        for e in &entries {
+            if e.slot >= photos.len() {
+                bail!(
+                    "{}: triplet {} names training view {} of {}",
+                    index.display(),
+                    e.key,
+                    e.slot,
+                    photos.len()
+                );
+            }
+            renders.push((
+                get(&format!("{}.render", e.key), &[h, w, 3])?,
+                get(&format!("{}.mask", e.key), &[h, w])?,
+            ));
+        }
+        Ok(Triplets {
+            width: w,
+            height: h,
+            photos,
+            masks,
+            entries,
+            renders,
+        })
+    }
+
+    /// The enhancer's training images: each photo with its corrupted renders.
+    pub fn train_images(&self) -> Vec<TrainImage> {
+        self.photos
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let mut im = TrainImage::new(self.width, self.height, p.clone());
+                im.guides = self
+                    .entries
+                    .iter()
+                    .zip(&self.renders)
+                    .filter(|(e, _)| e.slot == i)
+                    .map(|(_, (r, m))| Guide {
+                        rgb: r.clone(),
+                        mask: m.clone(),
+                    })
+                    .collect();
+                im
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,340 @@
+//! Stage 2 of one inpainter (`RUN/stage2-NAME`): rounds of rendering the virtual views,
+//! inpainting what no two training cameras saw, and training on them mixed with the captured
+//! views.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use extranerf_gpu::Context;
+use extranerf_nerf::data::{Camera, Image};
+use extranerf_nerf::image_ops::{downscale_image, grey_to_rgb};
+use extranerf_nerf::run::{training_views_in, write_png};
+use extranerf_nerf::train::{Progress, Reporter, Unit};
+use extranerf_nerf::views::{View, ViewKind};
+use serde_json::{json, Value};
+
+use crate::base::BaseField;
+use crate::inpaint::{build_inpainter, DiffusionSpec, Fill, InpainterKind, Source, Target};
+use crate::rounds::{write_test_renders, Rounds, Stage2Spec};
+use crate::stage::{make_virtual, render, RunDir, Stage, VirtualSpec};
+use crate::visibility::{virtual_masks, VisSettings};
+
+/// One stage-2 variant.
+#[derive(Clone, Debug)]
+pub struct InpaintStage {
+    pub kind: InpainterKind,
+    /// The model of the diffusion inpainter.
+    pub diffusion: Option<DiffusionSpec>,
+    pub spec: Stage2Spec,
+    pub virt: VirtualSpec,
+    pub vis: VisSettings,
+}
+
+/// Fills of earlier views, reprojected into `cam`: per pixel, the nearest reprojected colour
+/// and its ray-space depth in `cam`.
+pub fn reproject(
+    earlier: &[(Camera, Fill, Vec<f32>)],
+    cam: &Camera,
+    ndc: bool,
+) -> Vec<Option<([f32; 3], f32)>> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut best: Vec<Option<([f32; 3], f32, f64)>> = vec![None; w * h];
+    for (src, fill, filled) in earlier {
+        let sw = src.width as usize;
+        for (i, &f) in filled.iter().enumerate() {
+            if f < 0.5 {
+                continue;
+            }
+            let (x, y) = ((i % sw) as f64 + 0.5, (i / sw) as f64 + 0.5);
+            let Some(p) = src.ray_point(x, y, fill.depth[i] as f64, ndc) else {
+                continue;
+            };
+            let (px, py, z) = cam.project(p);
+            if !(z > 0.0 && px >= 0.0 && py >= 0.0 && px < w as f64 && py < h as f64) {
+                continue;
+            }
+            let j = py as usize * w + px as usize;
+            if best[j].is_some_and(|b| b.2 <= z) {
+                continue;
+            }
+            // Ray-space depth in this camera: NDC t = 1 + 1 / z_world, else view depth.
+            let t = if ndc {
+                let pz = p.z;
+                if pz >= -1.0 {
+                    continue;
+                }
+                1.0 + 1.0 / pz
+            } else {
+                z
+            };
+            best[j] = Some((
+                [fill.rgb[3 * i], fill.rgb[3 * i + 1], fill.rgb[3 * i + 2]],
+                t as f32,
+                z,
+            ));
+        }
+    }
+    best.into_iter()
+        .map(|b| b.map(|(c, t, _)| (c, t)))
+        .collect()
+}
+
+impl Stage for InpaintStage {
+    fn name(&self) -> String {
+        format!("stage2-{}", self.kind.name())
+    }
+
+    fn config(&self) -> Value {
+        let mut c = json!({"inpainter": self.kind, "loop": self.spec});
+        if self.kind.uses_diffusion() {
+            c["diffusion"] = json!(self.diffusion.as_ref().map(|d| d.for_kind(self.kind)));
+        }
+        c
+    }
+
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+        self.spec.validate()?;
+        let out = dir.stage2(self.kind);
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let base = BaseField::load(ctx, &dir.base)?;
+        let cfg = base.ck.config.clone();
+        let samples = cfg.train.samples;
+        let virt = make_virtual(&self.virt, &base.train_cameras())?;
+        let masks = virtual_masks(&dir.visibility(), &virt, &self.vis)?;
+        let (captured, _) =
+            training_views_in(ctx, &cfg.scene, &base.loaded, &cfg.model, &dir.base)?;
+        // Exemplar sources: the training photos at the virtual views' scale, with the
+        // BaseNeRF's depth.
+        let mut sources = Vec::new();
+        for v in &captured {
+            let cam = v.camera.downscaled(self.virt.downscale);
+            let img = downscale_image(&v.image, cam.width, cam.height);
+            let (_, depth, _) = render(ctx, &base.nerf, &cam, samples)?;
+            sources.push((cam, img.rgb, depth));
+        }
+        let total_steps = self.spec.rounds * self.spec.steps_per_round;
+        let mut tcfg = cfg.train.clone();
+        tcfg.steps = total_steps;
+        tcfg.decay_steps = total_steps;
+        tcfg.lr_start = self.spec.lr;
+        tcfg.lr_end = self.spec.lr;
+        let mut r = Rounds::open(
+            ctx,
+            &out,
+            &self.name(),
+            &cfg,
+            tcfg,
+            &base.ck,
+            0,
+            self.spec.steps_per_round,
+            rep,
+        )?;
+        let mut inpainter = build_inpainter(ctx, self.kind, self.diffusion.as_ref(), rep)?;
+        let fixed = Fixed {
+            virt: &virt,
+            masks: &masks,
+            sources: &sources,
+            ndc: base.ndc(),
+            samples,
+        };
+        let mut rounds = Vec::new();
+        for round in r.start..self.spec.rounds {
+            let t0 = Instant::now();
+            let (filled, mut row) =
+                self.fill_round(ctx, &r, inpainter.as_mut(), &fixed, round, &out, rep)?;
+            // Train on the captured views and this round's virtual views.
+            let mut views = captured.clone();
+            views.extend(
+                filled
+                    .iter()
+                    .map(|(cam, fill, mask)| self.virtual_view(cam, fill, mask, round)),
+            );
+            let (last, train_s) = r.train(
+                ctx,
+                &views,
+                self.spec.virtual_fraction,
+                self.spec.steps_per_round,
+                &format!("{} round {round}", self.name()),
+                (round, t0),
+                rep,
+            )?;
+            row["train_seconds"] = json!(train_s);
+            row["batch_psnr"] = json!(last.map(|s| s.psnr()));
+            rep.note(&format!(
+                "{} round {}/{}: t {:.2}, render {:.1} s, inpaint {:.1} s, train {train_s:.1} s; {} pixels reprojected",
+                self.name(),
+                round + 1,
+                self.spec.rounds,
+                self.spec.t(round),
+                row["render_seconds"].as_f64().unwrap_or(0.0),
+                row["inpaint_seconds"].as_f64().unwrap_or(0.0),
+                row["reprojected_pixels"]
+            ));
+            rounds.push(row);
+        }
+        // The held-out views' renders, for `eval`.
+        write_test_renders(ctx, r.trainer.nerf(), &base.loaded, samples, &out)?;
+        Ok(json!({"rounds": rounds, "seconds": r.seconds}))
+    }
+}
+
+/// A filled virtual view: its camera, the fill, and its inpainting mask.
+type Filled = (Camera, Fill, Vec<f32>);
+
+/// What every round of a stage-2 variant reads.
+struct Fixed<'a> {
+    /// The virtual cameras and their inpainting masks.
+    virt: &'a [Camera],
+    masks: &'a [Vec<f32>],
+    /// The exemplar sources: camera, `[h, w, 3]` photo and the BaseNeRF's depth.
+    sources: &'a [(Camera, Vec<f32>, Vec<f32>)],
+    ndc: bool,
+    samples: u32,
+}
+
+impl InpaintStage {
+    /// Round `round`'s fills: each virtual view rendered from the field, its masked pixels
+    /// (those that an earlier view of the round filled reprojected first) inpainted and written
+    /// into `out/round_NN`. Returns each view's camera, fill and mask, and the round's report
+    /// row so far.
+    #[allow(clippy::too_many_arguments)] // each is a distinct input of the round
+    fn fill_round(
+        &self,
+        ctx: &Context,
+        r: &Rounds,
+        inpainter: &mut dyn crate::inpaint::Inpainter,
+        f: &Fixed<'_>,
+        round: u32,
+        out: &Path,
+        rep: &mut dyn Reporter,
+    ) -> anyhow::Result<(Vec<Filled>, Value)> {
+        let t0 = Instant::now();
+        let t = self.spec.t(round);
+        let round_dir = out.join(format!("round_{round:02}"));
+        std::fs::create_dir_all(&round_dir)
+            .with_context(|| format!("creating {}", round_dir.display()))?;
+        let mut filled: Vec<Filled> = Vec::new();
+        let (mut inpaint_s, mut render_s, mut reprojected) = (0.0, 0.0, 0usize);
+        for (k, cam) in f.virt.iter().enumerate() {
+            let tr = Instant::now();
+            let (mut rgb, mut depth, _) = render(ctx, r.trainer.nerf(), cam, f.samples)?;
+            render_s += tr.elapsed().as_secs_f64();
+            let mut mask = f.masks[k].clone();
+            if self.spec.reproject && !filled.is_empty() {
+                for (j, p) in reproject(&filled, cam, f.ndc).into_iter().enumerate() {
+                    if let Some((c, d)) = p {
+                        if mask[j] >= 0.5 {
+                            rgb[3 * j..3 * j + 3].copy_from_slice(&c);
+                            depth[j] = d;
+                            mask[j] = 0.0;
+                            reprojected += 1;
+                        }
+                    }
+                }
+            }
+            let sources: Vec<Source<'_>> = f
+                .sources
+                .iter()
+                .map(|(c, img, d)| Source {
+                    width: c.width as usize,
+                    height: c.height as usize,
+                    rgb: img,
+                    depth: Some(d),
+                })
+                .collect();
+            let target = Target {
+                width: cam.width as usize,
+                height: cam.height as usize,
+                rgb: &rgb,
+                depth: &depth,
+                mask: &mask,
+                t,
+            };
+            let ti = Instant::now();
+            let seed = self.spec.seed ^ ((round as u64) << 32) ^ k as u64;
+            let fill = if mask.iter().all(|&m| m < 0.5) {
+                Fill {
+                    rgb: rgb.clone(),
+                    depth: depth.clone(),
+                }
+            } else {
+                inpainter
+                    .inpaint(&target, &sources, seed)
+                    .with_context(|| format!("virtual view {k}, round {round}"))?
+            };
+            inpaint_s += ti.elapsed().as_secs_f64();
+            write_png(
+                &round_dir.join(format!("virtual_{k:03}.png")),
+                cam.width,
+                cam.height,
+                &fill.rgb,
+            )?;
+            write_png(
+                &round_dir.join(format!("virtual_{k:03}_mask.png")),
+                cam.width,
+                cam.height,
+                &grey_to_rgb(&f.masks[k]),
+            )?;
+            filled.push((cam.clone(), fill, f.masks[k].clone()));
+            rep.progress(&Progress {
+                unit: Unit::Views,
+                step: k as u32 + 1,
+                total: f.virt.len() as u32,
+                loss: 0.0,
+                psnr: 0.0,
+                samples_per_s: 0.0,
+                secs: t0.elapsed().as_secs_f64(),
+                eta: 0.0,
+            });
+        }
+        let row = json!({
+            "round": round,
+            "t": t,
+            "weight": self.spec.weight(round),
+            "render_seconds": render_s,
+            "inpaint_seconds": inpaint_s,
+            "train_seconds": 0.0,
+            "reprojected_pixels": reprojected,
+            "batch_psnr": null,
+        });
+        Ok((filled, row))
+    }
+
+    /// A filled virtual view as training data: the filled pixels carry w(t), the seen rest
+    /// `visible_weight` of it (their colour is the field's own render, which the captured views
+    /// supervise); the fill's depth supervises where its colour does.
+    fn virtual_view(&self, cam: &Camera, fill: &Fill, mask: &[f32], round: u32) -> View {
+        let weight = self.spec.weight(round);
+        let w: Vec<f32> = mask
+            .iter()
+            .map(|&m| {
+                if m >= 0.5 {
+                    weight
+                } else {
+                    weight * self.spec.visible_weight
+                }
+            })
+            .collect();
+        let conf = |m: f32| {
+            if m >= 0.5 || self.spec.visible_weight > 0.0 {
+                1.0
+            } else {
+                0.0
+            }
+        };
+        View {
+            camera: cam.clone(),
+            image: Image::opaque(cam.width, cam.height, fill.rgb.clone()),
+            depth: Some(
+                fill.depth
+                    .iter()
+                    .zip(mask)
+                    .map(|(&d, &m)| [d, conf(m)])
+                    .collect(),
+            ),
+            weight: Some(w),
+            kind: ViewKind::Virtual,
+        }
+    }
+}
