@@ -7,13 +7,15 @@ use std::time::Instant;
 
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
+use extranerf_nerf::data::{Camera, Image};
 use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::run::{load_checkpoint, save_checkpoint, write_png, Checkpoint, RunConfig};
 use extranerf_nerf::trainer::{StepStats, TrainConfig, Trainer};
-use extranerf_nerf::views::{TrainData, View, ViewSampling};
+use extranerf_nerf::views::{TrainData, View, ViewKind, ViewSampling};
 use extranerf_prims::Prims;
 use serde::{Deserialize, Serialize};
 
+use crate::inpaint::Fill;
 use crate::stage::render;
 use extranerf_nerf::train::{Progress, Reporter, Unit};
 
@@ -358,5 +360,30 @@ impl Rounds {
             (round, t0, &mut self.seconds),
             rep,
         )
+    }
+}
+
+/// A virtual view at `cam` supervised by `fill`: each pixel's colour with the loss weight
+/// `weight(m)` and its depth with the confidence `conf(m)`, `m` its `mask` value (>= 0.5: a
+/// filled pixel).
+pub(crate) fn fill_view(
+    cam: &Camera,
+    fill: &Fill,
+    mask: &[f32],
+    weight: impl Fn(f32) -> f32,
+    conf: impl Fn(f32) -> f32,
+) -> View {
+    View {
+        camera: cam.clone(),
+        image: Image::opaque(cam.width, cam.height, fill.rgb.clone()),
+        depth: Some(
+            fill.depth
+                .iter()
+                .zip(mask)
+                .map(|(&d, &m)| [d, conf(m)])
+                .collect(),
+        ),
+        weight: Some(mask.iter().map(|&m| weight(m)).collect()),
+        kind: ViewKind::Virtual,
     }
 }

@@ -6,20 +6,20 @@ use std::time::Instant;
 
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
-use extranerf_nerf::data::{Camera, Image};
+use extranerf_nerf::data::Camera;
 use extranerf_nerf::image_ops::{downscale_image, resize_mask};
 use extranerf_nerf::render::visibility::mask_all_but;
 use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::run::{training_views_in, write_png};
 use extranerf_nerf::train::Reporter;
 use extranerf_nerf::trainer::Trainer;
-use extranerf_nerf::views::{TrainData, View, ViewKind, ViewSampling};
+use extranerf_nerf::views::{TrainData, View, ViewSampling};
 use extranerf_prims::Prims;
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
 use crate::inpaint::{build_inpainter, DiffusionSpec, Fill, InpainterKind, Source, Target};
-use crate::rounds::{train_steps, Stage2Spec};
+use crate::rounds::{fill_view, train_steps, Stage2Spec};
 use crate::stage::{progress_views, render, RunDir, Stage, VirtualSpec, DATA_STAGE};
 use crate::stage3::spec::Stage3Spec;
 use crate::stage3::triplets::{TripletEntry, Triplets};
@@ -54,19 +54,7 @@ pub fn collector_views(
             .collect(),
     );
     let inside = |m: f32| if m >= 0.5 { 1.0 } else { 0.0 };
-    let virt = View {
-        camera: cam.clone(),
-        image: Image::opaque(cam.width, cam.height, fill.rgb.clone()),
-        depth: Some(
-            fill.depth
-                .iter()
-                .zip(mask)
-                .map(|(&d, &m)| [d, inside(m)])
-                .collect(),
-        ),
-        weight: Some(mask.iter().map(|&m| weight * inside(m)).collect()),
-        kind: ViewKind::Virtual,
-    };
+    let virt = fill_view(cam, fill, mask, |m| weight * inside(m), inside);
     (photo, virt)
 }
 

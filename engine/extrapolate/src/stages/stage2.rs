@@ -7,16 +7,16 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use extranerf_gpu::Context;
-use extranerf_nerf::data::{Camera, Image};
+use extranerf_nerf::data::Camera;
 use extranerf_nerf::image_ops::{downscale_image, grey_to_rgb};
 use extranerf_nerf::run::{training_views_in, write_png};
 use extranerf_nerf::train::{Progress, Reporter, Unit};
-use extranerf_nerf::views::{View, ViewKind};
+use extranerf_nerf::views::View;
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
 use crate::inpaint::{build_inpainter, DiffusionSpec, Fill, InpainterKind, Source, Target};
-use crate::rounds::{write_test_renders, Rounds, Stage2Spec};
+use crate::rounds::{fill_view, write_test_renders, Rounds, Stage2Spec};
 use crate::stage::{make_virtual, render, RunDir, Stage, VirtualSpec};
 use crate::visibility::{virtual_masks, VisSettings};
 
@@ -305,36 +305,13 @@ impl InpaintStage {
     /// `visible_weight` of it (their colour is the field's own render, which the captured views
     /// supervise); the fill's depth supervises where its colour does.
     fn virtual_view(&self, cam: &Camera, fill: &Fill, mask: &[f32], round: u32) -> View {
-        let weight = self.spec.weight(round);
-        let w: Vec<f32> = mask
-            .iter()
-            .map(|&m| {
-                if m >= 0.5 {
-                    weight
-                } else {
-                    weight * self.spec.visible_weight
-                }
-            })
-            .collect();
-        let conf = |m: f32| {
-            if m >= 0.5 || self.spec.visible_weight > 0.0 {
-                1.0
-            } else {
-                0.0
-            }
-        };
-        View {
-            camera: cam.clone(),
-            image: Image::opaque(cam.width, cam.height, fill.rgb.clone()),
-            depth: Some(
-                fill.depth
-                    .iter()
-                    .zip(mask)
-                    .map(|(&d, &m)| [d, conf(m)])
-                    .collect(),
-            ),
-            weight: Some(w),
-            kind: ViewKind::Virtual,
-        }
+        let (weight, visible) = (self.spec.weight(round), self.spec.visible_weight);
+        fill_view(
+            cam,
+            fill,
+            mask,
+            |m| if m >= 0.5 { weight } else { weight * visible },
+            |m| if m >= 0.5 || visible > 0.0 { 1.0 } else { 0.0 },
+        )
     }
 }
