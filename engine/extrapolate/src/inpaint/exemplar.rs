@@ -135,11 +135,11 @@ struct Search<'a> {
     /// The view at this level (its hole holds the current estimate).
     t: &'a Level,
     /// Sources at this level; 0 is the view itself.
-    src: Vec<&'a Level>,
+    src: &'a [&'a Level],
     /// Per source, per pixel: may a patch be centred there.
-    valid: Vec<Vec<bool>>,
+    valid: &'a [Vec<bool>],
     /// Per source, the valid centres (for random draws).
-    centres: Vec<Vec<(usize, usize)>>,
+    centres: &'a [Vec<(usize, usize)>],
 }
 
 impl<'a> Search<'a> {
@@ -147,16 +147,16 @@ impl<'a> Search<'a> {
     fn new(
         r: usize,
         t: &'a Level,
-        src: &[&'a Level],
-        valid: &[Vec<bool>],
-        centres: &[Vec<(usize, usize)>],
+        src: &'a [&'a Level],
+        valid: &'a [Vec<bool>],
+        centres: &'a [Vec<(usize, usize)>],
     ) -> Search<'a> {
         Search {
             r,
             t,
-            src: src.to_vec(),
-            valid: valid.to_vec(),
-            centres: centres.to_vec(),
+            src,
+            valid,
+            centres,
         }
     }
 

@@ -9,12 +9,12 @@ use extranerf_nerf::cameras::virtual_cameras;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::run::{load_checkpoint, write_png};
-use extranerf_nerf::train::{Progress, Reporter, Unit};
+use extranerf_nerf::train::Reporter;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
-use crate::stage::{render, FieldRef, RunDir, Stage, VirtualSpec};
+use crate::stage::{progress_views, render, FieldRef, RunDir, Stage, VirtualSpec};
 
 /// The fly-through: frames along the virtual cameras' trajectory, rendered from the
 /// BaseNeRF and from each stage-2 variant.
@@ -119,16 +119,7 @@ impl Stage for FlythroughStage {
             )?;
             (w, h) = (cam.width, cam.height);
             frames.push(rgb);
-            rep.progress(&Progress {
-                unit: Unit::Views,
-                step: i as u32 + 1,
-                total: s.frames,
-                loss: 0.0,
-                psnr: 0.0,
-                samples_per_s: 0.0,
-                secs: t.elapsed().as_secs_f64(),
-                eta: 0.0,
-            });
+            progress_views(rep, i + 1, s.frames as usize, &t);
         }
         let gif = dir.flythrough().join(format!("{name}.gif"));
         crate::anim::write_gif(&gif, w, h, &frames, s.delay_ms)?;

@@ -10,14 +10,14 @@ use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::image_ops::{downscale_image, grey_to_rgb};
 use extranerf_nerf::run::{training_views_in, write_png};
-use extranerf_nerf::train::{Progress, Reporter, Unit};
+use extranerf_nerf::train::Reporter;
 use extranerf_nerf::views::View;
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
 use crate::inpaint::{build_inpainter, DiffusionSpec, Fill, InpainterKind, Source, Target};
 use crate::rounds::{fill_view, write_test_renders, Rounds, Stage2Spec};
-use crate::stage::{make_virtual, render, RunDir, Stage, VirtualSpec};
+use crate::stage::{make_virtual, progress_views, render, RunDir, Stage, VirtualSpec};
 use crate::visibility::{virtual_masks, VisSettings};
 
 /// One stage-2 variant.
@@ -141,8 +141,8 @@ impl Stage for InpaintStage {
         let mut rounds = Vec::new();
         for round in r.start..self.spec.rounds {
             let t0 = Instant::now();
-            let (filled, mut row) =
-                self.fill_round(ctx, &r, inpainter.as_mut(), &fixed, round, &out, rep)?;
+            let (filled, f) =
+                self.fill_round(ctx, &r, inpainter.as_mut(), &fixed, (round, t0), &out, rep)?;
             // Train on the captured views and this round's virtual views.
             let mut views = captured.clone();
             views.extend(
@@ -159,19 +159,26 @@ impl Stage for InpaintStage {
                 (round, t0),
                 rep,
             )?;
-            row["train_seconds"] = json!(train_s);
-            row["batch_psnr"] = json!(last.map(|s| s.psnr()));
+            let t = self.spec.t(round);
             rep.note(&format!(
-                "{} round {}/{}: t {:.2}, render {:.1} s, inpaint {:.1} s, train {train_s:.1} s; {} pixels reprojected",
+                "{} round {}/{}: t {t:.2}, render {:.1} s, inpaint {:.1} s, train {train_s:.1} s; {} pixels reprojected",
                 self.name(),
                 round + 1,
                 self.spec.rounds,
-                self.spec.t(round),
-                row["render_seconds"].as_f64().unwrap_or(0.0),
-                row["inpaint_seconds"].as_f64().unwrap_or(0.0),
-                row["reprojected_pixels"]
+                f.render_s,
+                f.inpaint_s,
+                f.reprojected
             ));
-            rounds.push(row);
+            rounds.push(json!({
+                "round": round,
+                "t": t,
+                "weight": self.spec.weight(round),
+                "render_seconds": f.render_s,
+                "inpaint_seconds": f.inpaint_s,
+                "train_seconds": train_s,
+                "reprojected_pixels": f.reprojected,
+                "batch_psnr": last.map(|s| s.psnr()),
+            }));
         }
         // The held-out views' renders, for `eval`.
         write_test_renders(ctx, r.trainer.nerf(), &base.loaded, samples, &out)?;
@@ -181,6 +188,14 @@ impl Stage for InpaintStage {
 
 /// A filled virtual view: its camera, the fill, and its inpainting mask.
 type Filled = (Camera, Fill, Vec<f32>);
+
+/// What a round's fills measured: render and inpainting seconds, and the pixels reprojected
+/// from earlier views of the round.
+struct RoundFigures {
+    render_s: f64,
+    inpaint_s: f64,
+    reprojected: usize,
+}
 
 /// What every round of a stage-2 variant reads.
 struct Fixed<'a> {
@@ -196,8 +211,8 @@ struct Fixed<'a> {
 impl InpaintStage {
     /// Round `round`'s fills: each virtual view rendered from the field, its masked pixels
     /// (those that an earlier view of the round filled reprojected first) inpainted and written
-    /// into `out/round_NN`. Returns each view's camera, fill and mask, and the round's report
-    /// row so far.
+    /// into `out/round_NN` (progress counted from the round's start `t0`). Returns each view's
+    /// camera, fill and mask, and what the round measured.
     #[allow(clippy::too_many_arguments)] // each is a distinct input of the round
     fn fill_round(
         &self,
@@ -205,11 +220,10 @@ impl InpaintStage {
         r: &Rounds,
         inpainter: &mut dyn crate::inpaint::Inpainter,
         f: &Fixed<'_>,
-        round: u32,
+        (round, t0): (u32, Instant),
         out: &Path,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<(Vec<Filled>, Value)> {
-        let t0 = Instant::now();
+    ) -> anyhow::Result<(Vec<Filled>, RoundFigures)> {
         let t = self.spec.t(round);
         let round_dir = out.join(format!("round_{round:02}"));
         std::fs::create_dir_all(&round_dir)
@@ -277,28 +291,14 @@ impl InpaintStage {
                 &grey_to_rgb(&f.masks[k]),
             )?;
             filled.push((cam.clone(), fill, f.masks[k].clone()));
-            rep.progress(&Progress {
-                unit: Unit::Views,
-                step: k as u32 + 1,
-                total: f.virt.len() as u32,
-                loss: 0.0,
-                psnr: 0.0,
-                samples_per_s: 0.0,
-                secs: t0.elapsed().as_secs_f64(),
-                eta: 0.0,
-            });
+            progress_views(rep, k + 1, f.virt.len(), &t0);
         }
-        let row = json!({
-            "round": round,
-            "t": t,
-            "weight": self.spec.weight(round),
-            "render_seconds": render_s,
-            "inpaint_seconds": inpaint_s,
-            "train_seconds": 0.0,
-            "reprojected_pixels": reprojected,
-            "batch_psnr": null,
-        });
-        Ok((filled, row))
+        let figures = RoundFigures {
+            render_s,
+            inpaint_s,
+            reprojected,
+        };
+        Ok((filled, figures))
     }
 
     /// A filled virtual view as training data: the filled pixels carry w(t), the seen rest

@@ -5,6 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use extranerf_gpu::Context;
+use extranerf_prims::Prims;
 
 use super::report::Reporter;
 use super::{fresh_trainer, Result, TrainError};
@@ -15,7 +16,7 @@ use crate::run::RunConfig;
 pub fn probe_samples_per_s(ctx: &Context, cfg: &RunConfig, run_dir: &Path) -> Result<f64> {
     let loaded = cfg.scene.load()?;
     let (mut trainer, data) = fresh_trainer(ctx, cfg, &loaded, run_dir)?;
-    let prims = super::prims(ctx)?;
+    let prims = Prims::new(ctx)?;
     trainer.run_steps(ctx, &prims, &data, 5)?;
     let t = Instant::now();
     trainer.run_steps(ctx, &prims, &data, 20)?;

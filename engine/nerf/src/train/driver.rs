@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use extranerf_gpu::Context;
+use extranerf_prims::Prims;
 
 use super::budget::refit_budget;
 use super::held_out::HeldOut;
@@ -55,7 +56,7 @@ pub fn train_loop(
     let params = params.unwrap_or_else(|| crate::model::init_params(&cfg.model, cfg.train.seed));
     let nerf = Nerf::new(ctx, cfg.model.clone(), &params, cfg.train.background)?;
     let data = TrainData::new(ctx, &views)?;
-    let prims = super::prims(ctx)?;
+    let prims = Prims::new(ctx)?;
     let moments = moments.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
     let mut trainer = Trainer::new(ctx, nerf, cfg.train.clone(), start, moments)?;
     rep.note(&memory_note(ctx, &data)?);

@@ -24,7 +24,6 @@ pub use view_set::ViewSet;
 use std::path::{Path, PathBuf};
 
 use extranerf_gpu::{Context, GpuError};
-use extranerf_prims::Prims;
 
 use crate::data::DataError;
 use crate::metrics::MetricsError;
@@ -123,9 +122,4 @@ pub fn memory_note(ctx: &Context, data: &TrainData) -> Result<String> {
         mib(held),
         mib(local)
     ))
-}
-
-/// A fresh [`Prims`] (the device's scan, sort and reduce plans).
-pub(crate) fn prims(ctx: &Context) -> Result<Prims> {
-    Ok(Prims::new(ctx)?)
 }
