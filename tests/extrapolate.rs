@@ -22,6 +22,7 @@ use extranerf_extrapolate::stage3::{
 };
 use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec};
 use extranerf_extrapolate::visibility::VisSettings;
+use extranerf_extrapolate::ExtrapolateError;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
 use extranerf_nerf::image_ops::unsharp;
@@ -474,6 +475,25 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         .all(|r| r.psnr_not_visible_exact.is_some_and(f64::is_finite)
             && r.psnr_visible_exact.is_some_and(f64::is_finite)));
     assert!(t.markdown().contains("PSNR not visible (exact)"));
+    // KID over no subsets: the metric refuses it.
+    let net = extranerf_extrapolate::eval::inception::Inception::load(
+        &extranerf_tests::inception_weights(),
+        &burn::tensor::Device::flex(),
+    )
+    .unwrap();
+    let kid = extranerf_extrapolate::eval::KidEval {
+        net: &net,
+        spec: extranerf_extrapolate::eval::KidSpec {
+            crops: 4,
+            crop_size: 8,
+            subsets: 0,
+            ..Default::default()
+        },
+    };
+    let e =
+        extranerf_extrapolate::eval::compare(&a, None, Some(&kid), None, &mut Record::default())
+            .unwrap_err();
+    assert!(matches!(e, ExtrapolateError::Metrics(_)), "{e:?}");
     // A folder that is missing, or holds no mask of a held-out view, or a mask of the wrong
     // size: clear errors naming it.
     let e = |d: &Path| {
@@ -494,6 +514,154 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         "{}",
         e(&empty)
     );
+    assert_no_validation_messages(ctx);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Every variant of [`ExtrapolateError`] reached through the public API, so that a caller can
+/// tell a bad setting from a run folder that refused to resume, and a failed stage (and which
+/// one) from the scene, the device, training, an inpainter or a model. (`Metrics` is reached
+/// on a finished run in the pipeline's test above.)
+#[test]
+fn each_error_variant_is_reached_through_the_public_api() {
+    let e = engine();
+    let ctx = &e.ctx;
+    let dir = scratch_dir("extrapolate-errors");
+    let (scene_dir, base) = small_base(ctx, &dir);
+    let fail = |o: &Options| extrapolate(ctx, o, &mut Record::default()).unwrap_err();
+    let in_stage = |e: &ExtrapolateError, name: &str| {
+        assert_eq!(e.stage(), Some(name), "{e}");
+        assert!(e.to_string().starts_with(&format!("stage {name}: ")), "{e}");
+    };
+
+    // A setting that cannot work.
+    let mut o = options(&dir.join("usage"), &base);
+    o.inpainters.clear();
+    let e = fail(&o);
+    assert!(matches!(e, ExtrapolateError::Usage(_)), "{e:?}");
+    assert!(e.to_string().contains("--inpainter"), "{e}");
+
+    // A folder that holds a run, without --resume; --resume where there is none.
+    let held = dir.join("held");
+    std::fs::create_dir_all(&held).unwrap();
+    Manifest::new(load_checkpoint(&base).unwrap().config.scene)
+        .save(&held)
+        .unwrap();
+    let e = fail(&options(&held, &base));
+    assert!(
+        matches!(&e, ExtrapolateError::Resume { dir, .. } if dir == &held),
+        "{e:?}"
+    );
+    let e = fail(&Options {
+        resume: true,
+        ..options(&dir.join("nothing"), &base)
+    });
+    assert!(matches!(e, ExtrapolateError::Resume { .. }), "{e:?}");
+    assert!(e.to_string().contains("drop --resume"), "{e}");
+
+    // A run folder that cannot be made: a file stands where it would be.
+    std::fs::write(dir.join("file"), b"x").unwrap();
+    let e = fail(&options(&dir.join("file").join("run"), &base));
+    assert!(
+        matches!(
+            &e,
+            ExtrapolateError::Io {
+                what: "creating",
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+
+    // A manifest that is not one.
+    let bad = dir.join("bad");
+    std::fs::create_dir_all(&bad).unwrap();
+    std::fs::write(Manifest::path(&bad), b"{\"stages\": 3}").unwrap();
+    let e = Manifest::load(&bad).unwrap_err();
+    assert!(
+        matches!(&e, ExtrapolateError::Malformed { path, .. } if path == &Manifest::path(&bad)),
+        "{e:?}"
+    );
+
+    // `eval` on a folder that holds no run.
+    let e = extranerf_extrapolate::eval::compare(&dir, None, None, None, &mut Record::default())
+        .unwrap_err();
+    assert!(matches!(e, ExtrapolateError::Incomplete { .. }), "{e:?}");
+
+    // A scene that is not there: the BaseNeRF stage fails on it.
+    let fresh = |out: &str, scene: &Path, budget: f64| Options {
+        scene: Some(demo_scene_spec(scene.to_path_buf())),
+        base: BaseSpec { from: None, budget },
+        ..options(&dir.join(out), &base)
+    };
+    let e = fail(&fresh("no-scene", &dir.join("no-such-scene"), 60.0));
+    in_stage(&e, "base");
+    assert!(matches!(e.cause(), ExtrapolateError::Run(_)), "{e:?}");
+    // A budget the training refuses.
+    let e = fail(&fresh("no-budget", &scene_dir, 0.0));
+    in_stage(&e, "base");
+    assert!(matches!(e.cause(), ExtrapolateError::Train(_)), "{e:?}");
+
+    // Transmittance volumes past what a device buffer holds.
+    let mut o = options(&dir.join("volume"), &base);
+    o.vis.volume_res = 100_000;
+    let e = fail(&o);
+    in_stage(&e, "visibility");
+    assert!(matches!(e.cause(), ExtrapolateError::Gpu(_)), "{e:?}");
+
+    // Every pixel of the virtual views to inpaint: the harmonic fill has nothing to start from.
+    let mut o = options(&dir.join("whole-mask"), &base);
+    o.vis.threshold = 1.0;
+    o.vis.min_opacity = 1.0;
+    let e = fail(&o);
+    in_stage(&e, "stage2-harmonic");
+    let ExtrapolateError::Stage { error, .. } = &e else {
+        panic!("{e:?}");
+    };
+    assert!(
+        matches!(&**error, ExtrapolateError::View { view, .. } if view == "virtual view 0, round 0"),
+        "{e:?}"
+    );
+    assert!(matches!(e.cause(), ExtrapolateError::Inpaint(_)), "{e:?}");
+
+    // A learning rate that blows the field up.
+    let mut o = options(&dir.join("diverged"), &base);
+    o.stage2.lr = 1e30;
+    let e = fail(&o);
+    in_stage(&e, "stage2-harmonic");
+    assert!(
+        matches!(e.cause(), ExtrapolateError::Diverged { dir: d, .. } if d == &dir.join("diverged/stage2-harmonic")),
+        "{e:?}"
+    );
+
+    // Stage 3's training data in a file that is not a tensor file.
+    let data = dir.join("triplets");
+    std::fs::create_dir_all(&data).unwrap();
+    std::fs::write(
+        data.join(extranerf_extrapolate::stage3::TRIPLETS_FILE),
+        b"not",
+    )
+    .unwrap();
+    let e = Triplets::load(&data).unwrap_err();
+    assert!(matches!(e, ExtrapolateError::Data(_)), "{e:?}");
+
+    // A diffusion model that is not there.
+    let spec = extranerf_extrapolate::inpaint::DiffusionSpec {
+        model: dir.join("no-such-model"),
+        lora: None,
+        steps: 2,
+        backend: Backend::Cpu,
+    };
+    let e = extranerf_extrapolate::inpaint::build_inpainter(
+        ctx,
+        InpainterKind::DiffusionBase,
+        Some(&spec),
+        &mut Record::default(),
+    )
+    .err()
+    .unwrap();
+    assert!(matches!(e, ExtrapolateError::Diffusion(_)), "{e:?}");
+    assert!(e.to_string().contains("no-such-model"), "{e}");
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -1118,7 +1286,11 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
         .find(|s| s.name == "stage3-harmonic")
         .unwrap();
     assert!(st.report["check"].is_null() && st.report["skipped"].is_null());
-    assert_eq!(st.config["enhance"], "unsharp");
+    // The record holds the enhancer as one choice, with its settings and no gate.
+    assert_eq!(
+        st.config["enhance"],
+        serde_json::json!({"unsharp": {"amount": 0.5, "radius": 1}})
+    );
     assert!(st.config["gate"].is_null());
     for round in ["round_00", "round_01"] {
         let d = g.join("stage3-harmonic").join(round);

@@ -624,6 +624,169 @@ fn train_resume_render_eval_on_fern() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
+/// Run folders written by commit fc82428, before each stage recorded its serde spec
+/// (`tests/fixtures/old_runs`, their manifests): resumed with the commands that made them,
+/// every stage is found done and skipped and the manifest is left as it was; a setting a stage
+/// declares free to change on resume changes nothing; one that forces a rerun is refused,
+/// naming the field as the old record holds it (the defaults the old layout left out
+/// included).
+#[test]
+fn old_run_folders_resume() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-old-runs-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let fixtures =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/old_runs");
+    // The manifests name the scene `demo/scene`, relative to where they were made.
+    let run = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_extranerf"))
+            .current_dir(&dir)
+            .args(args)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (ok, err) = run(&[
+        "demo",
+        "--out",
+        "demo",
+        "--width",
+        "32",
+        "--stop-after",
+        "scene",
+    ]);
+    assert!(ok, "{err}");
+    let common = [
+        "extrapolate",
+        "--scene",
+        "demo/scene",
+        "--factor",
+        "1",
+        "--base-budget",
+        "8",
+        "--virtual",
+        "2",
+        "--virtual-downscale",
+        "1",
+        "--rounds",
+        "1",
+        "--steps-per-round",
+        "10",
+        "--flythrough",
+        "2",
+        "--stage3-rounds",
+        "1",
+        "--stage3-steps-per-round",
+        "5",
+        "--resume",
+    ];
+    let diffusion = [
+        "--data-rounds",
+        "1",
+        "--data-steps-per-round",
+        "5",
+        "--fresh-checkpoints",
+        "5",
+        "--enhancer-channels",
+        "8,16",
+        "--enhancer-steps",
+        "4",
+        "--enhancer-batch",
+        "2",
+        "--enhancer-crop",
+        "16",
+        "--stage3-ddim-steps",
+        "2",
+    ];
+    let unsharp = [
+        "--stage3-enhancer",
+        "unsharp",
+        "--stage3-anchor",
+        "2",
+        "--threshold",
+        "0.4",
+        "--inpainter",
+        "exemplar",
+    ];
+    type Case<'a> = (
+        &'a str,
+        &'a [&'a str],
+        &'a [&'a str],
+        &'a [&'a str],
+        &'a [&'a str],
+        &'a str,
+    );
+    let cases: [Case; 2] = [
+        (
+            "fc82428_diffusion",
+            &diffusion,
+            &["--stage3-gate", "off"],
+            // Where the enhancer trains may change.
+            &["--diffusion-backend", "cpu"],
+            // Checking the enhancer: the old record left the gate out when it was off.
+            &["--stage3-gate", "check"],
+            "stage3-harmonic.enhance.diffusion.gate: \"off\" -> \"check\"",
+        ),
+        (
+            "fc82428_unsharp",
+            &unsharp,
+            &[],
+            // (No stage of this run has a model: nothing records it.)
+            &["--diffusion-backend", "cpu"],
+            &["--stage3-unsharp-amount", "0.7"],
+            "stage3-exemplar.enhance.unsharp.amount: 0.5 -> 0.699999988079071",
+        ),
+    ];
+    for (name, flags, keep, free, rerun, says) in cases {
+        let out = dir.join(name);
+        std::fs::create_dir_all(&out).unwrap();
+        let manifest = out.join("extrapolate.json");
+        std::fs::copy(fixtures.join(name).join("extrapolate.json"), &manifest).unwrap();
+        let before = std::fs::read(&manifest).unwrap();
+        let stages: Vec<String> = serde_json::from_slice::<serde_json::Value>(&before).unwrap()
+            ["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["name"].as_str().unwrap().to_string())
+            .collect();
+        assert!(stages.len() >= 7, "{name}: {stages:?}");
+        for extra in [&[][..], free] {
+            let args: Vec<&str> = common
+                .iter()
+                .chain(flags)
+                .chain(keep)
+                .chain(extra)
+                .copied()
+                .chain(["--out", name])
+                .collect();
+            let (ok, err) = run(&args);
+            assert!(ok, "{name} {extra:?}: {err}");
+            for s in &stages {
+                assert!(
+                    err.contains(&format!("stage {s}: done, skipped")),
+                    "{name} {extra:?}: {s} not skipped:\n{err}"
+                );
+            }
+            assert_eq!(std::fs::read(&manifest).unwrap(), before, "{name}");
+        }
+        let args: Vec<&str> = common
+            .iter()
+            .chain(flags)
+            .chain(rerun)
+            .copied()
+            .chain(["--out", name])
+            .collect();
+        let (ok, err) = run(&args);
+        assert!(!ok && err.contains(says), "{name} {rerun:?}: {err}");
+        assert!(err.contains("--redo"), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The demo end to end at a small size through the command line: ExtraNeRF's stages, the
 /// table (stage 2's PSNR over the exactly known not-visible pixels recomputed here from the
 /// saved renders), the report and the picture; a second run replaces the first; a foreign

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use anyhow::{bail, Context as _};
+use crate::error::{ExtrapolateError, Result};
 use extranerf_nerf::data::unorm8;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbaImage};
@@ -16,41 +16,45 @@ pub fn write_gif(
     height: u32,
     frames: &[Vec<f32>],
     delay_ms: u32,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     if frames.is_empty() {
-        bail!("{}: an animation needs at least one frame", path.display());
+        return Err(ExtrapolateError::usage(format!(
+            "{}: an animation needs at least one frame",
+            path.display()
+        )));
     }
     if width == 0 || height == 0 || width > u16::MAX as u32 || height > u16::MAX as u32 {
-        bail!(
+        return Err(ExtrapolateError::usage(format!(
             "{}: {width}x{height} frames; a GIF holds 1 to 65535 pixels per side",
             path.display()
-        );
+        )));
     }
     let n = (width * height * 3) as usize;
     let tmp = path.with_extension("gif.tmp");
     {
         let file =
-            std::fs::File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+            std::fs::File::create(&tmp).map_err(|e| ExtrapolateError::io("creating", &tmp, e))?;
         let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
-        enc.set_repeat(Repeat::Infinite)
-            .with_context(|| format!("writing {}", tmp.display()))?;
+        let encoding =
+            |e: image::ImageError| ExtrapolateError::io("writing", &tmp, std::io::Error::other(e));
+        enc.set_repeat(Repeat::Infinite).map_err(encoding)?;
         for (i, f) in frames.iter().enumerate() {
             if f.len() != n {
-                bail!(
+                return Err(ExtrapolateError::usage(format!(
                     "{}: frame {i} holds {} values, {width}x{height} RGB needs {n}",
                     path.display(),
                     f.len()
-                );
+                )));
             }
             let px: Vec<u8> = f
                 .chunks_exact(3)
                 .flat_map(|c| [unorm8(c[0]), unorm8(c[1]), unorm8(c[2]), 255])
                 .collect();
             let Some(img) = RgbaImage::from_raw(width, height, px) else {
-                bail!(
+                return Err(ExtrapolateError::usage(format!(
                     "{}: frame {i} does not fit {width}x{height}",
                     path.display()
-                );
+                )));
             };
             enc.encode_frame(Frame::from_parts(
                 img,
@@ -58,10 +62,10 @@ pub fn write_gif(
                 0,
                 Delay::from_numer_denom_ms(delay_ms, 1),
             ))
-            .with_context(|| format!("writing {}", tmp.display()))?;
+            .map_err(encoding)?;
         }
     }
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| ExtrapolateError::io("writing", path, e))?;
     Ok(())
 }
 

@@ -7,6 +7,8 @@ use extranerf_nerf::data::Camera;
 use extranerf_nerf::renderer::Nerf;
 use extranerf_nerf::run::{load_checkpoint, Checkpoint, LoadedScene};
 
+use crate::error::Result;
+
 /// The scene, field and views of a run's BaseNeRF.
 pub struct BaseField {
     /// The checkpoint (configuration, parameters, step).
@@ -27,7 +29,7 @@ impl std::fmt::Debug for BaseField {
 
 impl BaseField {
     /// Loads `dir`'s checkpoint and scene.
-    pub fn load(ctx: &Context, dir: &Path) -> anyhow::Result<BaseField> {
+    pub fn load(ctx: &Context, dir: &Path) -> Result<BaseField> {
         let ck = load_checkpoint(dir)?;
         let loaded = ck.config.scene.load()?;
         let nerf = Nerf::new(

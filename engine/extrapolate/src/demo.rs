@@ -16,7 +16,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
+use crate::error::{create_dir, ExtrapolateError, Result};
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
@@ -25,7 +25,6 @@ use extranerf_nerf::demo::{write_demo_scene, GT_VISIBILITY_DIR, RIG_VIEWS, RING_
 use extranerf_nerf::metrics::Lpips;
 use extranerf_nerf::model::ModelConfig;
 use extranerf_nerf::run::{write_png, RunConfig, SceneSpec};
-use extranerf_nerf::safetensors::write_atomic;
 use extranerf_nerf::trainer::TrainConfig;
 
 use crate::eval::{compare, write_table, Table};
@@ -152,45 +151,48 @@ pub fn base_config(scene: &Path, steps: u32) -> RunConfig {
 }
 
 /// Empties `out` if the demo made it (refusing any other non-empty folder) and marks it.
-fn claim(out: &Path) -> anyhow::Result<()> {
+fn claim(out: &Path) -> Result<()> {
     let marker = out.join(DEMO_FOLDER_MARKER);
     if out.exists() {
         let mut entries = std::fs::read_dir(out)
-            .with_context(|| format!("reading {}", out.display()))?
+            .map_err(|e| ExtrapolateError::io("reading", out, e))?
             .peekable();
         if entries.peek().is_some() {
             if !marker.exists() {
-                bail!(
+                return Err(ExtrapolateError::usage(format!(
                     "{} exists and was not made by `extranerf demo`; pass another --out",
                     out.display()
-                );
+                )));
             }
             for e in entries {
                 let p = e
-                    .with_context(|| format!("reading {}", out.display()))?
+                    .map_err(|e| ExtrapolateError::io("reading", out, e))?
                     .path();
                 let removed = if p.is_dir() {
                     std::fs::remove_dir_all(&p)
                 } else {
                     std::fs::remove_file(&p)
                 };
-                removed.with_context(|| format!("replacing the previous demo: {}", p.display()))?;
+                removed.map_err(|e| ExtrapolateError::io("removing the previous demo's", &p, e))?;
             }
         }
     }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    create_dir(out)?;
     std::fs::write(
         &marker,
         b"made by extranerf demo; the next demo into this folder replaces all of it\n",
     )
-    .with_context(|| format!("writing {}", marker.display()))?;
+    .map_err(|e| ExtrapolateError::io("writing", &marker, e))?;
     Ok(())
 }
 
 /// Runs the demo (progress and notes go to `rep`).
-pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> anyhow::Result<DemoOutcome> {
+pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> Result<DemoOutcome> {
     if spec.width < 32 {
-        bail!("--width {}: use at least 32 pixels", spec.width);
+        return Err(ExtrapolateError::usage(format!(
+            "--width {}: use at least 32 pixels",
+            spec.width
+        )));
     }
     let t0 = Instant::now();
     claim(&spec.out)?;
@@ -319,10 +321,7 @@ pub fn demo(ctx: &Context, spec: &DemoSpec, rep: &mut dyn Reporter) -> anyhow::R
         "seconds": outcome.seconds.iter().map(|(n, s)| serde_json::json!({"part": n, "seconds": s})).collect::<Vec<_>>(),
         "total_seconds": t0.elapsed().as_secs_f64(),
     });
-    write_atomic(
-        &spec.out.join(SUMMARY_FILE),
-        (serde_json::to_string_pretty(&summary)? + "\n").as_bytes(),
-    )?;
+    crate::error::write_json(&spec.out.join(SUMMARY_FILE), &summary)?;
     Ok(outcome)
 }
 
@@ -334,16 +333,16 @@ pub const PICTURE_FILE: &str = "outside_views.png";
 
 /// `RUN/outside_views.png`: for every held-out view the photo, the BaseNeRF's render and the
 /// final field's, side by side, two views to a row, with white gaps.
-pub fn outside_views_picture(run: &Path) -> anyhow::Result<PathBuf> {
+pub fn outside_views_picture(run: &Path) -> Result<PathBuf> {
     let Some(m) = Manifest::load(run)? else {
-        bail!("{}: no extrapolate manifest", run.display());
+        return Err(ExtrapolateError::incomplete(run, "no extrapolate manifest"));
     };
     let loaded = m.scene.load()?;
     let fin = crate::eval::report::final_field(&m)
-        .with_context(|| format!("{}: no stage-2 or stage-3 field", run.display()))?;
+        .ok_or_else(|| ExtrapolateError::incomplete(run, "no stage-2 or stage-3 field"))?;
     let views = &loaded.split.test;
     let Some(first) = views.first() else {
-        bail!("{}: no held-out views", run.display());
+        return Err(ExtrapolateError::incomplete(run, "no held-out views"));
     };
     let (w, h) = (
         loaded.scene.cameras[*first].width,
@@ -366,12 +365,13 @@ pub fn outside_views_picture(run: &Path) -> anyhow::Result<PathBuf> {
         for (c, p) in paths.iter().enumerate() {
             let img = load_image(p)?;
             if (img.width, img.height) != (w, h) {
-                bail!(
-                    "{}: {}x{}, not the {w}x{h} of the other views",
-                    p.display(),
-                    img.width,
-                    img.height
-                );
+                return Err(ExtrapolateError::malformed(
+                    p,
+                    format!(
+                        "{}x{}, not the {w}x{h} of the other views",
+                        img.width, img.height
+                    ),
+                ));
             }
             let (x0, y0) = ((3 * slot + c as u32) * (w + GAP), row * (h + GAP));
             for y in 0..h as usize {

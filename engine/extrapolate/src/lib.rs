@@ -17,7 +17,10 @@
 //! - [`eval`]: the comparison table of an extrapolate run, KID on Inception features, and the
 //!   self-contained HTML report;
 //! - [`demo`]: `extranerf demo`, the whole pipeline on the procedural demo scene;
-//! - [`anim`]: looping GIFs of rendered frames (the fly-through).
+//! - [`anim`]: looping GIFs of rendered frames (the fly-through);
+//! - [`error`]: [`ExtrapolateError`], the error of every fallible public function here (a
+//!   record that does not read as a stage's settings says why in a string, which
+//!   [`manifest::Recorded::check`] turns into one).
 //!
 //! Nothing here prints: progress and notes go to a [`extranerf_nerf::train::Reporter`] that the caller
 //! supplies (the command line draws them as progress bars or log lines).
@@ -28,6 +31,7 @@
 pub mod anim;
 pub mod base;
 pub mod demo;
+pub mod error;
 pub mod eval;
 pub mod inpaint;
 pub mod manifest;
@@ -37,3 +41,5 @@ pub mod stage;
 pub mod stage3;
 pub mod stages;
 pub mod visibility;
+
+pub use error::{ExtrapolateError, Result};

@@ -5,7 +5,6 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::{Camera, Image};
 use extranerf_nerf::renderer::Nerf;
@@ -15,6 +14,7 @@ use extranerf_nerf::views::{TrainData, View, ViewKind, ViewSampling};
 use extranerf_prims::Prims;
 use serde::{Deserialize, Serialize};
 
+use crate::error::{read_text, ExtrapolateError, Result};
 use crate::inpaint::Fill;
 use crate::stage::render;
 use extranerf_nerf::train::{Progress, Reporter, Unit};
@@ -63,28 +63,35 @@ impl Default for Stage2Spec {
 
 impl Stage2Spec {
     /// Checks the settings.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub fn validate(&self) -> Result<()> {
         if self.rounds == 0 || self.steps_per_round == 0 {
-            bail!("stage 2 needs at least one round of at least one step");
+            return Err(ExtrapolateError::usage(
+                "stage 2 needs at least one round of at least one step",
+            ));
         }
         if !(0.0..=1.0).contains(&self.virtual_fraction) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--virtual-fraction {}: use a value in [0, 1]",
                 self.virtual_fraction
-            );
+            )));
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
-            bail!("--stage2-lr {}: use a positive learning rate", self.lr);
+            return Err(ExtrapolateError::usage(format!(
+                "--stage2-lr {}: use a positive learning rate",
+                self.lr
+            )));
         }
         if !(0.0..=1.0).contains(&self.visible_weight) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--visible-weight {}: use a value in [0, 1]",
                 self.visible_weight
-            );
+            )));
         }
         for t in [self.t_start, self.t_end] {
             if !(0.0..1.0).contains(&t) {
-                bail!("noise levels must be in [0, 1), not {t}");
+                return Err(ExtrapolateError::usage(format!(
+                    "noise levels must be in [0, 1), not {t}"
+                )));
             }
         }
         Ok(())
@@ -117,16 +124,13 @@ pub(crate) struct RoundState {
 pub(crate) const ROUND_FILE: &str = "round.json";
 
 /// The last finished round of a round-based stage in `out`, with its checkpoint.
-pub(crate) fn load_round(out: &Path) -> anyhow::Result<Option<(RoundState, Checkpoint)>> {
+pub(crate) fn load_round(out: &Path) -> Result<Option<(RoundState, Checkpoint)>> {
     let state_path = out.join(ROUND_FILE);
     if !(state_path.exists() && out.join(extranerf_nerf::run::CHECKPOINT_FILE).exists()) {
         return Ok(None);
     }
-    let s: RoundState = serde_json::from_str(
-        &std::fs::read_to_string(&state_path)
-            .with_context(|| format!("reading {}", state_path.display()))?,
-    )
-    .with_context(|| format!("{}: malformed", state_path.display()))?;
+    let s: RoundState = serde_json::from_str(&read_text(&state_path)?)
+        .map_err(|e| ExtrapolateError::malformed(&state_path, e.to_string()))?;
     Ok(Some((s, load_checkpoint(out)?)))
 }
 
@@ -138,7 +142,7 @@ pub(crate) fn save_round(
     tcfg: &TrainConfig,
     trainer: &Trainer,
     state: &RoundState,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     save_checkpoint(
         out,
         &Checkpoint {
@@ -151,10 +155,11 @@ pub(crate) fn save_round(
             moments: Some(trainer.moments()?),
         },
     )?;
-    extranerf_nerf::safetensors::write_atomic(
-        &out.join(ROUND_FILE),
-        serde_json::to_string(state)?.as_bytes(),
-    )?;
+    // Compact: one line.
+    let path = out.join(ROUND_FILE);
+    let json = serde_json::to_string(state)
+        .map_err(|e| ExtrapolateError::malformed(&path, format!("cannot serialise: {e}")))?;
+    extranerf_nerf::safetensors::write_atomic(&path, json.as_bytes())?;
     Ok(())
 }
 
@@ -182,7 +187,7 @@ pub(crate) fn train_round(
     sink: &RoundSink<'_>,
     (round, t0, seconds): (u32, Instant, &mut f64),
     rep: &mut dyn Reporter,
-) -> anyhow::Result<(Option<StepStats>, f64)> {
+) -> Result<(Option<StepStats>, f64)> {
     let data =
         TrainData::with_sampling(ctx, views, ViewSampling::VirtualFraction(virtual_fraction))?;
     let tt = Instant::now();
@@ -214,7 +219,7 @@ pub(crate) fn train_steps(
     what: &str,
     out: &Path,
     rep: &mut dyn Reporter,
-) -> anyhow::Result<Option<StepStats>> {
+) -> Result<Option<StepStats>> {
     let tt = Instant::now();
     let mut left = steps;
     let mut last = None;
@@ -222,11 +227,11 @@ pub(crate) fn train_steps(
         let n = left.min(25);
         let stats = trainer.run_steps(ctx, prims, data, n)?;
         if !(stats.loss.is_finite() && stats.mse.is_finite()) {
-            bail!(
-                "{what}: the loss became {}; the last finished round in {} is intact",
-                stats.loss,
-                out.display()
-            );
+            return Err(ExtrapolateError::Diverged {
+                what: what.to_string(),
+                loss: stats.loss,
+                dir: out.to_path_buf(),
+            });
         }
         left -= n;
         let done = steps - left;
@@ -253,7 +258,7 @@ pub(crate) fn write_test_renders(
     loaded: &extranerf_nerf::run::LoadedScene,
     samples: u32,
     out: &Path,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     for &i in &loaded.split.test {
         let cam = &loaded.scene.cameras[i];
         let (rgb, _, _) = render(ctx, nerf, cam, samples)?;
@@ -298,7 +303,7 @@ impl Rounds {
         first_step: u32,
         steps_per_round: u32,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<Rounds> {
+    ) -> Result<Rounds> {
         let resumed = load_round(out)?;
         let (start, seconds) = match &resumed {
             Some((s, _)) => {
@@ -343,7 +348,7 @@ impl Rounds {
         what: &str,
         (round, t0): (u32, Instant),
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<(Option<StepStats>, f64)> {
+    ) -> Result<(Option<StepStats>, f64)> {
         train_round(
             ctx,
             &mut self.trainer,

@@ -20,18 +20,19 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::run::{load_checkpoint, SceneSpec};
 use serde_json::Value;
 
+use crate::error::{create_dir, ExtrapolateError, Result};
 use crate::inpaint::{DiffusionSpec, InpainterKind};
 use crate::manifest::{Manifest, StageRecord};
 use crate::rounds::Stage2Spec;
 use crate::stage::{FieldRef, RunDir, Stage, VirtualSpec};
 use crate::stage3::{EnhanceStage, EnhancerDataStage, EnhancerStage, Stage3Enhancer, Stage3Spec};
 use crate::stages::{
-    BaseSpec, BaseStage, FlythroughSpec, FlythroughStage, InpaintStage, VisibilityStage,
+    BaseSpec, BaseStage, FlythroughConfig, FlythroughSpec, FlythroughStage, InpaintSpec,
+    InpaintStage, VisibilityStage,
 };
 use crate::visibility::VisSettings;
 use extranerf_nerf::train::Reporter;
@@ -65,35 +66,36 @@ pub struct Options {
 /// Runs the pipeline: the base, the visibility stage, one stage-2 variant per inpainter, then
 /// stage 3 (its data from the first inpainter's supervision, the enhancer, and one stage-3
 /// field per variant) and the fly-throughs, skipping the stages a resumed run has done.
-pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow::Result<Manifest> {
+pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> Result<Manifest> {
     if o.inpainters.is_empty() {
-        bail!("give at least one --inpainter");
+        return Err(ExtrapolateError::usage("give at least one --inpainter"));
     }
     o.stage2.validate()?;
     let existing = Manifest::load(&o.out)?;
     if existing.is_some() && !o.resume {
-        bail!(
-            "{} already holds an extrapolate run; pass --resume to continue it or choose another --out",
-            o.out.display()
-        );
+        return Err(ExtrapolateError::resume(
+            &o.out,
+            "already holds an extrapolate run; pass --resume to continue it or choose another --out",
+        ));
     }
     if existing.is_none() && o.resume {
-        bail!(
-            "--resume: {} holds no {}",
-            o.out.display(),
-            crate::manifest::MANIFEST_FILE
-        );
+        return Err(ExtrapolateError::resume(
+            &o.out,
+            format!(
+                "--resume: it holds no {}; drop --resume to start a run there",
+                crate::manifest::MANIFEST_FILE
+            ),
+        ));
     }
     let base_dir = o.base.from.clone().unwrap_or_else(|| o.out.join("base"));
     let scene = match (&o.base.from, &o.scene) {
-        (Some(from), _) => {
-            load_checkpoint(from)
-                .with_context(|| format!("--base {}", from.display()))?
-                .config
-                .scene
-        }
+        (Some(from), _) => load_checkpoint(from)?.config.scene,
         (None, Some(s)) => s.clone(),
-        (None, None) => bail!("give --scene, or --base with a trained run"),
+        (None, None) => {
+            return Err(ExtrapolateError::usage(
+                "give --scene, or --base with a trained run",
+            ))
+        }
     };
     let mut manifest = match existing {
         Some(m) => {
@@ -102,7 +104,7 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
         }
         None => Manifest::new(scene.clone()),
     };
-    std::fs::create_dir_all(&o.out).with_context(|| format!("creating {}", o.out.display()))?;
+    create_dir(&o.out)?;
     let dir = RunDir {
         root: o.out.clone(),
         base: base_dir,
@@ -124,7 +126,7 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> anyhow
 }
 
 /// The stages `o` asks for, in the order they run.
-fn stages(o: &Options, scene: SceneSpec) -> anyhow::Result<Vec<Box<dyn Stage>>> {
+fn stages(o: &Options, scene: SceneSpec) -> Result<Vec<Box<dyn Stage>>> {
     let mut stages: Vec<Box<dyn Stage>> = vec![
         Box::new(BaseStage {
             spec: o.base.clone(),
@@ -138,9 +140,7 @@ fn stages(o: &Options, scene: SceneSpec) -> anyhow::Result<Vec<Box<dyn Stage>>> 
     ];
     for &kind in &o.inpainters {
         stages.push(Box::new(InpaintStage {
-            kind,
-            diffusion: o.diffusion.clone(),
-            spec: o.stage2.clone(),
+            spec: InpaintSpec::new(kind, o.stage2.clone(), o.diffusion.as_ref()),
             virt: o.virt.clone(),
             vis: o.vis.clone(),
         }));
@@ -177,8 +177,10 @@ fn stages(o: &Options, scene: SceneSpec) -> anyhow::Result<Vec<Box<dyn Stage>>> 
         for field in fields {
             stages.push(Box::new(FlythroughStage {
                 field,
-                virt: o.virt.clone(),
-                spec: o.flythrough.clone(),
+                config: FlythroughConfig {
+                    virt: o.virt.clone(),
+                    spec: o.flythrough.clone(),
+                },
             }));
         }
     }
@@ -196,7 +198,7 @@ fn run_stage(
     manifest: &mut Manifest,
     ran: &mut Vec<String>,
     rep: &mut dyn Reporter,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     let name = s.name();
     let config = s.config();
     let redo = o.redo.contains(&name);
@@ -235,21 +237,19 @@ fn run_stage(
     let before = prior.as_ref().map_or(0.0, |r| r.seconds);
     manifest.record(StageRecord {
         name: name.clone(),
-        config: config.clone(),
+        config: config.value.clone(),
         done: false,
         seconds: before,
         report: Value::Null,
     });
     manifest.save(&o.out)?;
     let t = Instant::now();
-    let report = s
-        .run(ctx, dir, rep)
-        .with_context(|| format!("stage {name}"))?;
+    let report = s.run(ctx, dir, rep).map_err(|e| e.in_stage(&name))?;
     let seconds = before + t.elapsed().as_secs_f64();
     rep.note(&format!("stage {name}: done in {seconds:.1} s"));
     manifest.record(StageRecord {
         name,
-        config,
+        config: config.value,
         done: true,
         seconds,
         report,
@@ -259,16 +259,18 @@ fn run_stage(
 }
 
 /// Refuses `--redo` names that are not stages of this run, or the BaseNeRF of another run.
-pub fn check_redo(redo: &[String], stages: &[String], base_reused: bool) -> anyhow::Result<()> {
+pub fn check_redo(redo: &[String], stages: &[String], base_reused: bool) -> Result<()> {
     for r in redo {
         if !stages.contains(r) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--redo {r}: this run has no such stage (its stages: {})",
                 stages.join(", ")
-            );
+            )));
         }
         if r == "base" && base_reused {
-            bail!("--redo base: the BaseNeRF is --base's run, not this one's; retrain it there");
+            return Err(ExtrapolateError::usage(
+                "--redo base: the BaseNeRF is --base's run, not this one's; retrain it there",
+            ));
         }
     }
     Ok(())
@@ -276,7 +278,119 @@ pub fn check_redo(redo: &[String], stages: &[String], base_reused: bool) -> anyh
 
 #[cfg(test)]
 mod tests {
-    use super::check_redo;
+    use super::*;
+    use crate::stage3::Stage3Gate;
+    use extranerf_nerf::cameras::Trajectory;
+
+    /// Options that make every kind of stage, with settings away from their defaults.
+    fn every_stage(enhance: Stage3Enhancer) -> Options {
+        Options {
+            out: "run".into(),
+            scene: None,
+            base: BaseSpec {
+                from: Some("base".into()),
+                budget: 30.0,
+            },
+            virt: VirtualSpec {
+                trajectory: Trajectory::Outward,
+                count: 5,
+                range: 1.25,
+                downscale: 3,
+            },
+            vis: VisSettings {
+                threshold: 0.3,
+                chunk: 512,
+                ..VisSettings::default()
+            },
+            stage2: Stage2Spec {
+                rounds: 3,
+                lr: 1e-3,
+                ..Stage2Spec::default()
+            },
+            inpainters: vec![InpainterKind::Diffusion, InpainterKind::Exemplar],
+            diffusion: Some(DiffusionSpec {
+                model: "model".into(),
+                lora: Some("lora".into()),
+                steps: 7,
+                backend: extranerf_diffusion::device::Backend::Cpu,
+            }),
+            stage3: Some(Stage3Spec {
+                enhance,
+                gate: Stage3Gate::Check,
+                anchor_radius: 2,
+                unsharp_amount: 0.75,
+                ..Stage3Spec::default()
+            }),
+            flythrough: FlythroughSpec {
+                frames: 5,
+                ..FlythroughSpec::default()
+            },
+            resume: false,
+            redo: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn each_stage_records_its_spec_and_declares_every_field() {
+        let scene = SceneSpec {
+            dir: "scene".into(),
+            split: extranerf_nerf::data::split::SplitKind::Extrapolation,
+            fewshot_views: 3,
+            factor: 8,
+            sparse_depth: false,
+            depth_dir: None,
+            mvs_depth: None,
+        };
+        let mut names = Vec::new();
+        for enhance in [Stage3Enhancer::Diffusion, Stage3Enhancer::Unsharp] {
+            for s in stages(&every_stage(enhance), scene.clone()).unwrap() {
+                let r = s.config();
+                // The record round-trips through its type unchanged ...
+                assert_eq!(r.read(&r.value).unwrap(), r.value, "{}", s.name());
+                r.check(std::path::Path::new("run"), &s.name(), &r.value)
+                    .unwrap();
+                // ... and every field it holds is declared.
+                let Value::Object(fields) = &r.value else {
+                    panic!("{}: not an object", s.name());
+                };
+                for k in fields.keys() {
+                    assert!(
+                        r.rules.iter().any(|(p, _)| p == k),
+                        "{}: field `{k}` has no resume rule",
+                        s.name()
+                    );
+                }
+                // A rule inside a field names one of its fields (where the field is there).
+                for (p, _) in r.rules {
+                    let top = p.split('.').next().unwrap();
+                    if fields.get(top).is_some_and(|v| !v.is_null()) {
+                        assert!(
+                            r.value
+                                .pointer(&format!("/{}", p.replace('.', "/")))
+                                .is_some(),
+                            "{}: the rule of `{p}` names no field",
+                            s.name()
+                        );
+                    }
+                }
+                names.push(s.name());
+            }
+        }
+        for n in [
+            "base",
+            "visibility",
+            "stage2-diffusion",
+            "stage2-exemplar",
+            "stage3-data",
+            "stage3-enhancer",
+            "stage3-diffusion",
+            "stage3-exemplar",
+            "flythrough-base",
+            "flythrough-stage3-exemplar",
+        ] {
+            assert!(names.iter().any(|m| m == n), "{n} not made: {names:?}");
+        }
+    }
 
     #[test]
     fn redo_names_a_stage_of_the_run_and_not_a_reused_base() {

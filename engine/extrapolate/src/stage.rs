@@ -5,7 +5,6 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::{virtual_cameras, Trajectory};
 use extranerf_nerf::data::Camera;
@@ -13,6 +12,9 @@ use extranerf_nerf::render::march::MarchCuts;
 use extranerf_nerf::renderer::{March, Nerf};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
+
+use crate::error::{ExtrapolateError, Result};
+use crate::manifest::Recorded;
 
 use crate::inpaint::InpainterKind;
 use extranerf_nerf::train::{Progress, Reporter, Unit};
@@ -71,10 +73,11 @@ pub const ENHANCER_STAGE: &str = "stage3-enhancer";
 pub trait Stage {
     /// Its name in the manifest.
     fn name(&self) -> String;
-    /// Its resolved configuration (what a resumed run must match).
-    fn config(&self) -> Value;
+    /// Its settings as the manifest records them: its [`StageSpec`](crate::manifest::StageSpec), whose declaration says
+    /// which of them a resumed run may change.
+    fn config(&self) -> Recorded;
     /// Runs it (resuming inside it where it can); returns its report.
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value>;
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value>;
     /// The stages whose output it reads: when one of them runs, this one runs again even if
     /// the manifest says it is done.
     fn inputs(&self) -> Vec<String> {
@@ -83,19 +86,21 @@ pub trait Stage {
     /// Discards what an earlier run of it left, before it runs again from nothing (because it
     /// was asked to be redone, or a stage it reads ran again): by default its folder
     /// `RUN/NAME`, which holds its resumable state.
-    fn reset(&self, dir: &RunDir) -> anyhow::Result<()> {
+    fn reset(&self, dir: &RunDir) -> Result<()> {
         let d = dir.root.join(self.name());
         if d.exists() {
-            std::fs::remove_dir_all(&d).with_context(|| format!("removing {}", d.display()))?;
+            std::fs::remove_dir_all(&d).map_err(|e| ExtrapolateError::io("removing", &d, e))?;
         }
         Ok(())
     }
 }
 
 /// The virtual cameras of `spec` for `train`, at the virtual views' resolution.
-pub fn make_virtual(spec: &VirtualSpec, train: &[Camera]) -> anyhow::Result<Vec<Camera>> {
+pub fn make_virtual(spec: &VirtualSpec, train: &[Camera]) -> Result<Vec<Camera>> {
     if spec.downscale == 0 {
-        bail!("--virtual-downscale must be at least 1");
+        return Err(ExtrapolateError::usage(
+            "--virtual-downscale must be at least 1",
+        ));
     }
     Ok(
         virtual_cameras(train, spec.trajectory, spec.count, spec.range)?
@@ -116,7 +121,7 @@ pub fn render(
     nerf: &Nerf,
     cam: &Camera,
     samples: u32,
-) -> anyhow::Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+) -> Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
     Ok(nerf.render_with(ctx, cam, 8192, samples, March::Fused(MarchCuts::EXACT))?)
 }
 

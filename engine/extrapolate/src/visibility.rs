@@ -6,7 +6,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::depth_completion::DepthCompletion;
@@ -24,6 +23,7 @@ use extranerf_prims::Prims;
 use serde::{Deserialize, Serialize};
 
 use crate::base::BaseField;
+use crate::error::{ExtrapolateError, Result};
 
 /// How visibility is computed and turned into a mask.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -78,16 +78,17 @@ impl Default for VisSettings {
 
 impl VisSettings {
     /// The kernel configuration at `rank` for a field trained with `train_samples` per ray.
-    pub fn config(&self, rank: u32, train_samples: u32) -> anyhow::Result<VisibilityConfig> {
+    pub fn config(&self, rank: u32, train_samples: u32) -> Result<VisibilityConfig> {
         if !(0.0..=1.0).contains(&self.threshold) || !(0.0..=1.0).contains(&self.min_opacity) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "visibility threshold {} and minimum opacity {}: use values in [0, 1]",
-                self.threshold,
-                self.min_opacity
-            );
+                self.threshold, self.min_opacity
+            )));
         }
         if self.volume_res == 0 || self.volume_depth == 0 || self.chunk == 0 {
-            bail!("the transmittance volume's size and the chunk must be positive");
+            return Err(ExtrapolateError::usage(
+                "the transmittance volume's size and the chunk must be positive",
+            ));
         }
         checked_config(
             &QuerySettings {
@@ -117,7 +118,7 @@ impl VisSettings {
 }
 
 /// A field's density for the visibility kernels.
-pub fn density(nerf: &Nerf) -> anyhow::Result<Density<'_>> {
+pub fn density(nerf: &Nerf) -> Result<Density<'_>> {
     Ok(Density::Field {
         field: nerf.field(),
         params: nerf.field().layout().sections(nerf.params())?,
@@ -148,12 +149,12 @@ impl FieldVisibility {
         nerf: &Nerf,
         train: &[Camera],
         s: &VisSettings,
-    ) -> anyhow::Result<FieldVisibility> {
+    ) -> Result<FieldVisibility> {
         if train.is_empty() || train.len() > MAX_TRAIN_CAMERAS {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "visibility needs 1 to {MAX_TRAIN_CAMERAS} training cameras, not {}",
                 train.len()
-            );
+            )));
         }
         let vis = Visibility::new(ctx)?;
         let volume = vis.build_volume(ctx, &density(nerf)?, train, s.volume_res, s.volume_depth)?;
@@ -173,7 +174,7 @@ impl FieldVisibility {
         mask: u32,
         cfg: &VisibilityConfig,
         chunk: u32,
-    ) -> anyhow::Result<VisibilityMap> {
+    ) -> Result<VisibilityMap> {
         Ok(self.vis.map_with(
             ctx,
             &density(nerf)?,
@@ -211,20 +212,26 @@ pub fn checked_config(
     rank: u32,
     train_samples: u32,
     prefix: &str,
-) -> anyhow::Result<VisibilityConfig> {
+) -> Result<VisibilityConfig> {
     if !(1..=MAX_RANK).contains(&rank) {
-        bail!("visibility rank {rank}: use 1 to {MAX_RANK}");
+        return Err(ExtrapolateError::usage(format!(
+            "visibility rank {rank}: use 1 to {MAX_RANK}"
+        )));
     }
     for (name, v) in [
         ("min-weight", q.min_weight),
         ("min-transmittance", q.min_transmittance),
     ] {
         if !(0.0..1.0).contains(&v) {
-            bail!("{prefix}{name} {v}: use a value in [0, 1)");
+            return Err(ExtrapolateError::usage(format!(
+                "{prefix}{name} {v}: use a value in [0, 1)"
+            )));
         }
     }
     if q.vis_samples == 0 || q.samples == Some(0) || train_samples == 0 {
-        bail!("{prefix}samples and {prefix}vis-samples must be positive");
+        return Err(ExtrapolateError::usage(format!(
+            "{prefix}samples and {prefix}vis-samples must be positive"
+        )));
     }
     Ok(VisibilityConfig {
         samples: q.samples.unwrap_or(train_samples),
@@ -267,7 +274,7 @@ impl std::fmt::Debug for RunVisibility {
 
 impl RunVisibility {
     /// Loads the run in `dir` (a folder of `extranerf train`).
-    pub fn load(ctx: &Context, dir: &Path) -> anyhow::Result<RunVisibility> {
+    pub fn load(ctx: &Context, dir: &Path) -> Result<RunVisibility> {
         Ok(RunVisibility {
             base: BaseField::load(ctx, dir)?,
             vis: Visibility::new(ctx)?,
@@ -282,7 +289,7 @@ impl RunVisibility {
         ctx: &Context,
         config: OccupancyConfig,
         passes: u32,
-    ) -> anyhow::Result<Option<OccupancyBuilt>> {
+    ) -> Result<Option<OccupancyBuilt>> {
         let prims = Prims::new(ctx)?;
         let t = Instant::now();
         let stats = self
@@ -297,19 +304,19 @@ impl RunVisibility {
     }
 
     /// The training cameras (at most [`MAX_TRAIN_CAMERAS`]).
-    pub fn train_cameras(&self) -> anyhow::Result<Vec<Camera>> {
+    pub fn train_cameras(&self) -> Result<Vec<Camera>> {
         let train = self.base.train_cameras();
         if train.len() > MAX_TRAIN_CAMERAS {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "the run has {} training views; visibility supports at most {MAX_TRAIN_CAMERAS}",
                 train.len()
-            );
+            )));
         }
         Ok(train)
     }
 
     /// The kernel configuration of `q` at `rank`.
-    pub fn config(&self, q: &QuerySettings, rank: u32) -> anyhow::Result<VisibilityConfig> {
+    pub fn config(&self, q: &QuerySettings, rank: u32) -> Result<VisibilityConfig> {
         checked_config(q, rank, self.base.ck.config.train.samples, "--")
     }
 
@@ -321,9 +328,11 @@ impl RunVisibility {
         train: &[Camera],
         res: u32,
         depth: u32,
-    ) -> anyhow::Result<f64> {
+    ) -> Result<f64> {
         if res == 0 || depth == 0 {
-            bail!("--volume-res and --volume-depth must be positive");
+            return Err(ExtrapolateError::usage(
+                "--volume-res and --volume-depth must be positive",
+            ));
         }
         let t = Instant::now();
         let vol = self
@@ -350,10 +359,12 @@ impl RunVisibility {
         cfg: &VisibilityConfig,
         volume: bool,
         chunk: u32,
-    ) -> anyhow::Result<VisibilityMap> {
+    ) -> Result<VisibilityMap> {
         let vol = if volume {
             let Some(v) = self.volume.as_ref() else {
-                bail!("the transmittance volumes have not been built");
+                return Err(ExtrapolateError::usage(
+                    "the transmittance volumes have not been built",
+                ));
             };
             Some(v)
         } else {
@@ -375,7 +386,7 @@ impl RunVisibility {
 
 /// Writes `NAME_vis.png` (grey visibility), `NAME_vis.exr` (channels V: visibility,
 /// A: opacity) and `NAME_mask.png` (white where visibility < threshold) into `out`.
-pub fn write_map(out: &Path, name: &str, m: &VisibilityMap, threshold: f32) -> anyhow::Result<()> {
+pub fn write_map(out: &Path, name: &str, m: &VisibilityMap, threshold: f32) -> Result<()> {
     let grey: Vec<f32> = m.visibility.iter().flat_map(|&v| [v, v, v]).collect();
     write_png(
         &out.join(format!("{name}_vis.png")),
@@ -448,7 +459,7 @@ pub struct CompletedDepth {
 impl CompletedDepth {
     /// Writes NAME_depth.exr and NAME_depth_completed.exr (ray-space depth, channel T, which
     /// `train --depth-dir` refuses) and NAME_view_depth.exr (channel Z, what it reads).
-    pub fn write(&self, out: &Path, name: &str, cam: &Camera) -> anyhow::Result<()> {
+    pub fn write(&self, out: &Path, name: &str, cam: &Camera) -> Result<()> {
         write_ray_depth_exr(
             &out.join(format!("{name}_depth.exr")),
             cam.width,
@@ -486,15 +497,12 @@ pub fn complete_depth(
     iterations: u32,
     samples: u32,
     chunk: u32,
-) -> anyhow::Result<CompletedDepth> {
+) -> Result<CompletedDepth> {
     if (m.width, m.height) != (cam.width, cam.height) {
-        bail!(
+        return Err(ExtrapolateError::usage(format!(
             "depth completion: the map is {}x{}, the camera {}x{}",
-            m.width,
-            m.height,
-            cam.width,
-            cam.height
-        );
+            m.width, m.height, cam.width, cam.height
+        )));
     }
     let (rgb, depth, _) = base.nerf.render(ctx, cam, chunk, samples)?;
     let known: Vec<u32> = m
@@ -538,7 +546,7 @@ pub fn complete_depth(
 pub const MAPS_FILE: &str = "maps.safetensors";
 
 /// Saves maps into a safetensors file (`NAME.visibility`, `NAME.opacity`, `NAME.depth`).
-pub(crate) fn save_maps(path: &Path, maps: &[(String, VisibilityMap)]) -> anyhow::Result<()> {
+pub(crate) fn save_maps(path: &Path, maps: &[(String, VisibilityMap)]) -> Result<()> {
     let mut st = SafeTensors::default();
     for (name, m) in maps {
         let shape = vec![m.height as usize, m.width as usize];
@@ -561,19 +569,22 @@ pub(crate) fn save_maps(path: &Path, maps: &[(String, VisibilityMap)]) -> anyhow
 }
 
 /// Reads map `name` from a `save_maps` file.
-pub fn load_map(st: &SafeTensors, path: &Path, name: &str) -> anyhow::Result<VisibilityMap> {
-    let get = |what: &str| -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
+pub fn load_map(st: &SafeTensors, path: &Path, name: &str) -> Result<VisibilityMap> {
+    let get = |what: &str| -> Result<(Vec<usize>, Vec<f32>)> {
         let t = st
             .tensors
             .get(&format!("{name}.{what}"))
-            .with_context(|| format!("{}: no map {name}.{what}", path.display()))?;
+            .ok_or_else(|| ExtrapolateError::malformed(path, format!("no map {name}.{what}")))?;
         Ok((t.shape.clone(), t.data.clone()))
     };
     let (shape, visibility) = get("visibility")?;
     let (_, opacity) = get("opacity")?;
     let (_, depth) = get("depth")?;
     if shape.len() != 2 || opacity.len() != visibility.len() || depth.len() != visibility.len() {
-        bail!("{}: map {name} is malformed", path.display());
+        return Err(ExtrapolateError::malformed(
+            path,
+            format!("map {name} is malformed"),
+        ));
     }
     Ok(VisibilityMap {
         width: shape[1] as u32,
@@ -639,21 +650,17 @@ impl MaskScore {
 
 /// The inpainting masks of the virtual views `virt` (`virtual_NNN` in the visibility stage's
 /// maps file under `vis_dir`), each checked to be its view's size.
-pub fn virtual_masks(
-    vis_dir: &Path,
-    virt: &[Camera],
-    vis: &VisSettings,
-) -> anyhow::Result<Vec<Vec<f32>>> {
+pub fn virtual_masks(vis_dir: &Path, virt: &[Camera], vis: &VisSettings) -> Result<Vec<Vec<f32>>> {
     let maps_path = vis_dir.join(MAPS_FILE);
     let st = SafeTensors::read(&maps_path)?;
     (0..virt.len())
         .map(|i| {
             let m = load_map(&st, &maps_path, &format!("virtual_{i:03}"))?;
             if (m.width, m.height) != (virt[i].width, virt[i].height) {
-                bail!(
-                    "{}: virtual view {i}'s map has another size",
-                    maps_path.display()
-                );
+                return Err(ExtrapolateError::malformed(
+                    &maps_path,
+                    format!("virtual view {i}'s map has another size"),
+                ));
             }
             Ok(vis.mask(&m))
         })

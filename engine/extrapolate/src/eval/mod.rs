@@ -28,7 +28,8 @@ pub use table::{Row, Table, TruthMasks, COLUMNS, EXACT_COLUMNS};
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context as _};
+use crate::error::{write_json, ExtrapolateError, Result};
+use crate::manifest::StageSpec;
 use extranerf_nerf::data::{load_image, Camera, Image};
 use extranerf_nerf::image_ops::{bbox, crop, resize_mask};
 use extranerf_nerf::metrics::{psnr, ssim, Lpips};
@@ -37,13 +38,14 @@ use extranerf_nerf::safetensors::SafeTensors;
 
 use crate::manifest::Manifest;
 use crate::stage::{DATA_STAGE, ENHANCER_STAGE};
+use crate::stages::VisibilityStage;
 use crate::visibility::{load_map, VisSettings, MAPS_FILE};
 use extranerf_nerf::train::Reporter;
 
 /// The exact visibility mask (true: seen) of the view whose image is `image`, from `dir`
 /// (the image's stem as a PNG, white where seen, `w x h`); None when `dir` has none for it.
 /// `eval --visibility-masks` reads masks through it, for training runs and extrapolate runs.
-pub fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> anyhow::Result<Option<Vec<bool>>> {
+pub fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> Result<Option<Vec<bool>>> {
     let stem = image.file_stem().unwrap_or_default();
     let path = dir.join(stem).with_extension("png");
     if !path.exists() {
@@ -51,21 +53,18 @@ pub fn truth_mask(dir: &Path, image: &Path, w: u32, h: u32) -> anyhow::Result<Op
     }
     let m = load_image(&path)?;
     if (m.width, m.height) != (w, h) {
-        bail!(
-            "{}: a {}x{} mask for a {w}x{h} view",
-            path.display(),
-            m.width,
-            m.height
-        );
+        return Err(ExtrapolateError::malformed(
+            &path,
+            format!("a {}x{} mask for a {w}x{h} view", m.width, m.height),
+        ));
     }
     Ok(Some(m.rgb.chunks(3).map(|c| c[0] > 0.5).collect()))
 }
 
 /// Writes `run`'s `eval.json` and `eval.md` from `table` (atomically) and its `report.html`;
 /// returns the report's path.
-pub fn write_table(run: &Path, table: &Table) -> anyhow::Result<std::path::PathBuf> {
-    let json = serde_json::to_string_pretty(table)? + "\n";
-    extranerf_nerf::safetensors::write_atomic(&run.join("eval.json"), json.as_bytes())?;
+pub fn write_table(run: &Path, table: &Table) -> Result<std::path::PathBuf> {
+    write_json(&run.join("eval.json"), table)?;
     extranerf_nerf::safetensors::write_atomic(&run.join("eval.md"), table.markdown().as_bytes())?;
     report::write_report(run, Some(table))
 }
@@ -105,9 +104,9 @@ pub fn compare(
     kid_eval: Option<&KidEval<'_>>,
     truth_masks: Option<&Path>,
     rep: &mut dyn Reporter,
-) -> anyhow::Result<Table> {
+) -> Result<Table> {
     let Some(manifest) = Manifest::load(dir)? else {
-        bail!("{}: no extrapolate manifest", dir.display());
+        return Err(ExtrapolateError::incomplete(dir, "no extrapolate manifest"));
     };
     let loaded = manifest.scene.load()?;
     let (variants, notes) = variants(dir, &manifest);
@@ -177,14 +176,22 @@ fn variants(
 }
 
 /// The held-out views with their photos and the visibility stage's masks.
-fn held_out(dir: &Path, manifest: &Manifest, loaded: &LoadedScene) -> anyhow::Result<Vec<HeldOut>> {
+fn held_out(dir: &Path, manifest: &Manifest, loaded: &LoadedScene) -> Result<Vec<HeldOut>> {
     let vis_rec = manifest
         .stages
         .iter()
         .find(|s| s.name == "visibility" && s.done)
-        .with_context(|| format!("{}: the visibility stage has not finished", dir.display()))?;
-    let settings: VisSettings = serde_json::from_value(vis_rec.config["settings"].clone())
-        .with_context(|| format!("{}: the visibility stage's settings", dir.display()))?;
+        .ok_or_else(|| {
+            ExtrapolateError::incomplete(dir, "the visibility stage has not finished")
+        })?;
+    let settings: VisSettings = VisibilityStage::from_record(&vis_rec.config)
+        .map_err(|e| {
+            ExtrapolateError::malformed(
+                &Manifest::path(dir),
+                format!("the visibility stage's settings: {e}"),
+            )
+        })?
+        .vis;
     let maps_path = dir.join("visibility").join(MAPS_FILE);
     let st = SafeTensors::read(&maps_path)?;
     let mut truths = Vec::new();
@@ -213,32 +220,32 @@ fn held_out(dir: &Path, manifest: &Manifest, loaded: &LoadedScene) -> anyhow::Re
 fn exact_masks(
     truth_masks: Option<&Path>,
     truths: &[HeldOut],
-) -> anyhow::Result<(Vec<Option<Vec<bool>>>, Option<TruthMasks>)> {
+) -> Result<(Vec<Option<Vec<bool>>>, Option<TruthMasks>)> {
     let Some(d) = truth_masks else {
         return Ok((vec![None; truths.len()], None));
     };
     if !d.is_dir() {
-        bail!("{}: no such folder of visibility masks", d.display());
+        return Err(ExtrapolateError::usage(format!(
+            "{}: no such folder of visibility masks",
+            d.display()
+        )));
     }
     let exact: Vec<Option<Vec<bool>>> = truths
         .iter()
         .map(|(_, c, _, _)| truth_mask(d, &c.image, c.width, c.height))
-        .collect::<anyhow::Result<_>>()?;
+        .collect::<Result<_>>()?;
     let with: Vec<(usize, &Vec<bool>)> = truths
         .iter()
         .zip(&exact)
         .filter_map(|(t, m)| m.as_ref().map(|m| (t.0, m)))
         .collect();
     if with.is_empty() {
-        bail!(
-            "{}: no visibility mask for any held-out view (want PNGs named as their images, e.g. {})",
-            d.display(),
+        return Err(ExtrapolateError::malformed(d, format!("no visibility mask for any held-out view (want PNGs named as their images, e.g. {})",
             truths
                 .first()
                 .and_then(|t| t.1.image.file_stem())
                 .map(|s| format!("{}.png", s.to_string_lossy()))
-                .unwrap_or_default()
-        );
+                .unwrap_or_default())));
     }
     let frac: Vec<f64> = with
         .iter()
@@ -261,16 +268,19 @@ fn score_variant(
     truths: &[HeldOut],
     exact: &[Option<Vec<bool>>],
     lpips: Option<&Lpips>,
-) -> anyhow::Result<(Row, Vec<Vec<f32>>)> {
+) -> Result<(Row, Vec<Vec<f32>>)> {
     let (mut p, mut s, mut l) = (vec![], vec![], vec![]);
     let (mut pm, mut sm, mut lm, mut pv, mut frac) = (vec![], vec![], vec![], vec![], vec![]);
     let (mut pn_exact, mut pv_exact) = (vec![], vec![]);
     let mut renders = Vec::new();
     for ((i, cam, truth, mask), seen) in truths.iter().zip(exact) {
         let path = folder.join(format!("test_{i:03}{suffix}.png"));
-        let r = load_image(&path).with_context(|| format!("variant {name}"))?;
+        let r = load_image(&path)?;
         if (r.width, r.height) != (cam.width, cam.height) {
-            bail!("{}: not the size of held-out view {i}", path.display());
+            return Err(ExtrapolateError::malformed(
+                &path,
+                format!("not the size of held-out view {i} (variant {name})"),
+            ));
         }
         let (w, h) = (cam.width as usize, cam.height as usize);
         p.push(psnr(&r.rgb, &truth.rgb)?);

@@ -6,7 +6,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context as _};
+use crate::error::{ExtrapolateError, Result};
 
 use crate::eval::table::Table;
 use crate::manifest::Manifest;
@@ -41,14 +41,14 @@ fn escape(s: &str) -> String {
 }
 
 /// An `<img>` of the file at `path`, inlined; a note when the file is missing.
-fn img(path: &Path, alt: &str) -> anyhow::Result<String> {
+fn img(path: &Path, alt: &str) -> Result<String> {
     if !path.is_file() {
         return Ok(format!(
             "<div class=\"missing\">{} missing</div>",
             escape(&path.display().to_string())
         ));
     }
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes = std::fs::read(path).map_err(|e| ExtrapolateError::io("reading", path, e))?;
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -58,10 +58,12 @@ fn img(path: &Path, alt: &str) -> anyhow::Result<String> {
         "png" => "image/png",
         "jpg" | "jpeg" => "image/jpeg",
         "gif" => "image/gif",
-        _ => bail!(
-            "{}: not a PNG, JPEG or GIF image for the report",
-            path.display()
-        ),
+        _ => {
+            return Err(ExtrapolateError::malformed(
+                path,
+                "not a PNG, JPEG or GIF image for the report",
+            ))
+        }
     };
     Ok(format!(
         "<img alt=\"{}\" title=\"{}\" src=\"data:{mime};base64,{}\">",
@@ -89,9 +91,9 @@ pub fn final_field(m: &Manifest) -> Option<String> {
 }
 
 /// Writes `dir/report.html` from the manifest, `table` (eval's) and the run's images.
-pub fn write_report(dir: &Path, table: Option<&Table>) -> anyhow::Result<PathBuf> {
+pub fn write_report(dir: &Path, table: Option<&Table>) -> Result<PathBuf> {
     let Some(m) = Manifest::load(dir)? else {
-        bail!("{}: no extrapolate manifest", dir.display());
+        return Err(ExtrapolateError::incomplete(dir, "no extrapolate manifest"));
     };
     let loaded = m.scene.load()?;
     let mut h = String::new();
@@ -159,7 +161,7 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> anyhow::Result<PathBuf
     for &i in &loaded.split.test {
         let cam = &loaded.scene.cameras[i];
         let _ = writeln!(h, "<h3>view {i}</h3><div>");
-        let mut fig = |path: &Path, caption: &str| -> anyhow::Result<()> {
+        let mut fig = |path: &Path, caption: &str| -> Result<()> {
             let _ = writeln!(
                 h,
                 "<figure>{}<figcaption>{}</figcaption></figure>",

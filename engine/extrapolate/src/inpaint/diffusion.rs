@@ -45,9 +45,11 @@ impl DiffusionInpainter {
         lora: Option<&Path>,
         device: Device,
         steps: usize,
-    ) -> anyhow::Result<DiffusionInpainter> {
+    ) -> crate::error::Result<DiffusionInpainter> {
         if steps == 0 {
-            anyhow::bail!("the diffusion inpainter needs at least one DDIM step");
+            return Err(crate::error::ExtrapolateError::usage(
+                "the diffusion inpainter needs at least one DDIM step",
+            ));
         }
         let mut pipe = Pipeline::load(dir, &device, "")?;
         let mut kind = InpainterKind::DiffusionBase;

@@ -21,7 +21,6 @@ pub use hybrid::Hybrid;
 
 use std::path::PathBuf;
 
-use anyhow::bail;
 use extranerf_gpu::Context;
 use serde::{Deserialize, Serialize};
 
@@ -74,12 +73,15 @@ pub fn build_inpainter(
     kind: InpainterKind,
     diffusion: Option<&DiffusionSpec>,
     rep: &mut dyn Reporter,
-) -> anyhow::Result<Box<dyn Inpainter>> {
+) -> crate::error::Result<Box<dyn Inpainter>> {
     if let Some(i) = kind.build() {
         return Ok(i);
     }
     let Some(d) = diffusion.map(|d| d.for_kind(kind)) else {
-        bail!("--inpainter {kind} needs --diffusion-model DIR (a diffusers inpainting folder, or `extranerf diffusion prior`'s model)");
+        return Err(crate::error::ExtrapolateError::usage(format!(
+            "--inpainter {kind} needs --diffusion-model DIR (a diffusers inpainting folder, or \
+             `extranerf diffusion prior`'s model)"
+        )));
     };
     let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, d.backend)?;
     let inp = diffusion::DiffusionInpainter::load(&d.model, d.lora.as_deref(), device, d.steps)?;

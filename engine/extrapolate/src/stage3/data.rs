@@ -4,7 +4,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::image_ops::{downscale_image, resize_mask};
@@ -15,10 +14,13 @@ use extranerf_nerf::train::Reporter;
 use extranerf_nerf::trainer::Trainer;
 use extranerf_nerf::views::{TrainData, View, ViewSampling};
 use extranerf_prims::Prims;
+use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
+use crate::error::{create_dir, ExtrapolateError, Result};
 use crate::inpaint::{build_inpainter, DiffusionSpec, Fill, InpainterKind, Source, Target};
+use crate::manifest::{OnResume, Recorded, StageSpec};
 use crate::rounds::{fill_view, train_steps, Stage2Spec};
 use crate::stage::{progress_views, render, RunDir, Stage, VirtualSpec, DATA_STAGE};
 use crate::stage3::spec::Stage3Spec;
@@ -58,6 +60,59 @@ pub fn collector_views(
     (photo, virt)
 }
 
+/// The settings of the enhancer's training data, as its manifest record holds them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataSpec {
+    /// The inpainter whose supervision corrupts the masked regions.
+    pub inpainter: InpainterKind,
+    /// [`Stage3Spec`]'s data rounds.
+    pub data_rounds: u32,
+    pub data_steps_per_round: u32,
+    pub base_checkpoints: Vec<u32>,
+    /// [`Stage2Spec`]'s learning rate, noise levels and seed.
+    pub lr: f32,
+    pub t_start: f32,
+    pub t_end: f32,
+    pub seed: u64,
+    /// [`Stage2Spec`]'s share of virtual rays in the data rounds' batches (records before
+    /// issue 56 left it out: they read as the default, 0.3).
+    #[serde(default = "default_virtual_fraction")]
+    pub virtual_fraction: f32,
+    /// The virtual views' downscale (the triplets' scale).
+    pub downscale: u32,
+    /// The pseudo-disocclusion masks' visibility.
+    pub visibility: VisSettings,
+    /// The diffusion inpainter's model as the inpainter uses it; None for the others.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion: Option<DiffusionSpec>,
+}
+
+fn default_virtual_fraction() -> f32 {
+    Stage2Spec::default().virtual_fraction
+}
+
+impl StageSpec for DataSpec {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        ("inpainter", OnResume::Rerun),
+        ("data_rounds", OnResume::Rerun),
+        ("data_steps_per_round", OnResume::Rerun),
+        ("base_checkpoints", OnResume::Rerun),
+        ("lr", OnResume::Rerun),
+        ("t_start", OnResume::Rerun),
+        ("t_end", OnResume::Rerun),
+        ("seed", OnResume::Rerun),
+        ("virtual_fraction", OnResume::Rerun),
+        ("downscale", OnResume::Rerun),
+        ("visibility", OnResume::Rerun),
+        // Pixels per submission: the same masks in any chunks.
+        ("visibility.chunk", OnResume::MayChange),
+        ("diffusion", OnResume::Rerun),
+        // Where the model runs: the same model on another device.
+        ("diffusion.backend", OnResume::MayChange),
+    ];
+}
+
 /// The enhancer's training data.
 #[derive(Clone, Debug)]
 pub struct EnhancerDataStage {
@@ -76,34 +131,35 @@ impl Stage for EnhancerDataStage {
         DATA_STAGE.into()
     }
 
-    fn config(&self) -> Value {
-        let s = &self.spec;
-        let mut c = json!({
-            "inpainter": self.inpainter,
-            "data_rounds": s.data_rounds,
-            "data_steps_per_round": s.data_steps_per_round,
-            "base_checkpoints": s.base_checkpoints,
-            "lr": self.stage2.lr,
-            "t_start": self.stage2.t_start,
-            "t_end": self.stage2.t_end,
-            "seed": self.stage2.seed,
-            "downscale": self.virt.downscale,
-            "visibility": self.vis,
-        });
-        if self.inpainter.uses_diffusion() {
-            c["diffusion"] = json!(self.diffusion.as_ref().map(|d| d.for_kind(self.inpainter)));
-        }
-        c
+    fn config(&self) -> Recorded {
+        Recorded::of(&DataSpec {
+            inpainter: self.inpainter,
+            data_rounds: self.spec.data_rounds,
+            data_steps_per_round: self.spec.data_steps_per_round,
+            base_checkpoints: self.spec.base_checkpoints.clone(),
+            lr: self.stage2.lr,
+            t_start: self.stage2.t_start,
+            t_end: self.stage2.t_end,
+            seed: self.stage2.seed,
+            virtual_fraction: self.stage2.virtual_fraction,
+            downscale: self.virt.downscale,
+            visibility: self.vis.clone(),
+            diffusion: self
+                .diffusion
+                .as_ref()
+                .filter(|_| self.inpainter.uses_diffusion())
+                .map(|d| d.for_kind(self.inpainter)),
+        })
     }
 
     fn inputs(&self) -> Vec<String> {
         vec!["base".into()]
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         self.spec.validate()?;
         let out = dir.stage3_data();
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        create_dir(&out)?;
         let base = BaseField::load(ctx, &dir.base)?;
         let cfg = base.ck.config.clone();
         let (captured, _) =
@@ -118,7 +174,9 @@ impl Stage for EnhancerDataStage {
             .iter()
             .any(|c| (c.width as usize, c.height as usize) != (w, h))
         {
-            bail!("stage 3 needs training views of one size");
+            return Err(ExtrapolateError::usage(
+                "stage 3 needs training views of one size",
+            ));
         }
         let (masks, photos) = self.pseudo_masks(ctx, &base, &cams, &captured, &out, rep)?;
         let masked: f64 = masks.iter().flatten().map(|&v| v as f64).sum::<f64>()
@@ -210,7 +268,7 @@ impl Renders<'_> {
         nerf: &Nerf,
         fills: bool,
         tr: &mut Triplets,
-    ) -> anyhow::Result<()> {
+    ) -> Result<()> {
         for (i, cam) in self.cams.iter().enumerate() {
             let (rgb, _, _) = render(ctx, nerf, cam, self.samples)?;
             let key = format!("t{:03}", tr.entries.len());
@@ -249,7 +307,7 @@ impl EnhancerDataStage {
         captured: &[View],
         out: &Path,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<(Vec<Mask>, Vec<Photo>)> {
+    ) -> Result<(Vec<Mask>, Vec<Photo>)> {
         let t = Instant::now();
         let train = base.train_cameras();
         let vcfg = self
@@ -293,7 +351,7 @@ impl EnhancerDataStage {
         at: &Renders<'_>,
         tr: &mut Triplets,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<f64> {
+    ) -> Result<f64> {
         let cfg = &base.ck.config;
         let (w, h) = (tr.width, tr.height);
         let mut tcfg = cfg.train.clone();
@@ -353,9 +411,10 @@ impl EnhancerDataStage {
                 } else {
                     let target = Target::new(w, h, &rgb, &depth, &tr.masks[i], t);
                     let seed = self.stage2.seed ^ 0x5_7a9e_3000 ^ ((round as u64) << 32) ^ i as u64;
-                    inpainter
-                        .inpaint(&target, &sources, seed)
-                        .with_context(|| format!("training view {i}, data round {round}"))?
+                    inpainter.inpaint(&target, &sources, seed).map_err(|e| {
+                        ExtrapolateError::from(e)
+                            .in_view(format!("training view {i}, data round {round}"))
+                    })?
                 };
                 inpaint_s += ts.elapsed().as_secs_f64();
                 let (photo, virt) = collector_views(

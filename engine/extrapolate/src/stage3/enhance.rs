@@ -4,7 +4,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::Context as _;
 use extranerf_diffusion::enhancer;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::{Camera, Image};
@@ -15,10 +14,13 @@ use extranerf_nerf::views::{View, ViewKind};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
+use crate::error::{create_dir, ExtrapolateError, Result};
 use crate::inpaint::InpainterKind;
+use crate::manifest::Recorded;
 use crate::rounds::{write_test_renders, Rounds, ROUND_FILE};
 use crate::stage::{make_virtual, render, RunDir, Stage, VirtualSpec, ENHANCER_STAGE};
 use crate::stage3::gate::{check_enhancer, EnhancerCheck};
+use crate::stage3::spec::EnhanceSpec;
 use crate::stage3::spec::{virtual_weights, Stage3Enhancer, Stage3Gate, Stage3Spec};
 use crate::visibility::{virtual_masks, VisSettings};
 
@@ -43,44 +45,8 @@ impl Stage for EnhanceStage {
         format!("stage3-{}", self.kind.name())
     }
 
-    fn config(&self) -> Value {
-        let s = &self.spec;
-        let mut c = json!({
-            "rounds": s.rounds,
-            "steps_per_round": s.steps_per_round,
-            "t": s.t,
-            "ddim_steps": s.ddim_steps,
-            "virtual_fraction": s.virtual_fraction,
-            "lr": s.lr,
-            "seed": s.seed,
-        });
-        // Recorded only when on, so that runs made before the setting existed still resume.
-        if s.anchor_radius > 0 {
-            c["anchor_radius"] = json!(s.anchor_radius);
-        }
-        if s.visible_weight != 1.0 {
-            c["visible_weight"] = json!(s.visible_weight);
-        }
-        if s.smooth_radius > 0 {
-            c["smooth_radius"] = json!(s.smooth_radius);
-        }
-        if s.l1_core > 0.0 {
-            c["l1_core"] = json!(s.l1_core);
-        }
-        match s.enhance {
-            // Recorded only when checked: runs made before the gate existed ran stage 3 always.
-            Stage3Enhancer::Diffusion if s.gate == Stage3Gate::Check => {
-                c["gate"] = json!(s.gate);
-            }
-            Stage3Enhancer::Diffusion => {}
-            // The gate judges a trained enhancer; a fixed filter has none to judge.
-            Stage3Enhancer::Unsharp => {
-                c["enhance"] = json!(s.enhance);
-                c["unsharp_amount"] = json!(s.unsharp_amount);
-                c["unsharp_radius"] = json!(s.unsharp_radius);
-            }
-        }
-        c
+    fn config(&self) -> Recorded {
+        Recorded::of(&EnhanceSpec::of(&self.spec))
     }
 
     fn inputs(&self) -> Vec<String> {
@@ -90,10 +56,10 @@ impl Stage for EnhanceStage {
         }
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         self.spec.validate()?;
         let out = dir.root.join(self.name());
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        create_dir(&out)?;
         // The diffusion enhancer and where it runs; None: the unsharp mask.
         let model = match self.spec.enhance {
             Stage3Enhancer::Diffusion => {
@@ -109,8 +75,7 @@ impl Stage for EnhanceStage {
             Gate::Passed(check) => check,
         };
         let base = BaseField::load(ctx, &dir.base)?;
-        let from = load_checkpoint(&dir.root.join(self.stage2_name()))
-            .with_context(|| format!("the {} field", self.stage2_name()))?;
+        let from = load_checkpoint(&dir.root.join(self.stage2_name()))?;
         let cfg: RunConfig = from.config.clone();
         let samples = cfg.train.samples;
         let virt = make_virtual(&self.virt, &base.train_cameras())?;
@@ -236,7 +201,7 @@ impl EnhanceStage {
         model: &Option<Model>,
         out: &Path,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<Gate> {
+    ) -> Result<Gate> {
         let resuming = out.join(ROUND_FILE).exists();
         let check = match (model, self.spec.gate) {
             (Some(_), Stage3Gate::Check) if resuming => {
@@ -288,10 +253,9 @@ impl EnhanceStage {
         samples: u32,
         (round, out): (u32, &Path),
         views: &mut Vec<View>,
-    ) -> anyhow::Result<RoundFigures> {
+    ) -> Result<RoundFigures> {
         let round_dir = out.join(format!("round_{round:02}"));
-        std::fs::create_dir_all(&round_dir)
-            .with_context(|| format!("creating {}", round_dir.display()))?;
+        create_dir(&round_dir)?;
         let weight = self.spec.weight();
         let (mut render_s, mut enhance_s, mut change) = (0.0, 0.0, 0.0);
         // Detail energy of the renders and of the targets made from them.
@@ -306,7 +270,7 @@ impl EnhanceStage {
             let target = self
                 .spec
                 .target(model, &rgb, &masks[k], w, h, seed)
-                .with_context(|| format!("enhancing virtual view {k}, round {round}"))?;
+                .map_err(|e| e.in_view(format!("enhancing virtual view {k}, round {round}")))?;
             // The anchoring and smoothing are counted too (a blur or two: milliseconds).
             enhance_s += te.elapsed().as_secs_f64();
             detail_render += detail_energy(&rgb, w, h);
@@ -351,18 +315,18 @@ impl EnhanceStage {
 
 /// A skipped stage 3: the stage-2 field and its held-out renders, copied from `from` to `out`
 /// (what the fly-through and `eval` read).
-fn keep_stage2(from: &Path, out: &Path) -> anyhow::Result<()> {
-    let entries = std::fs::read_dir(from).with_context(|| format!("reading {}", from.display()))?;
+fn keep_stage2(from: &Path, out: &Path) -> Result<()> {
+    let entries = std::fs::read_dir(from).map_err(|e| ExtrapolateError::io("reading", from, e))?;
     for e in entries {
-        let e = e.with_context(|| format!("reading {}", from.display()))?;
+        let e = e.map_err(|e| ExtrapolateError::io("reading", from, e))?;
         let name = e.file_name().to_string_lossy().into_owned();
         let test = name.starts_with("test_") && name.ends_with(".png");
         if test
             || name == extranerf_nerf::run::CHECKPOINT_FILE
             || name == extranerf_nerf::run::CONFIG_FILE
         {
-            std::fs::copy(e.path(), out.join(&name))
-                .with_context(|| format!("copying {} to {}", e.path().display(), out.display()))?;
+            let to = out.join(&name);
+            std::fs::copy(e.path(), &to).map_err(|e| ExtrapolateError::io("copying to", &to, e))?;
         }
     }
     Ok(())

@@ -3,10 +3,15 @@
 
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
+use extranerf_diffusion::device::Backend;
 use extranerf_diffusion::enhancer;
+use extranerf_diffusion::enhancer::EnhancerSpec;
 use extranerf_gpu::Context;
+use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
+
+use crate::error::{create_dir, ExtrapolateError, Result};
+use crate::manifest::{OnResume, Recorded, StageSpec};
 
 use crate::stage::{RunDir, Stage, DATA_STAGE, ENHANCER_STAGE};
 use crate::stage3::gate::CHECK_FILE;
@@ -20,29 +25,47 @@ pub struct EnhancerStage {
     pub spec: Stage3Spec,
 }
 
+/// The enhancer's settings, as its manifest record holds them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnhancerStageSpec {
+    pub enhancer: EnhancerSpec,
+    /// Where it trains.
+    pub backend: Backend,
+}
+
+impl StageSpec for EnhancerStageSpec {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        ("enhancer", OnResume::Rerun),
+        // Where it trains: the same training on another device.
+        ("backend", OnResume::MayChange),
+    ];
+}
+
 impl Stage for EnhancerStage {
     fn name(&self) -> String {
         ENHANCER_STAGE.into()
     }
 
-    fn config(&self) -> Value {
-        json!({"enhancer": self.spec.enhancer, "backend": self.spec.backend})
+    fn config(&self) -> Recorded {
+        Recorded::of(&EnhancerStageSpec {
+            enhancer: self.spec.enhancer.clone(),
+            backend: self.spec.backend,
+        })
     }
 
     fn inputs(&self) -> Vec<String> {
         vec![DATA_STAGE.into()]
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         let triplets = Triplets::load(&dir.root.join(DATA_STAGE))?;
         let e = &self.spec.enhancer;
         if e.crop > triplets.width.min(triplets.height) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--enhancer-crop {} is larger than the {}x{} training views at the virtual views' scale",
-                e.crop,
-                triplets.width,
-                triplets.height
-            );
+                e.crop, triplets.width, triplets.height
+            )));
         }
         let (b, device) = extranerf_diffusion::device::diffusion_device(ctx, self.spec.backend)?;
         rep.note(&format!(
@@ -59,12 +82,12 @@ impl Stage for EnhancerStage {
             b.name()
         ));
         let out = dir.enhancer();
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        create_dir(&out)?;
         // A check of an earlier enhancer in this folder no longer holds.
         let check = out.join(CHECK_FILE);
         if check.exists() {
             std::fs::remove_file(&check)
-                .with_context(|| format!("removing {}", check.display()))?;
+                .map_err(|e| ExtrapolateError::io("removing", &check, e))?;
         }
         let t = Instant::now();
         let rec = enhancer::train_enhancer(&triplets.train_images(), e, &out, &device, &mut |p| {

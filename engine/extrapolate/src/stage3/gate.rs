@@ -3,10 +3,10 @@
 
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_nerf::metrics::psnr;
 use serde::{Deserialize, Serialize};
 
+use crate::error::{write_json, ExtrapolateError, Result};
 use crate::stage::{progress_views, RunDir};
 use crate::stage3::spec::Stage3Spec;
 use crate::stage3::triplets::Triplets;
@@ -90,7 +90,7 @@ pub fn check_enhancer(
     pipe: &extranerf_diffusion::pipeline::Pipeline,
     device: &burn::tensor::Device,
     rep: &mut dyn Reporter,
-) -> anyhow::Result<EnhancerCheck> {
+) -> Result<EnhancerCheck> {
     let path = dir.enhancer().join(CHECK_FILE);
     let tr = Triplets::load(&dir.stage3_data())?;
     let (w, h) = (tr.width, tr.height);
@@ -141,10 +141,10 @@ pub fn check_enhancer(
     let t0 = Instant::now();
     let picks = check_triplets(&tr);
     if picks.is_empty() {
-        bail!(
-            "{}: no triplets to check the enhancer on",
-            dir.stage3_data().display()
-        );
+        return Err(ExtrapolateError::malformed(
+            &dir.stage3_data(),
+            "no triplets to check the enhancer on",
+        ));
     }
     let (mut pr, mut pe, mut lr, mut le) = (0.0, 0.0, 0.0, 0.0);
     for (n, &k) in picks.iter().enumerate() {
@@ -160,7 +160,7 @@ pub fn check_enhancer(
                 h,
                 spec.seed ^ 0xc4ec_0000 ^ k as u64,
             )
-            .with_context(|| format!("enhancing triplet {}", tr.entries[k].key))?;
+            .map_err(|e| e.in_view(format!("enhancing triplet {}", tr.entries[k].key)))?;
         pr += psnr(render, photo)?;
         pe += psnr(&enhanced, photo)?;
         if let Some(l) = &lp {
@@ -183,6 +183,6 @@ pub fn check_enhancer(
         lpips_enhanced: lp.as_ref().map(|_| le / n),
         seconds: t0.elapsed().as_secs_f64(),
     };
-    extranerf_nerf::safetensors::write_atomic(&path, serde_json::to_string_pretty(&c)?.as_bytes())?;
+    write_json(&path, &c)?;
     Ok(c)
 }

@@ -26,9 +26,9 @@ pub mod gate;
 pub mod spec;
 pub mod triplets;
 
-pub use data::{collector_views, EnhancerDataStage};
+pub use data::{collector_views, DataSpec, EnhancerDataStage};
 pub use enhance::EnhanceStage;
-pub use enhancer::EnhancerStage;
+pub use enhancer::{EnhancerStage, EnhancerStageSpec};
 pub use gate::{check_enhancer, check_triplets, EnhancerCheck, CHECK_FILE};
 pub use spec::{
     stage3_target, virtual_weights, Stage3Enhancer, Stage3Gate, Stage3Spec, MAX_RADIUS,

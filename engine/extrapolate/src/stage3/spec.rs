@@ -2,12 +2,15 @@
 
 use std::path::PathBuf;
 
-use anyhow::bail;
 use extranerf_diffusion::device::Backend;
 use extranerf_diffusion::enhancer::EnhancerSpec;
 use extranerf_diffusion::inpaint::SampleSettings;
 use extranerf_nerf::image_ops::unsharp;
 use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use crate::error::{ExtrapolateError, Result};
+use crate::manifest::{OnResume, StageSpec};
 
 /// Stage 3's settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -141,49 +144,201 @@ impl Default for Stage3Spec {
     }
 }
 
+/// What a stage-3 variant enhances its virtual views with, and its settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Enhancement {
+    /// [`Stage3Enhancer::Diffusion`], checked by the gate or not.
+    Diffusion { gate: Stage3Gate },
+    /// [`Stage3Enhancer::Unsharp`].
+    Unsharp { amount: f32, radius: usize },
+}
+
+/// The settings of stage 3 for one variant, as its manifest record holds them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnhanceSpec {
+    pub rounds: u32,
+    pub steps_per_round: u32,
+    pub t: f32,
+    pub ddim_steps: usize,
+    pub virtual_fraction: f32,
+    pub lr: f32,
+    pub seed: u64,
+    pub anchor_radius: usize,
+    pub smooth_radius: usize,
+    pub visible_weight: f32,
+    pub l1_core: f32,
+    pub enhance: Enhancement,
+}
+
+impl EnhanceSpec {
+    /// The settings of `s` that stage 3's loop uses.
+    pub fn of(s: &Stage3Spec) -> EnhanceSpec {
+        EnhanceSpec {
+            rounds: s.rounds,
+            steps_per_round: s.steps_per_round,
+            t: s.t,
+            ddim_steps: s.ddim_steps,
+            virtual_fraction: s.virtual_fraction,
+            lr: s.lr,
+            seed: s.seed,
+            anchor_radius: s.anchor_radius,
+            smooth_radius: s.smooth_radius,
+            visible_weight: s.visible_weight,
+            l1_core: s.l1_core,
+            enhance: match s.enhance {
+                Stage3Enhancer::Diffusion => Enhancement::Diffusion { gate: s.gate },
+                Stage3Enhancer::Unsharp => Enhancement::Unsharp {
+                    amount: s.unsharp_amount,
+                    radius: s.unsharp_radius,
+                },
+            },
+        }
+    }
+}
+
+impl StageSpec for EnhanceSpec {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        ("rounds", OnResume::Rerun),
+        ("steps_per_round", OnResume::Rerun),
+        ("t", OnResume::Rerun),
+        ("ddim_steps", OnResume::Rerun),
+        ("virtual_fraction", OnResume::Rerun),
+        ("lr", OnResume::Rerun),
+        ("seed", OnResume::Rerun),
+        ("anchor_radius", OnResume::Rerun),
+        ("smooth_radius", OnResume::Rerun),
+        ("visible_weight", OnResume::Rerun),
+        ("l1_core", OnResume::Rerun),
+        ("enhance", OnResume::Rerun),
+    ];
+
+    /// Also reads the flat layout of builds up to fc82428 (`EnhanceSpecV1`).
+    fn from_record(v: &Value) -> std::result::Result<Self, String> {
+        if v.get("enhance").is_some_and(Value::is_object) {
+            return Self::deserialize(v).map_err(|e| e.to_string());
+        }
+        let o = EnhanceSpecV1::deserialize(v).map_err(|e| e.to_string())?;
+        let enhance = match o.enhance.unwrap_or(Stage3Enhancer::Diffusion) {
+            // Runs made before the gate existed ran stage 3 always.
+            Stage3Enhancer::Diffusion => Enhancement::Diffusion {
+                gate: o.gate.unwrap_or(Stage3Gate::Off),
+            },
+            Stage3Enhancer::Unsharp => Enhancement::Unsharp {
+                amount: o
+                    .unsharp_amount
+                    .ok_or("the unsharp enhancer without its amount")?,
+                radius: o
+                    .unsharp_radius
+                    .ok_or("the unsharp enhancer without its radius")?,
+            },
+        };
+        Ok(EnhanceSpec {
+            rounds: o.rounds,
+            steps_per_round: o.steps_per_round,
+            t: o.t,
+            ddim_steps: o.ddim_steps,
+            virtual_fraction: o.virtual_fraction,
+            lr: o.lr,
+            seed: o.seed,
+            anchor_radius: o.anchor_radius,
+            smooth_radius: o.smooth_radius,
+            visible_weight: o.visible_weight,
+            l1_core: o.l1_core,
+            enhance,
+        })
+    }
+}
+
+/// The record of [`EnhanceSpec`] up to fc82428: flat, with each setting that came later
+/// recorded only when it was not its default (so that the runs before it still resumed), and
+/// the gate only when checked.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct EnhanceSpecV1 {
+    rounds: u32,
+    steps_per_round: u32,
+    t: f32,
+    ddim_steps: usize,
+    virtual_fraction: f32,
+    lr: f32,
+    seed: u64,
+    #[serde(default)]
+    anchor_radius: usize,
+    #[serde(default = "one")]
+    visible_weight: f32,
+    #[serde(default)]
+    smooth_radius: usize,
+    #[serde(default)]
+    l1_core: f32,
+    gate: Option<Stage3Gate>,
+    enhance: Option<Stage3Enhancer>,
+    unsharp_amount: Option<f32>,
+    unsharp_radius: Option<usize>,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
 impl Stage3Spec {
     /// Checks the settings.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub fn validate(&self) -> Result<()> {
         if self.rounds == 0 || self.steps_per_round == 0 {
-            bail!("stage 3 needs at least one round of at least one step");
+            return Err(ExtrapolateError::usage(
+                "stage 3 needs at least one round of at least one step",
+            ));
         }
         if self.data_rounds == 0 || self.data_steps_per_round == 0 {
-            bail!("stage 3's data collection needs at least one round of at least one step");
+            return Err(ExtrapolateError::usage(
+                "stage 3's data collection needs at least one round of at least one step",
+            ));
         }
         if !(self.t > 0.0 && self.t < 1.0) {
-            bail!("--stage3-t {}: use a noise level in (0, 1)", self.t);
+            return Err(ExtrapolateError::usage(format!(
+                "--stage3-t {}: use a noise level in (0, 1)",
+                self.t
+            )));
         }
         if self.ddim_steps == 0 {
-            bail!("--stage3-ddim-steps must be at least 1");
+            return Err(ExtrapolateError::usage(
+                "--stage3-ddim-steps must be at least 1",
+            ));
         }
         if !(0.0..=1.0).contains(&self.virtual_fraction) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--stage3-virtual-fraction {}: use a value in [0, 1]",
                 self.virtual_fraction
-            );
+            )));
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
-            bail!("--stage3-lr {}: use a positive learning rate", self.lr);
+            return Err(ExtrapolateError::usage(format!(
+                "--stage3-lr {}: use a positive learning rate",
+                self.lr
+            )));
         }
         for (flag, r) in [
             ("--stage3-anchor", self.anchor_radius),
             ("--stage3-smooth", self.smooth_radius),
         ] {
             if r > MAX_RADIUS {
-                bail!("{flag} {r}: use a radius of at most {MAX_RADIUS} pixels (0: off)");
+                return Err(ExtrapolateError::usage(format!(
+                    "{flag} {r}: use a radius of at most {MAX_RADIUS} pixels (0: off)"
+                )));
             }
         }
         if !(self.l1_core.is_finite() && (0.0..=1.0).contains(&self.l1_core)) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--stage3-l1-core {}: use a colour error in [0, 1] (0: plain L1)",
                 self.l1_core
-            );
+            )));
         }
         if !(0.0..=1.0).contains(&self.visible_weight) {
-            bail!(
+            return Err(ExtrapolateError::usage(format!(
                 "--stage3-visible-weight {}: use a value in [0, 1]",
                 self.visible_weight
-            );
+            )));
         }
         if self.enhance == Stage3Enhancer::Unsharp
             && !(self.unsharp_amount.is_finite()
@@ -191,21 +346,17 @@ impl Stage3Spec {
                 && self.unsharp_amount <= 4.0
                 && (1..=MAX_RADIUS).contains(&self.unsharp_radius))
         {
-            bail!(
-                "--stage3-unsharp-amount {} and --stage3-unsharp-radius {}: use an amount in (0, 4] and a radius of 1 to {MAX_RADIUS} pixels",
+            return Err(ExtrapolateError::usage(format!("--stage3-unsharp-amount {} and --stage3-unsharp-radius {}: use an amount in (0, 4] and a radius of 1 to {MAX_RADIUS} pixels",
                 self.unsharp_amount,
-                self.unsharp_radius
-            );
+                self.unsharp_radius)));
         }
         let e = &self.enhancer;
         if e.steps == 0 || e.batch == 0 || e.crop == 0 || !(e.lr.is_finite() && e.lr > 0.0) {
-            bail!(
-                "the enhancer needs steps ({}), batch ({}) and crop ({}) of at least 1 and a positive learning rate ({})",
+            return Err(ExtrapolateError::usage(format!("the enhancer needs steps ({}), batch ({}) and crop ({}) of at least 1 and a positive learning rate ({})",
                 e.steps,
                 e.batch,
                 e.crop,
-                e.lr
-            );
+                e.lr)));
         }
         Ok(())
     }
@@ -231,7 +382,7 @@ impl Stage3Spec {
         w: usize,
         h: usize,
         seed: u64,
-    ) -> anyhow::Result<Vec<f32>> {
+    ) -> Result<Vec<f32>> {
         let enhanced = match model {
             Some((pipe, device)) => {
                 pipe.model

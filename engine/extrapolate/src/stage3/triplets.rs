@@ -3,10 +3,11 @@
 
 use std::path::Path;
 
-use anyhow::{bail, Context as _};
 use extranerf_diffusion::train::{Guide, TrainImage};
 use extranerf_nerf::safetensors::{SafeTensors, Tensor};
 use serde::{Deserialize, Serialize};
+
+use crate::error::{read_text, write_json, ExtrapolateError, Result};
 
 /// The triplets' tensors.
 pub const TRIPLETS_FILE: &str = "triplets.safetensors";
@@ -41,7 +42,7 @@ pub struct Triplets {
 
 impl Triplets {
     /// Writes `dir/triplets.safetensors` and `dir/triplets.json`.
-    pub fn save(&self, dir: &Path) -> anyhow::Result<()> {
+    pub fn save(&self, dir: &Path) -> Result<()> {
         let (w, h) = (self.width, self.height);
         let mut st = SafeTensors::default();
         let mut put = |name: String, shape: Vec<usize>, data: &[f32]| {
@@ -62,43 +63,38 @@ impl Triplets {
             put(format!("{}.mask", e.key), vec![h, w], m);
         }
         st.write(&dir.join(TRIPLETS_FILE))?;
-        extranerf_nerf::safetensors::write_atomic(
-            &dir.join(TRIPLETS_INDEX),
-            serde_json::to_string_pretty(&self.entries)?.as_bytes(),
-        )?;
-        Ok(())
+        write_json(&dir.join(TRIPLETS_INDEX), &self.entries)
     }
 
     /// Reads what [`Triplets::save`] wrote.
-    pub fn load(dir: &Path) -> anyhow::Result<Triplets> {
+    pub fn load(dir: &Path) -> Result<Triplets> {
         let path = dir.join(TRIPLETS_FILE);
         let index = dir.join(TRIPLETS_INDEX);
         let st = SafeTensors::read(&path)?;
-        let entries: Vec<TripletEntry> = serde_json::from_str(
-            &std::fs::read_to_string(&index)
-                .with_context(|| format!("reading {}", index.display()))?,
-        )
-        .with_context(|| format!("{}: malformed", index.display()))?;
-        let get = |name: &str, want: &[usize]| -> anyhow::Result<Vec<f32>> {
+        let entries: Vec<TripletEntry> = serde_json::from_str(&read_text(&index)?)
+            .map_err(|e| ExtrapolateError::malformed(&index, e.to_string()))?;
+        let get = |name: &str, want: &[usize]| -> Result<Vec<f32>> {
             let t = st
                 .tensors
                 .get(name)
-                .with_context(|| format!("{}: no tensor {name}", path.display()))?;
+                .ok_or_else(|| ExtrapolateError::malformed(&path, format!("no tensor {name}")))?;
             if t.shape != want {
-                bail!(
-                    "{}: {name} has shape {:?}, not {want:?}",
-                    path.display(),
-                    t.shape
-                );
+                return Err(ExtrapolateError::malformed(
+                    &path,
+                    format!("{name} has shape {:?}, not {want:?}", t.shape),
+                ));
             }
             Ok(t.data.clone())
         };
         let first = st
             .tensors
             .get("photo_000")
-            .with_context(|| format!("{}: no photos", path.display()))?;
+            .ok_or_else(|| ExtrapolateError::malformed(&path, "no photos"))?;
         let [h, w, 3] = first.shape[..] else {
-            bail!("{}: photo_000 is not [h, w, 3]", path.display());
+            return Err(ExtrapolateError::malformed(
+                &path,
+                "photo_000 is not [h, w, 3]",
+            ));
         };
         let mut photos = Vec::new();
         let mut masks = Vec::new();
@@ -113,13 +109,15 @@ impl Triplets {
         let mut renders = Vec::new();
         for e in &entries {
             if e.slot >= photos.len() {
-                bail!(
-                    "{}: triplet {} names training view {} of {}",
-                    index.display(),
-                    e.key,
-                    e.slot,
-                    photos.len()
-                );
+                return Err(ExtrapolateError::malformed(
+                    &index,
+                    format!(
+                        "triplet {} names training view {} of {}",
+                        e.key,
+                        e.slot,
+                        photos.len()
+                    ),
+                ));
             }
             renders.push((
                 get(&format!("{}.render", e.key), &[h, w, 3])?,

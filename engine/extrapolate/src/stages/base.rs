@@ -2,13 +2,14 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context as _;
 use extranerf_gpu::Context;
 use extranerf_nerf::run::{load_checkpoint, RunConfig, SceneSpec};
 use extranerf_nerf::trainer::TrainConfig;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
+use crate::error::Result;
+use crate::manifest::{OnResume, Recorded, StageSpec};
 use crate::stage::{make_virtual, RunDir, Stage, VirtualSpec};
 use extranerf_nerf::train::{fit_budget, train_loop, Reporter, TrainRun};
 
@@ -20,6 +21,15 @@ pub struct BaseSpec {
     pub from: Option<PathBuf>,
     /// Training seconds for a new BaseNeRF (the `train --budget` fit).
     pub budget: f64,
+}
+
+impl StageSpec for BaseSpec {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        // Another BaseNeRF is another run.
+        ("from", OnResume::Rerun),
+        // The budget decides the model's size and its steps.
+        ("budget", OnResume::Rerun),
+    ];
 }
 
 /// The BaseNeRF.
@@ -38,7 +48,7 @@ pub fn default_run_config(
     scene: &SceneSpec,
     virt: &VirtualSpec,
     rep: &mut dyn Reporter,
-) -> anyhow::Result<RunConfig> {
+) -> Result<RunConfig> {
     let loaded = scene.load()?;
     let train = loaded.train_cameras();
     let extra = make_virtual(virt, &train)?;
@@ -73,14 +83,13 @@ impl Stage for BaseStage {
         "base".into()
     }
 
-    fn config(&self) -> Value {
-        json!({"from": self.spec.from, "budget": self.spec.budget})
+    fn config(&self) -> Recorded {
+        Recorded::of(&self.spec)
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         if self.spec.from.is_some() {
-            let ck = load_checkpoint(&dir.base)
-                .with_context(|| format!("--base {}", dir.base.display()))?;
+            let ck = load_checkpoint(&dir.base)?;
             return Ok(json!({"reused": dir.base, "step": ck.step}));
         }
         let run = |cfg: &RunConfig, start, budget, params, moments, rep: &mut dyn Reporter| {

@@ -3,7 +3,6 @@
 
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::virtual_cameras;
 use extranerf_nerf::data::Camera;
@@ -14,6 +13,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
+use crate::error::{create_dir, ExtrapolateError, Result};
+use crate::manifest::{OnResume, Recorded, StageSpec};
 use crate::stage::{progress_views, render, FieldRef, RunDir, Stage, VirtualSpec};
 
 /// The fly-through: frames along the virtual cameras' trajectory, rendered from the
@@ -46,8 +47,26 @@ impl Default for FlythroughSpec {
 pub struct FlythroughStage {
     /// The field rendered.
     pub field: FieldRef,
+    /// Its settings (what its manifest record holds).
+    pub config: FlythroughConfig,
+}
+
+/// A fly-through's settings: the trajectory it follows and its frames.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FlythroughConfig {
+    #[serde(rename = "virtual")]
     pub virt: VirtualSpec,
+    #[serde(rename = "flythrough")]
     pub spec: FlythroughSpec,
+}
+
+impl StageSpec for FlythroughConfig {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        // The path, and the frames along it (their delay is in the GIF).
+        ("virtual", OnResume::Rerun),
+        ("flythrough", OnResume::Rerun),
+    ];
 }
 
 impl FlythroughStage {
@@ -61,26 +80,25 @@ impl Stage for FlythroughStage {
         format!("flythrough-{}", self.field_name())
     }
 
-    fn config(&self) -> Value {
-        json!({"virtual": self.virt, "flythrough": self.spec})
+    fn config(&self) -> Recorded {
+        Recorded::of(&self.config)
     }
 
     fn inputs(&self) -> Vec<String> {
         vec!["base".into(), self.field_name()]
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
-        let s = &self.spec;
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
+        let s = &self.config.spec;
         if s.frames == 0 || s.downscale == 0 || s.delay_ms == 0 {
-            bail!("the fly-through needs at least one frame, a downscale of at least 1 and a positive delay");
+            return Err(ExtrapolateError::usage("the fly-through needs at least one frame, a downscale of at least 1 and a positive delay"));
         }
         let base = BaseField::load(ctx, &dir.base)?;
         let samples = base.ck.config.train.samples;
         let (nerf, step) = match self.field {
             FieldRef::Stage2(_) | FieldRef::Stage3(_) => {
                 let name = self.field.name();
-                let ck = load_checkpoint(&dir.root.join(&name))
-                    .with_context(|| format!("the {name} variant's field"))?;
+                let ck = load_checkpoint(&dir.root.join(&name))?;
                 let cfg = &ck.config;
                 (
                     Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?,
@@ -98,18 +116,18 @@ impl Stage for FlythroughStage {
             .collect();
         let cams = virtual_cameras(
             &train,
-            self.virt.trajectory,
+            self.config.virt.trajectory,
             s.frames as usize,
-            self.virt.range,
+            self.config.virt.range,
         )?;
         let name = self.field_name();
         let out = dir.flythrough().join(&name);
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        create_dir(&out)?;
         let mut frames = Vec::with_capacity(cams.len());
         let (mut w, mut h) = (0, 0);
         let t = Instant::now();
         for (i, c) in cams.iter().enumerate() {
-            let cam = c.downscaled(self.virt.downscale.max(1) * s.downscale);
+            let cam = c.downscaled(self.config.virt.downscale.max(1) * s.downscale);
             let (rgb, _, _) = render(ctx, &nerf, &cam, samples)?;
             write_png(
                 &out.join(format!("frame_{i:03}.png")),

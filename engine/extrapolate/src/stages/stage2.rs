@@ -5,17 +5,19 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::Context as _;
 use extranerf_gpu::Context;
 use extranerf_nerf::data::Camera;
 use extranerf_nerf::image_ops::{downscale_image, grey_to_rgb};
 use extranerf_nerf::run::{training_views_in, write_png};
 use extranerf_nerf::train::Reporter;
 use extranerf_nerf::views::View;
+use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
+use crate::error::{create_dir, ExtrapolateError, Result};
 use crate::inpaint::{build_inpainter, DiffusionSpec, Fill, InpainterKind, Source, Target};
+use crate::manifest::{OnResume, Recorded, StageSpec};
 use crate::rounds::{fill_view, write_test_renders, Rounds, Stage2Spec};
 use crate::stage::{make_virtual, progress_views, render, RunDir, Stage, VirtualSpec};
 use crate::visibility::{virtual_masks, VisSettings};
@@ -23,12 +25,52 @@ use crate::visibility::{virtual_masks, VisSettings};
 /// One stage-2 variant.
 #[derive(Clone, Debug)]
 pub struct InpaintStage {
-    pub kind: InpainterKind,
-    /// The model of the diffusion inpainter.
-    pub diffusion: Option<DiffusionSpec>,
-    pub spec: Stage2Spec,
+    /// Its settings (what its manifest record holds).
+    pub spec: InpaintSpec,
+    /// The virtual views and their masks (the visibility stage's settings, recorded there).
     pub virt: VirtualSpec,
     pub vis: VisSettings,
+}
+
+/// A stage-2 variant's settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InpaintSpec {
+    pub inpainter: InpainterKind,
+    /// The loop.
+    #[serde(rename = "loop")]
+    pub stage2: Stage2Spec,
+    /// The diffusion inpainter's model as the inpainter uses it ([`DiffusionSpec::for_kind`]);
+    /// None for the other inpainters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diffusion: Option<DiffusionSpec>,
+}
+
+impl InpaintSpec {
+    /// The settings of `inpainter`'s variant: the model only where the inpainter uses one.
+    pub fn new(
+        inpainter: InpainterKind,
+        stage2: Stage2Spec,
+        diffusion: Option<&DiffusionSpec>,
+    ) -> InpaintSpec {
+        InpaintSpec {
+            inpainter,
+            stage2,
+            diffusion: diffusion
+                .filter(|_| inpainter.uses_diffusion())
+                .map(|d| d.for_kind(inpainter)),
+        }
+    }
+}
+
+impl StageSpec for InpaintSpec {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        ("inpainter", OnResume::Rerun),
+        ("loop", OnResume::Rerun),
+        ("diffusion", OnResume::Rerun),
+        // Where the model runs: the same model on another device.
+        ("diffusion.backend", OnResume::MayChange),
+    ];
 }
 
 /// Fills of earlier views, reprojected into `cam`: per pixel, the nearest reprojected colour
@@ -82,21 +124,17 @@ pub fn reproject(
 
 impl Stage for InpaintStage {
     fn name(&self) -> String {
-        format!("stage2-{}", self.kind.name())
+        format!("stage2-{}", self.spec.inpainter.name())
     }
 
-    fn config(&self) -> Value {
-        let mut c = json!({"inpainter": self.kind, "loop": self.spec});
-        if self.kind.uses_diffusion() {
-            c["diffusion"] = json!(self.diffusion.as_ref().map(|d| d.for_kind(self.kind)));
-        }
-        c
+    fn config(&self) -> Recorded {
+        Recorded::of(&self.spec)
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
-        self.spec.validate()?;
-        let out = dir.stage2(self.kind);
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
+        self.spec.stage2.validate()?;
+        let out = dir.stage2(self.spec.inpainter);
+        create_dir(&out)?;
         let base = BaseField::load(ctx, &dir.base)?;
         let cfg = base.ck.config.clone();
         let samples = cfg.train.samples;
@@ -113,12 +151,12 @@ impl Stage for InpaintStage {
             let (_, depth, _) = render(ctx, &base.nerf, &cam, samples)?;
             sources.push((cam, img.rgb, depth));
         }
-        let total_steps = self.spec.rounds * self.spec.steps_per_round;
+        let total_steps = self.spec.stage2.rounds * self.spec.stage2.steps_per_round;
         let mut tcfg = cfg.train.clone();
         tcfg.steps = total_steps;
         tcfg.decay_steps = total_steps;
-        tcfg.lr_start = self.spec.lr;
-        tcfg.lr_end = self.spec.lr;
+        tcfg.lr_start = self.spec.stage2.lr;
+        tcfg.lr_end = self.spec.stage2.lr;
         let mut r = Rounds::open(
             ctx,
             &out,
@@ -127,10 +165,11 @@ impl Stage for InpaintStage {
             tcfg,
             &base.ck,
             0,
-            self.spec.steps_per_round,
+            self.spec.stage2.steps_per_round,
             rep,
         )?;
-        let mut inpainter = build_inpainter(ctx, self.kind, self.diffusion.as_ref(), rep)?;
+        let mut inpainter =
+            build_inpainter(ctx, self.spec.inpainter, self.spec.diffusion.as_ref(), rep)?;
         let fixed = Fixed {
             virt: &virt,
             masks: &masks,
@@ -139,7 +178,7 @@ impl Stage for InpaintStage {
             samples,
         };
         let mut rounds = Vec::new();
-        for round in r.start..self.spec.rounds {
+        for round in r.start..self.spec.stage2.rounds {
             let t0 = Instant::now();
             let (filled, f) =
                 self.fill_round(ctx, &r, inpainter.as_mut(), &fixed, (round, t0), &out, rep)?;
@@ -153,18 +192,18 @@ impl Stage for InpaintStage {
             let (last, train_s) = r.train(
                 ctx,
                 &views,
-                self.spec.virtual_fraction,
-                self.spec.steps_per_round,
+                self.spec.stage2.virtual_fraction,
+                self.spec.stage2.steps_per_round,
                 &format!("{} round {round}", self.name()),
                 (round, t0),
                 rep,
             )?;
-            let t = self.spec.t(round);
+            let t = self.spec.stage2.t(round);
             rep.note(&format!(
                 "{} round {}/{}: t {t:.2}, render {:.1} s, inpaint {:.1} s, train {train_s:.1} s; {} pixels reprojected",
                 self.name(),
                 round + 1,
-                self.spec.rounds,
+                self.spec.stage2.rounds,
                 f.render_s,
                 f.inpaint_s,
                 f.reprojected
@@ -172,7 +211,7 @@ impl Stage for InpaintStage {
             rounds.push(json!({
                 "round": round,
                 "t": t,
-                "weight": self.spec.weight(round),
+                "weight": self.spec.stage2.weight(round),
                 "render_seconds": f.render_s,
                 "inpaint_seconds": f.inpaint_s,
                 "train_seconds": train_s,
@@ -223,11 +262,10 @@ impl InpaintStage {
         (round, t0): (u32, Instant),
         out: &Path,
         rep: &mut dyn Reporter,
-    ) -> anyhow::Result<(Vec<Filled>, RoundFigures)> {
-        let t = self.spec.t(round);
+    ) -> Result<(Vec<Filled>, RoundFigures)> {
+        let t = self.spec.stage2.t(round);
         let round_dir = out.join(format!("round_{round:02}"));
-        std::fs::create_dir_all(&round_dir)
-            .with_context(|| format!("creating {}", round_dir.display()))?;
+        create_dir(&round_dir)?;
         let mut filled: Vec<Filled> = Vec::new();
         let (mut inpaint_s, mut render_s, mut reprojected) = (0.0, 0.0, 0usize);
         for (k, cam) in f.virt.iter().enumerate() {
@@ -235,7 +273,7 @@ impl InpaintStage {
             let (mut rgb, mut depth, _) = render(ctx, r.trainer.nerf(), cam, f.samples)?;
             render_s += tr.elapsed().as_secs_f64();
             let mut mask = f.masks[k].clone();
-            if self.spec.reproject && !filled.is_empty() {
+            if self.spec.stage2.reproject && !filled.is_empty() {
                 for (j, p) in reproject(&filled, cam, f.ndc).into_iter().enumerate() {
                     if let Some((c, d)) = p {
                         if mask[j] >= 0.5 {
@@ -266,16 +304,16 @@ impl InpaintStage {
                 t,
             };
             let ti = Instant::now();
-            let seed = self.spec.seed ^ ((round as u64) << 32) ^ k as u64;
+            let seed = self.spec.stage2.seed ^ ((round as u64) << 32) ^ k as u64;
             let fill = if mask.iter().all(|&m| m < 0.5) {
                 Fill {
                     rgb: rgb.clone(),
                     depth: depth.clone(),
                 }
             } else {
-                inpainter
-                    .inpaint(&target, &sources, seed)
-                    .with_context(|| format!("virtual view {k}, round {round}"))?
+                inpainter.inpaint(&target, &sources, seed).map_err(|e| {
+                    ExtrapolateError::from(e).in_view(format!("virtual view {k}, round {round}"))
+                })?
             };
             inpaint_s += ti.elapsed().as_secs_f64();
             write_png(
@@ -305,7 +343,10 @@ impl InpaintStage {
     /// `visible_weight` of it (their colour is the field's own render, which the captured views
     /// supervise); the fill's depth supervises where its colour does.
     fn virtual_view(&self, cam: &Camera, fill: &Fill, mask: &[f32], round: u32) -> View {
-        let (weight, visible) = (self.spec.weight(round), self.spec.visible_weight);
+        let (weight, visible) = (
+            self.spec.stage2.weight(round),
+            self.spec.stage2.visible_weight,
+        );
         fill_view(
             cam,
             fill,

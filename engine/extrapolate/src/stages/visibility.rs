@@ -4,7 +4,6 @@
 
 use std::time::Instant;
 
-use anyhow::Context as _;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::write_transforms;
 use extranerf_nerf::data::Camera;
@@ -13,17 +12,32 @@ use extranerf_nerf::image_ops::grey_to_rgb;
 use extranerf_nerf::render::visibility::mask_all_but;
 use extranerf_nerf::run::write_png;
 use extranerf_nerf::train::{Progress, Reporter, Unit};
+use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::base::BaseField;
+use crate::error::{create_dir, Result};
+use crate::manifest::{OnResume, Recorded, StageSpec};
 use crate::stage::{make_virtual, render, RunDir, Stage, VirtualSpec};
 use crate::visibility::{save_maps, FieldVisibility, MaskScore, VisSettings, MAPS_FILE};
 
-/// The virtual cameras and the visibility maps.
-#[derive(Clone, Debug)]
+/// The virtual cameras and the visibility maps; the stage is its own spec.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct VisibilityStage {
+    #[serde(rename = "virtual")]
     pub virt: VirtualSpec,
+    #[serde(rename = "settings")]
     pub vis: VisSettings,
+}
+
+impl StageSpec for VisibilityStage {
+    const ON_RESUME: &'static [(&'static str, OnResume)] = &[
+        ("virtual", OnResume::Rerun),
+        ("settings", OnResume::Rerun),
+        // Pixels per submission: the maps are the same in any chunks.
+        ("settings.chunk", OnResume::MayChange),
+    ];
 }
 
 /// The scene index of a held-out view's map name (`test_NNN`).
@@ -36,13 +50,13 @@ impl Stage for VisibilityStage {
         "visibility".into()
     }
 
-    fn config(&self) -> Value {
-        json!({"virtual": self.virt, "settings": self.vis})
+    fn config(&self) -> Recorded {
+        Recorded::of(self)
     }
 
-    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> anyhow::Result<Value> {
+    fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         let out = dir.visibility();
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        create_dir(&out)?;
         let base = BaseField::load(ctx, &dir.base)?;
         let train = base.train_cameras();
         let virt = make_virtual(&self.virt, &train)?;
@@ -154,10 +168,7 @@ impl Stage for VisibilityStage {
             "volume_seconds": volume_s,
             "views": rows,
         });
-        extranerf_nerf::safetensors::write_atomic(
-            &out.join("visibility.json"),
-            serde_json::to_string_pretty(&doc)?.as_bytes(),
-        )?;
+        crate::error::write_json(&out.join("visibility.json"), &doc)?;
         Ok(json!({"volume_seconds": volume_s, "views": rows.len(), "exact_mean": exact_mean}))
     }
 }
