@@ -140,6 +140,40 @@ fn extrapolation_split_matches_raw_camera_distances() {
     );
 }
 
+/// The default split of a capture: every 8th view held out, the others train; splits that
+/// cannot be made say why and what to pass.
+#[test]
+fn holdout_split_holds_out_every_eighth_view() {
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let s = Split::Holdout.apply(&scene.cameras).unwrap();
+    assert_eq!(s.test, [0, 8, 16]);
+    assert_eq!(s.train.len(), 17);
+    assert!(s.train.iter().all(|i| i % 8 != 0));
+    let one = &scene.cameras[..1];
+    let e = err_text(Split::Holdout.apply(one).unwrap_err());
+    assert!(
+        e.contains("at least 2 views") && e.contains("--split all"),
+        "{e}"
+    );
+    assert_eq!(Split::Holdout.apply(&scene.cameras[..2]).unwrap().test, [0]);
+    let e = err_text(
+        Split::Extrapolation
+            .apply(&scene.cameras[..13])
+            .unwrap_err(),
+    );
+    assert!(
+        e.contains("needs at least 14 views, the scene has 13")
+            && e.contains("leave --split out")
+            && e.contains("--split all"),
+        "{e}"
+    );
+    let e = err_text(Split::FewShot(40).apply(&scene.cameras).unwrap_err());
+    assert!(
+        e.contains("choose 1 to 17") && e.contains("leave --split out"),
+        "{e}"
+    );
+}
+
 #[test]
 fn fewshot_split_follows_regnerf() {
     let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
@@ -598,7 +632,7 @@ fn nerf_synthetic_layout_loads_with_its_split_alpha_and_centre() {
     let dir = scratch_dir("turntable-layout");
     write_turntable_scene(&dir, 40, 30, 9, 4).unwrap();
     assert_eq!(SplitKind::default_for(&dir), SplitKind::Given);
-    assert_eq!(SplitKind::default_for(&fern()), SplitKind::Extrapolation);
+    assert_eq!(SplitKind::default_for(&fern()), SplitKind::Holdout);
     let spec = |split| SceneSpec {
         dir: dir.clone(),
         split,

@@ -8,6 +8,7 @@
 //! (`--workspace`, so that the dependencies keep the features of the full build and are not
 //! compiled again).
 
+mod colmap;
 mod data;
 mod diffusion;
 mod diffusion_models;

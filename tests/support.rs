@@ -285,3 +285,113 @@ pub fn tiny_model() -> extranerf_nerf::model::ModelConfig {
         ..Default::default()
     }
 }
+
+// COLMAP captures made by hand, for the loader's tests and the command line's.
+
+use extranerf_nerf::data::colmap::{ColmapCamera, ColmapImage, Model, ModelFormat, Point3D};
+use glam::{DMat3, DQuat, DVec3};
+
+/// A quaternion (w, x, y, z) of the world -> camera rotation `r`.
+pub fn colmap_qvec(r: DMat3) -> [f64; 4] {
+    let q = DQuat::from_mat3(&r);
+    [q.w, q.x, q.y, q.z]
+}
+
+/// A world -> camera rotation looking from `centre` at `target` (COLMAP's camera: x right,
+/// y down, z forward), with world -y up.
+fn colmap_look_at(centre: DVec3, target: DVec3) -> DMat3 {
+    let z = (target - centre).normalize();
+    let x = DVec3::new(0.0, -1.0, 0.0).cross(z).normalize();
+    let y = z.cross(x);
+    DMat3::from_cols(x, y, z).transpose()
+}
+
+/// A model of `centres` looking at the origin, two 64x48 cameras, and a grid of points around
+/// the origin; each image's 2-D points are the points' exact projections.
+pub fn colmap_model(centres: &[DVec3]) -> Model {
+    let cameras = vec![
+        ColmapCamera {
+            id: 1,
+            model: "PINHOLE",
+            width: 64,
+            height: 48,
+            params: vec![60.0, 58.0, 32.5, 23.75],
+        },
+        ColmapCamera {
+            id: 7,
+            model: "SIMPLE_RADIAL",
+            width: 64,
+            height: 48,
+            params: vec![55.0, 31.0, 24.0, 0.0],
+        },
+    ];
+    let mut points: Vec<Point3D> = (0..27)
+        .map(|k| Point3D {
+            id: 100 + k as u64,
+            xyz: DVec3::new(
+                (k % 3) as f64 - 1.0,
+                ((k / 3) % 3) as f64 - 1.0,
+                (k / 9) as f64 - 1.0,
+            ) * 0.5,
+            rgb: [k as u8, 2 * k as u8, 255],
+            error: 0.25 + k as f64 * 1e-3,
+            track: Vec::new(),
+        })
+        .collect();
+    let mut images = Vec::new();
+    for (i, &c) in centres.iter().enumerate() {
+        let r = colmap_look_at(c, DVec3::ZERO);
+        let t = -(r * c);
+        let cam = &cameras[i % 2];
+        let (fx, fy, cx, cy) = match cam.model {
+            "PINHOLE" => (cam.params[0], cam.params[1], cam.params[2], cam.params[3]),
+            _ => (cam.params[0], cam.params[0], cam.params[1], cam.params[2]),
+        };
+        let id = 10 + i as u32;
+        let mut points2d = vec![([1.5, 2.5], None)];
+        for p in points.iter_mut() {
+            let q = r * p.xyz + t;
+            points2d.push(([fx * q.x / q.z + cx, fy * q.y / q.z + cy], Some(p.id)));
+            p.track.push((id, points2d.len() as u32 - 1));
+        }
+        images.push(ColmapImage {
+            id,
+            qvec: colmap_qvec(r),
+            tvec: t,
+            camera_id: cam.id,
+            // Names out of id order: the scene orders its views by name.
+            name: format!("view_{:02}.png", centres.len() - i),
+            points2d,
+        });
+    }
+    Model {
+        cameras,
+        images,
+        points,
+    }
+}
+
+/// A forward-facing rig: `n` cameras on a small arc 4 units from the origin.
+pub fn colmap_rig(n: usize) -> Vec<DVec3> {
+    (0..n)
+        .map(|i| DVec3::new(-0.6 + 0.3 * i as f64, 0.1 * (i % 2) as f64, -4.0))
+        .collect()
+}
+
+/// `model` written as a capture in `dir`: the model in `sparse/0` (`format`) and its images at
+/// half the cameras' size in `images/`.
+pub fn write_colmap_capture(dir: &std::path::Path, model: &Model, format: ModelFormat) {
+    model
+        .write(&dir.join("sparse/0"), format)
+        .expect("writing the model");
+    std::fs::create_dir_all(dir.join("images")).expect("creating images/");
+    for im in &model.images {
+        extranerf_nerf::run::write_png(
+            &dir.join("images").join(&im.name),
+            32,
+            24,
+            &[0.5; 32 * 24 * 3],
+        )
+        .expect("writing an image");
+    }
+}

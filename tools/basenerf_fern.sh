@@ -10,7 +10,7 @@ run="runs/fern_${name}"
 out="results/basenerf_fern_${name}"
 cargo build --release -p extranerf
 mkdir -p runs
-./target/release/extranerf train --scene ../shared/data/llff/fern --out "$run" --depth sparse \
+./target/release/extranerf train --scene ../shared/data/llff/fern --split extrapolation --out "$run" --depth sparse \
     --steps 5000 --rays 128 --samples 32 --log2-table 17 --log-every 50 2>&1 | tee "$run.train.log"
 ./target/release/extranerf eval "$run" --views test --save-images --lpips ../shared/models/lpips
 ./target/release/extranerf eval "$run" --views train --lpips-nets alex --lpips ../shared/models/lpips \

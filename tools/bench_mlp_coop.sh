@@ -38,7 +38,7 @@ for r in $(seq 1 "$rounds"); do
 done
 grep -h "samples/s;" "$out/train.txt" | sed 's/^/  /' | tee "$out/summary.txt"
 data="${EXTRANERF_DATA:-../shared/data}"
-"$bin" train --scene "$data/llff/fern" --depth sparse --steps 300 --mlp scalar --out "$out/fern_run" \
+"$bin" train --scene "$data/llff/fern" --split extrapolation --depth sparse --steps 300 --mlp scalar --out "$out/fern_run" \
     >"$out/fern_run.txt" 2>&1
 "$bin" bench render "$out/fern_run" --views 0 --json "$out/render.json" | tee "$out/render.txt"
 rm -rf "$out/fern_run"

@@ -11,7 +11,7 @@ run="runs/fern1500"
 cargo build --release -p extranerf
 if [ ! -f "$run/checkpoint.safetensors" ]; then
     mkdir -p runs
-    ./target/release/extranerf train --scene ../shared/data/llff/fern --out "$run" --depth sparse \
+    ./target/release/extranerf train --scene ../shared/data/llff/fern --split extrapolation --out "$run" --depth sparse \
         --steps 1500 --rays 128 --samples 32 --log2-table 17 --log-every 50
 fi
 ./target/release/extranerf bench render "$run" --views 4,15 \

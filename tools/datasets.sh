@@ -38,7 +38,7 @@ $bin eval "$runs/synthetic800_run" --views 100,105,110,115 --lpips-nets alex \
 
 # 2. The turntable at 100x100 against its exact renders.
 $bin turntable --out "$runs/turntable100" --size 100 --train 100 --test 20 2>&1 | tee "$out/turntable_100.txt"
-$bin train --scene "$runs/turntable100" --out "$runs/turntable100_run" --budget "${BUDGET:-300}" \
+$bin train --scene "$runs/turntable100" --split extrapolation --out "$runs/turntable100_run" --budget "${BUDGET:-300}" \
     --log-every 50 2>&1 | tee -a "$out/turntable_100.txt"
 $bin eval "$runs/turntable100_run" --views test --lpips-nets alex \
     --out "$out/turntable_100_metrics.json" 2>&1 | tail -1 \

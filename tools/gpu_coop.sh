@@ -34,7 +34,7 @@ step info 30 "$bin" info --json "$out/info.json"
 step bench_kernels 120 "$bin" bench kernels --json "$out/bench_kernels.json"
 step bench_train 180 "$bin" bench train --log2-table 17 --steps 20 --mlp coop,scalar --json "$out/bench_train.json"
 data="${EXTRANERF_DATA:-../shared/data}"
-step train_fern 300 "$bin" train --scene "$data/llff/fern" --factor 4 --steps 5000 --mlp auto --out "$out/fern_run"
+step train_fern 300 "$bin" train --scene "$data/llff/fern" --split extrapolation --factor 4 --steps 5000 --mlp auto --out "$out/fern_run"
 step eval_fern 120 "$bin" eval "$out/fern_run" --out "$out/fern_eval.json"
 step bench_render 90 "$bin" bench render "$out/fern_run" --views 0,1 --json "$out/bench_render.json"
 rm -f "$out/fern_run/"*.safetensors

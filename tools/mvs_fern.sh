@@ -10,7 +10,7 @@ DATA=${EXTRANERF_DATA:-../shared/data}
 BIN=target/release/extranerf
 cargo build --release -p extranerf
 mkdir -p "$OUT"
-"$BIN" mvs --scene "$DATA/llff/fern" --out "$OUT/half_64" 2>&1 | tee "$OUT/half_64.log"
-"$BIN" mvs --scene "$DATA/llff/fern" --downscale 1 --planes 128 --out "$OUT/full_128" 2>&1 \
+"$BIN" mvs --scene "$DATA/llff/fern" --split extrapolation --out "$OUT/half_64" 2>&1 | tee "$OUT/half_64.log"
+"$BIN" mvs --scene "$DATA/llff/fern" --split extrapolation --downscale 1 --planes 128 --out "$OUT/full_128" 2>&1 \
     | tee "$OUT/full_128.log"
 rm -f "$OUT"/*/*.exr "$OUT"/full_128/*.png

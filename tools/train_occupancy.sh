@@ -15,7 +15,7 @@ run_one() {
     shift
     local run="runs/occ_${name}"
     rm -rf "$run"
-    ./target/release/extranerf train --scene ../shared/data/llff/fern --out "$run" \
+    ./target/release/extranerf train --scene ../shared/data/llff/fern --split extrapolation --out "$run" \
         --steps "$steps" --rays 128 --samples 32 --log2-table 17 --log-every 50 "$@" 2>&1 \
         | tee "$out/${name}.train.log"
     ./target/release/extranerf eval "$run" --views test --lpips-nets alex \

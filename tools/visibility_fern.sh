@@ -12,7 +12,7 @@ DATA=${EXTRANERF_DATA:-../shared/data}
 BIN=target/release/extranerf
 cargo build --release -p extranerf
 mkdir -p "$OUT"
-"$BIN" cameras --scene "$DATA/llff/fern" --trajectory outward --count 8 --range 1.5 \
+"$BIN" cameras --scene "$DATA/llff/fern" --split extrapolation --trajectory outward --count 8 --range 1.5 \
     --out "$OUT/outward_cameras.json"
 "$BIN" visibility "$RUN" --views test --cameras "$OUT/outward_cameras.json" --training-masks \
     --downscale 4 --complete-depth 400 --out "$OUT/maps" 2>&1 | tee "$OUT/visibility.log"

@@ -143,11 +143,13 @@ impl MarchArgs {
 /// Which views of a scene train and which are held out, and the image size.
 #[derive(clap::Args, Debug, Clone)]
 pub struct SplitArgs {
-    /// How the scene's views divide into training and held-out views: extrapolation (6
-    /// central views train; the 8 farthest are held out), fewshot (RegNeRF: every 8th held out,
-    /// --fewshot-views spread over the rest), all (every view trains) or given (the data set's
-    /// split files: NeRF-synthetic's transforms_train.json trains, transforms_test.json is held
-    /// out) [default: given when the scene has transforms_train.json, else extrapolation].
+    /// How the scene's views divide into training and held-out views: holdout (every 8th view
+    /// held out for evaluation, all the others train: a capture's own split), all (every view
+    /// trains, none is held out), the benchmarks extrapolation (ExtraNeRF: 6 central views
+    /// train, the 8 farthest are held out) and fewshot (RegNeRF: every 8th held out,
+    /// --fewshot-views spread over the rest), or given (the data set's split files:
+    /// NeRF-synthetic's transforms_train.json trains, transforms_test.json is held out)
+    /// [default: given when the scene has transforms_train.json, else holdout].
     #[arg(long, value_enum)]
     pub split: Option<SplitKind>,
     /// Training views of the few-shot split.

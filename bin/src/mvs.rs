@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context as _};
 use extranerf_gpu::Context;
-use extranerf_nerf::data::colmap::read_points3d_bin;
+use extranerf_nerf::data::colmap::read_points3d;
 use extranerf_nerf::data::depth::{read_view_depth, sparse_depth, view_depth_paths};
 use extranerf_nerf::mvs_depth::{self, MvsDepthSettings};
 use extranerf_nerf::run::{write_depth_exr, write_png};
@@ -137,9 +137,9 @@ pub fn mvs(ctx: &Context, a: &MvsArgs) -> anyhow::Result<()> {
         seconds / full.len() as f64
     );
     // Sparse points, when the scene has them.
-    let points_path = a.scene.scene.join("sparse/0/points3D.bin");
+    let points_path = extranerf_nerf::run::points_path(&a.scene.scene);
     let points = if points_path.exists() {
-        Some(read_points3d_bin(&points_path)?)
+        Some(read_points3d(&points_path)?)
     } else {
         None
     };

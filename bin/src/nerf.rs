@@ -854,6 +854,18 @@ pub fn eval(ctx: &Context, a: &EvalArgs) -> anyhow::Result<()> {
         &out,
         serde_json::to_string_pretty(&summary)?.as_bytes(),
     )?;
+    if summary["test"]["psnr"].is_null() {
+        // `--split all`: every view trained; say so rather than print empty means.
+        println!(
+            "test: no held-out view (the {} split holds none; --views train or all scores the training views); train PSNR {:.2}; {resolution}, background {:?}; depth {}; wrote {}",
+            cfg.scene.split,
+            summary["train"]["psnr"].as_f64().unwrap_or(f64::NAN),
+            cfg.train.background,
+            cfg.scene.depth_label(),
+            out.display()
+        );
+        return Ok(());
+    }
     println!(
         "test: PSNR {:.2} SSIM {:.4} LPIPS(alex) {:.4} LPIPS(vgg) {:.4}; train PSNR {:.2}; {} split, {resolution}, background {:?}; depth {}; wrote {}",
         summary["test"]["psnr"].as_f64().unwrap_or(f64::NAN),

@@ -160,7 +160,9 @@ fn bad_arguments_are_clear_errors() {
     }
     let (ok, out, err) = extranerf(&["train", "--help"]);
     assert!(
-        ok && out.contains("else extrapolation]") && out.contains("fewshot"),
+        ok && out.contains("else holdout]")
+            && out.contains("fewshot")
+            && out.contains("extrapolation"),
         "{out}{err}"
     );
     let dir = std::env::temp_dir().join(format!("extranerf-cli-bad-{}", std::process::id()));
@@ -169,6 +171,8 @@ fn bad_arguments_are_clear_errors() {
         "train",
         "--scene",
         "/no/such/scene",
+        "--split",
+        "extrapolation",
         "--out",
         out.to_str().unwrap(),
     ]);
@@ -221,6 +225,8 @@ fn bad_arguments_are_clear_errors() {
         "extrapolate",
         "--scene",
         fern.to_str().unwrap(),
+        "--split",
+        "extrapolation",
         "--out",
         xnew.to_str().unwrap(),
         "--depth",
@@ -268,7 +274,15 @@ fn train_resume_render_eval_on_fern() {
         "--samples",
         "8",
     ];
-    let mut args = vec!["train", "--scene", scene.to_str().unwrap(), "--out", run_s];
+    let mut args = vec![
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--split",
+        "extrapolation",
+        "--out",
+        run_s,
+    ];
     args.extend([
         "--steps",
         "6",
@@ -305,7 +319,13 @@ fn train_resume_render_eval_on_fern() {
         (&["--rgb-loss", "huber", "--huber-delta", "0"][..], "Huber"),
     ] {
         let bad = dir.join("bad");
-        let mut a = vec!["train", "--scene", scene.to_str().unwrap()];
+        let mut a = vec![
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--split",
+            "extrapolation",
+        ];
         a.extend(["--out", bad.to_str().unwrap(), "--steps", "2"]);
         a.extend(tiny);
         a.extend(flags);
@@ -533,6 +553,8 @@ fn train_resume_render_eval_on_fern() {
         "cameras",
         "--scene",
         fern().to_str().unwrap(),
+        "--split",
+        "extrapolation",
         "--count",
         "2",
         "--out",
@@ -624,6 +646,82 @@ fn train_resume_render_eval_on_fern() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
+/// The views `eval` scored as held out in `run/metrics.json`.
+fn scored_test_views(run: &std::path::Path) -> Vec<u64> {
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+    m["views"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|v| v["role"] == "test")
+        .map(|v| v["view"].as_u64().unwrap())
+        .collect()
+}
+
+/// A COLMAP capture (a text model in `sparse/0`, its images in `images/`) trains with one
+/// command: by default every 8th view is held out and the others train; `--split all` trains on
+/// every view and `eval` says there is no held-out view; a benchmark split the capture is too
+/// small for says what to pass.
+#[test]
+fn a_colmap_capture_trains_on_its_views() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-colmap-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let cap = dir.join("capture");
+    let model = extranerf_tests::colmap_model(&extranerf_tests::colmap_rig(9));
+    extranerf_tests::write_colmap_capture(
+        &cap,
+        &model,
+        extranerf_nerf::data::colmap::ModelFormat::Text,
+    );
+    let cap_s = cap.to_str().unwrap();
+    let train = |run: &str, split: &[&str]| {
+        let run = dir.join(run);
+        let mut args = vec![
+            "train", "--scene", cap_s, "--factor", "1", "--steps", "4", "--depth", "sparse",
+            "--out",
+        ];
+        args.push(run.to_str().unwrap());
+        args.extend(split);
+        let (ok, _, err) = extranerf(&args);
+        (ok, err, run)
+    };
+    let (ok, err, run) = train("default", &[]);
+    assert!(ok, "{err}");
+    let cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["scene"]["split"], "holdout", "{cfg}");
+    // (AlexNet's LPIPS needs 31 pixels a side; these views are 32x24.)
+    let lpips = extranerf_tests::shared_data().join("../models/lpips");
+    let eval = |run: &std::path::Path| {
+        extranerf(&[
+            "eval",
+            run.to_str().unwrap(),
+            "--lpips-nets",
+            "vgg",
+            "--lpips",
+            lpips.to_str().unwrap(),
+        ])
+    };
+    let (ok, out, err) = eval(&run);
+    assert!(ok && out.contains("test: PSNR"), "{out}{err}");
+    assert_eq!(scored_test_views(&run), [0, 8]);
+    let (ok, err, run) = train("all", &["--split", "all"]);
+    assert!(ok, "{err}");
+    let (ok, out, err) = eval(&run);
+    assert!(
+        ok && out.contains("no held-out view") && out.contains("all split"),
+        "{out}{err}"
+    );
+    let (ok, err, _) = train("benchmark", &["--split", "extrapolation"]);
+    assert!(
+        !ok && err.contains("needs at least 14 views, the scene has 9")
+            && err.contains("--split all"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Run folders written by commit fc82428, before each stage recorded its serde spec
 /// (`tests/fixtures/old_runs`, their manifests): resumed with the commands that made them,
 /// every stage is found done and skipped and the manifest is left as it was; a setting a stage
@@ -663,6 +761,8 @@ fn old_run_folders_resume() {
         "extrapolate",
         "--scene",
         "demo/scene",
+        "--split",
+        "extrapolation",
         "--factor",
         "1",
         "--base-budget",
@@ -921,6 +1021,8 @@ fn cameras_writes_transforms_json() {
         "cameras",
         "--scene",
         fern.to_str().unwrap(),
+        "--split",
+        "extrapolation",
         "--trajectory",
         "spiral",
         "--count",
@@ -938,6 +1040,8 @@ fn cameras_writes_transforms_json() {
         "cameras",
         "--scene",
         fern.to_str().unwrap(),
+        "--split",
+        "extrapolation",
         "--trajectory",
         "zoom",
         "--out",
@@ -951,6 +1055,8 @@ fn cameras_writes_transforms_json() {
         "cameras",
         "--scene",
         fern.to_str().unwrap(),
+        "--split",
+        "extrapolation",
         "--range=-1",
         "--out",
         out.to_str().unwrap(),
@@ -1022,14 +1128,11 @@ fn nerf_synthetic_protocol_runs_through_eval() {
         serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(m["split"], "given");
     assert_eq!(m["resolution"], "32x32");
-    let tests: Vec<u64> = m["views"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|v| v["role"] == "test")
-        .map(|v| v["view"].as_u64().unwrap())
-        .collect();
-    assert_eq!(tests, vec![8, 9], "the test file's views are scored");
+    assert_eq!(
+        scored_test_views(&run),
+        vec![8, 9],
+        "the test file's views are scored"
+    );
     assert!(m["test"]["psnr"].as_f64().unwrap().is_finite());
     assert!(m["test"]["lpips_alex"].as_f64().unwrap().is_finite());
     let _ = std::fs::remove_dir_all(dir);
@@ -1049,6 +1152,8 @@ fn mvs_writes_depth_maps_training_reads() {
             "mvs",
             "--scene",
             scene.to_str().unwrap(),
+            "--split",
+            "extrapolation",
             "--downscale",
             "8",
             "--planes",
@@ -1119,7 +1224,13 @@ fn mvs_writes_depth_maps_training_reads() {
         "4",
     ];
     let run = dir.join("run");
-    let mut args = vec!["train", "--scene", scene.to_str().unwrap()];
+    let mut args = vec![
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--split",
+        "extrapolation",
+    ];
     args.extend([
         "--out",
         run.to_str().unwrap(),
@@ -1140,7 +1251,13 @@ fn mvs_writes_depth_maps_training_reads() {
         ("sparse", "depth: COLMAP sparse points", true),
     ] {
         let run = dir.join(format!("run-{depth}"));
-        let mut args = vec!["train", "--scene", scene.to_str().unwrap()];
+        let mut args = vec![
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--split",
+            "extrapolation",
+        ];
         args.extend(["--out", run.to_str().unwrap(), "--depth", depth]);
         args.extend(tiny);
         let (ok, _, err) = extranerf(&args);
@@ -1172,7 +1289,13 @@ fn mvs_writes_depth_maps_training_reads() {
         ),
     ] {
         let run = dir.join("run-bad");
-        let mut args = vec!["train", "--scene", scene.to_str().unwrap()];
+        let mut args = vec![
+            "train",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--split",
+            "extrapolation",
+        ];
         args.extend(["--out", run.to_str().unwrap()]);
         args.extend(flags.iter().copied());
         args.extend(tiny);
@@ -1184,6 +1307,8 @@ fn mvs_writes_depth_maps_training_reads() {
         "mvs",
         "--scene",
         scene.to_str().unwrap(),
+        "--split",
+        "extrapolation",
         "--radius",
         "4",
         "--out",
@@ -1206,6 +1331,8 @@ fn auto_config_budget_and_tradeoff_on_fern() {
         "train",
         "--scene",
         scene_s,
+        "--split",
+        "extrapolation",
         "--auto",
         "--steps",
         "2",
@@ -1237,6 +1364,8 @@ fn auto_config_budget_and_tradeoff_on_fern() {
         "train",
         "--scene",
         scene_s,
+        "--split",
+        "extrapolation",
         "--budget",
         "2",
         "--rays",
@@ -1255,6 +1384,8 @@ fn auto_config_budget_and_tradeoff_on_fern() {
         "train",
         "--scene",
         scene_s,
+        "--split",
+        "extrapolation",
         "--budget=-1",
         "--out",
         dir.join("bad").to_str().unwrap(),
@@ -1842,6 +1973,8 @@ fn resource_faults_are_clear_errors() {
             "train",
             "--scene",
             scene.to_str().unwrap(),
+            "--split",
+            "extrapolation",
             "--factor",
             "1",
             "--steps",
@@ -1938,6 +2071,8 @@ fn train_survives_sigkill_and_resumes() {
             "train",
             "--scene",
             scene.to_str().unwrap(),
+            "--split",
+            "extrapolation",
             "--factor",
             "1",
             "--out",

@@ -27,7 +27,8 @@ pub use crate::write::{
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneSpec {
-    /// LLFF folder (poses_bounds.npy) or a folder / file with transforms.json.
+    /// LLFF folder (poses_bounds.npy), a folder / file with transforms.json, or a COLMAP
+    /// capture (`sparse/0/` and `images/`).
     pub dir: PathBuf,
     /// Which split.
     pub split: SplitKind,
@@ -35,7 +36,8 @@ pub struct SceneSpec {
     pub fewshot_views: usize,
     /// LLFF downsampling factor (images_N).
     pub factor: u32,
-    /// Supervise depth with the COLMAP sparse points when `sparse/0/points3D.bin` exists.
+    /// Supervise depth with the COLMAP sparse points when `sparse/0/points3D.bin` (or `.txt`)
+    /// exists.
     pub sparse_depth: bool,
     /// Dense depth maps (`<image stem>.npy` or `.exr`, view depth in the capture's units) for
     /// every training view; they replace the sparse targets and the MVS maps.
@@ -95,9 +97,12 @@ pub fn shipped_depth_dir(scene_dir: &Path) -> PathBuf {
     root.join("depth")
 }
 
-/// COLMAP's sparse points of a scene.
-fn points_path(scene_dir: &Path) -> PathBuf {
-    scene_dir.join("sparse/0/points3D.bin")
+/// COLMAP's sparse points of a scene (`sparse/0/points3D.bin` or `.txt`; a path that does not
+/// exist where the scene has none).
+pub fn points_path(scene_dir: &Path) -> PathBuf {
+    crate::data::colmap_scene::model_dir(scene_dir)
+        .and_then(|d| colmap::points_file(&d))
+        .unwrap_or_else(|| scene_dir.join("sparse/0/points3D.bin"))
 }
 
 /// Why the training views of `loaded` cannot be matched by the plane sweep, if they cannot.
@@ -255,11 +260,14 @@ impl SceneSpec {
             load_transforms(&self.dir.join("transforms.json"))?
         } else if has_split_files(&self.dir) {
             load_split_transforms(&self.dir)?
+        } else if crate::data::colmap_scene::model_dir(&self.dir).is_some() {
+            crate::data::colmap_scene::load_colmap(&self.dir, self.factor)?
         } else {
             return Err(DataError::Malformed {
                 path: self.dir.clone(),
-                problem: "not a scene: expected poses_bounds.npy (LLFF), transforms.json or \
-                          transforms_train.json (NeRF-synthetic)"
+                problem: "not a scene: expected poses_bounds.npy (LLFF), transforms.json, \
+                          transforms_train.json (NeRF-synthetic) or a COLMAP model \
+                          (sparse/0/cameras.bin or .txt, with images/)"
                     .into(),
             }
             .into());
@@ -345,7 +353,7 @@ pub fn training_views_from(
     }
     let points_path = points_path(&spec.dir);
     let points = if spec.sparse_depth && points_path.exists() {
-        Some(colmap::read_points3d_bin(&points_path)?)
+        Some(colmap::read_points3d(&points_path)?)
     } else {
         None
     };

@@ -163,13 +163,7 @@ pub fn load_llff(dir: &Path, opts: &LlffOptions) -> Result<Scene> {
             ));
         }
         let (h_full, w_full, focal) = (r[4], r[9], r[14]);
-        let (w, h) = image::image_dimensions(&path).map_err(|e| match e {
-            image::ImageError::IoError(io) => DataError::io(&path, io),
-            e => DataError::Image {
-                path: path.clone(),
-                problem: e.to_string(),
-            },
-        })?;
+        let (w, h) = super::image_size(&path)?;
         // The images are the full capture downsampled; the focal scales with the width.
         let s = w as f64 / w_full;
         if ((h as f64 / h_full) - s).abs() > 0.01 {

@@ -6,6 +6,7 @@
 //! Every error names the file and the problem.
 
 pub mod colmap;
+pub mod colmap_scene;
 pub mod depth;
 pub mod llff;
 pub mod npy;
@@ -248,6 +249,17 @@ pub fn unorm8(v: f32) -> u8 {
 /// compared with).
 pub fn load_image_over(path: &Path, background: [f32; 3]) -> Result<Image> {
     Ok(load_image(path)?.over(background))
+}
+
+/// The width and height of the image file at `path`, from its header.
+pub(crate) fn image_size(path: &Path) -> Result<(u32, u32)> {
+    image::image_dimensions(path).map_err(|e| match e {
+        image::ImageError::IoError(io) => DataError::io(path, io),
+        e => DataError::Image {
+            path: path.to_path_buf(),
+            problem: e.to_string(),
+        },
+    })
 }
 
 /// Reads a whole file, naming it in the error.

@@ -14,6 +14,8 @@ pub enum Split {
     Extrapolation,
     /// RegNeRF few-shot: test on every 8th view, train on `n` views spread evenly over the rest.
     FewShot(usize),
+    /// LLFF's hold-out: test on every 8th view (0, 8, 16, ...), train on all the others.
+    Holdout,
     /// Train on every view, test on none.
     All,
     /// The data set's own split (NeRF-synthetic: train on `transforms_train.json`, test on
@@ -26,7 +28,11 @@ pub enum Split {
 #[serde(rename_all = "lowercase")]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum SplitKind {
-    /// ExtraNeRF's: the 6 views nearest the rig's centre train, the 8 farthest are held out.
+    /// A capture's own views: every 8th view is held out for evaluation (LLFF's convention),
+    /// all the others train. The default for a scene without split files.
+    Holdout,
+    /// ExtraNeRF's benchmark: the 6 views nearest the rig's centre train, the 8 farthest are
+    /// held out.
     Extrapolation,
     /// RegNeRF's: every 8th view held out, the few-shot count spread over the rest.
     #[cfg_attr(feature = "clap", value(name = "fewshot"))]
@@ -40,18 +46,20 @@ pub enum SplitKind {
 
 impl SplitKind {
     /// The default split for a scene folder: `given` when it holds split files
-    /// (`transforms_train.json`), else `extrapolation`.
+    /// (`transforms_train.json`), else `holdout` (the capture trains on its views; the
+    /// benchmark splits are asked for by name).
     pub fn default_for(dir: &Path) -> SplitKind {
         if super::transforms::has_split_files(dir) {
             SplitKind::Given
         } else {
-            SplitKind::Extrapolation
+            SplitKind::Holdout
         }
     }
 
     /// The split, with `fewshot_views` training views for the few-shot one.
     pub fn split(self, fewshot_views: usize) -> Split {
         match self {
+            SplitKind::Holdout => Split::Holdout,
             SplitKind::Extrapolation => Split::Extrapolation,
             SplitKind::FewShot => Split::FewShot(fewshot_views),
             SplitKind::All => Split::All,
@@ -62,6 +70,7 @@ impl SplitKind {
     /// The name in configs and reports.
     pub fn name(self) -> &'static str {
         match self {
+            SplitKind::Holdout => "holdout",
             SplitKind::Extrapolation => "extrapolation",
             SplitKind::FewShot => "fewshot",
             SplitKind::All => "all",
@@ -118,10 +127,25 @@ impl Split {
                 train: (0..n).collect(),
                 test: vec![],
             }),
+            Split::Holdout => {
+                if n < 2 {
+                    return Err(err(format!(
+                        "holding out every 8th view needs at least 2 views, the scene has {n}; \
+                         pass --split all to train on every view"
+                    )));
+                }
+                Ok(SplitIndices {
+                    train: (0..n).filter(|i| i % 8 != 0).collect(),
+                    test: (0..n).step_by(8).collect(),
+                })
+            }
             Split::Extrapolation => {
                 if n < EXTRAPOLATION_TRAIN + EXTRAPOLATION_TEST {
                     return Err(err(format!(
-                        "the extrapolation split needs at least 14 views, the scene has {n}"
+                        "the extrapolation split (ExtraNeRF's benchmark: 6 central views train, \
+                         the 8 farthest are held out) needs at least 14 views, the scene has {n}; \
+                         leave --split out to hold out every 8th view, or pass --split all to \
+                         train on every view"
                     )));
                 }
                 let mean = cameras.iter().map(Camera::centre).sum::<glam::DVec3>() / n as f64;
@@ -144,7 +168,12 @@ impl Split {
                 let test: Vec<usize> = (0..n).step_by(8).collect();
                 let rest: Vec<usize> = (0..n).filter(|i| i % 8 != 0).collect();
                 if k == 0 || k > rest.len() {
-                    return Err(err(format!("few-shot with {k} training views: choose 1 to {} for this scene of {n} views", rest.len())));
+                    return Err(err(format!(
+                        "few-shot with {k} training views: choose 1 to {} (--fewshot-views) for \
+                         this scene of {n} views, or leave --split out to train on every view \
+                         but every 8th",
+                        rest.len()
+                    )));
                 }
                 // RegNeRF: indices round(linspace(0, len - 1, k)) with Python's round-half-even.
                 let train = (0..k)

@@ -140,15 +140,7 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
         if c2w.determinant().abs() < 1e-12 {
             return Err(bad("`transform_matrix` is singular".into()));
         }
-        let dims = || {
-            image::image_dimensions(&image).map_err(|e| match e {
-                image::ImageError::IoError(io) => DataError::io(&image, io),
-                e => DataError::Image {
-                    path: image.clone(),
-                    problem: e.to_string(),
-                },
-            })
-        };
+        let dims = || super::image_size(&image);
         let (width, height) = match (num("w")?, num("h")?) {
             (Some(w), Some(h)) if (1.0..=65536.0).contains(&w) && (1.0..=65536.0).contains(&h) => {
                 let (w, h) = (w as u32, h as u32);

@@ -1,0 +1,316 @@
+//! COLMAP sparse models read as scenes: hand-made models written in both of COLMAP's formats
+//! (text and binary read back equal), a capture whose 3-D points project onto the pixels its
+//! images observe them at, fern converted to a COLMAP text model (its poses and bounds match
+//! `poses_bounds.npy`), and malformed models (truncated, wrong counts, unknown or distorted
+//! camera models): errors naming the file and the field.
+
+#![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
+
+use std::path::Path;
+
+use extranerf_nerf::data::colmap::{
+    read_points3d_bin, ColmapCamera, ColmapImage, Model, ModelFormat,
+};
+use extranerf_nerf::data::colmap_scene::{forward_facing, load_colmap};
+use extranerf_nerf::data::llff::{load_llff, LlffOptions};
+use extranerf_nerf::data::npy::read_npy;
+use extranerf_nerf::data::split::SplitKind;
+use extranerf_nerf::run::SceneSpec;
+use extranerf_tests::{
+    colmap_model, colmap_qvec, colmap_rig, scratch_dir, shared_data, write_colmap_capture,
+};
+use glam::{DMat3, DVec3};
+
+#[test]
+fn text_and_binary_models_round_trip_and_agree() {
+    let dir = scratch_dir("colmap-round-trip");
+    let model = colmap_model(&colmap_rig(5));
+    for format in [ModelFormat::Text, ModelFormat::Binary] {
+        let d = dir.join(format!("{format:?}"));
+        model.write(&d, format).unwrap();
+        assert_eq!(ModelFormat::of(&d), Some(format));
+        assert_eq!(Model::read(&d).unwrap(), model, "{format:?}");
+    }
+    // COLMAP's own text layout.
+    let cams = std::fs::read_to_string(dir.join("Text/cameras.txt")).unwrap();
+    assert!(
+        cams.contains("\n1 PINHOLE 64 48 60.0 58.0 32.5 23.75\n"),
+        "{cams}"
+    );
+    let images = std::fs::read_to_string(dir.join("Text/images.txt")).unwrap();
+    let line = images.lines().find(|l| l.starts_with("10 ")).unwrap();
+    assert!(line.ends_with(" 1 view_05.png"), "{line}");
+    assert!(
+        images.contains("1.5 2.5 -1 "),
+        "no unmatched 2-D point: {images}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_colmap_capture_projects_its_points_onto_their_pixels() {
+    let dir = scratch_dir("colmap-capture");
+    let model = colmap_model(&colmap_rig(5));
+    for format in [ModelFormat::Text, ModelFormat::Binary] {
+        let d = dir.join(format!("{format:?}"));
+        write_colmap_capture(&d, &model, format);
+        let scene = load_colmap(&d, 1).unwrap();
+        assert!(scene.forward_facing);
+        assert_eq!(scene.cameras.len(), 5);
+        // Ordered by name: view_01 is the last image of the model.
+        let names: Vec<String> = scene
+            .cameras
+            .iter()
+            .map(|c| c.image.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names[0], "view_01.png");
+        let world = scene.transform_points(&model.points);
+        let mut worst = 0f64;
+        for cam in &scene.cameras {
+            let im = model
+                .images
+                .iter()
+                .find(|im| cam.image.ends_with(&im.name))
+                .unwrap();
+            assert_eq!((cam.width, cam.height), (32, 24));
+            for (xy, p) in &im.points2d {
+                let Some(p) = p else { continue };
+                let k = model.points.iter().position(|q| q.id == *p).unwrap();
+                let (x, y, d) = cam.project(world[k]);
+                assert!(d > 0.0);
+                // The images are half the cameras' size.
+                worst = worst
+                    .max((x - xy[0] / 2.0).abs())
+                    .max((y - xy[1] / 2.0).abs());
+            }
+            let (near, far) = cam.bounds.unwrap();
+            assert!(near > 0.0 && far > near, "{near} {far}");
+        }
+        assert!(worst < 1e-9, "{format:?}: reprojection off by {worst} px");
+        // LLFF's normalisation: the nearest bound is 1 / 0.75, the average pose the identity.
+        let near = scene
+            .cameras
+            .iter()
+            .map(|c| c.bounds.unwrap().0)
+            .fold(f64::INFINITY, f64::min);
+        assert!((near - 1.0 / 0.75).abs() < 1e-9, "near {near}");
+        let c2ws: Vec<_> = scene.cameras.iter().map(|c| c.c2w).collect();
+        let avg = extranerf_nerf::data::llff::average_pose(&c2ws);
+        assert!(avg.abs_diff_eq(glam::DMat4::IDENTITY, 1e-9), "{avg:?}");
+        // Through the scene spec, as `--scene DIR` reads it.
+        let spec = SceneSpec {
+            dir: d.clone(),
+            split: SplitKind::All,
+            fewshot_views: 3,
+            factor: 1,
+            sparse_depth: true,
+            depth_dir: None,
+            mvs_depth: None,
+        };
+        let loaded = spec.load().unwrap();
+        assert_eq!(loaded.split.train.len(), 5);
+        assert!(extranerf_nerf::run::points_path(&d).exists());
+    }
+    // Cameras around the scene: not forward-facing.
+    let orbit: Vec<DVec3> = (0..8)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::TAU / 8.0;
+            DVec3::new(4.0 * a.cos(), 0.0, 4.0 * a.sin())
+        })
+        .collect();
+    let d = dir.join("orbit");
+    write_colmap_capture(&d, &colmap_model(&orbit), ModelFormat::Text);
+    assert!(!load_colmap(&d, 1).unwrap().forward_facing);
+    let half: Vec<_> = (0..5)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::PI / 4.0;
+            let c = DVec3::new(a.cos(), 0.0, a.sin()) * 4.0;
+            // OpenGL: looking along -z, so z points from the origin to the camera.
+            let z = c.normalize();
+            let x = DVec3::Y.cross(z).normalize();
+            glam::DMat4::from_cols(
+                x.extend(0.0),
+                z.cross(x).extend(0.0),
+                z.extend(0.0),
+                c.extend(1.0),
+            )
+        })
+        .collect();
+    assert!(!forward_facing(&half), "a half orbit");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `poses_bounds.npy`'s row `i` as a COLMAP image: LLFF's rotation columns are COLMAP's camera
+/// [down, right, backwards] axes in the world, its translation the camera centre.
+fn llff_row_as_image(row: &[f64], id: u32, name: String) -> ColmapImage {
+    let col = |c: usize| DVec3::new(row[c], row[5 + c], row[10 + c]);
+    let (down, right, back, centre) = (col(0), col(1), col(2), col(3));
+    let c2w = DMat3::from_cols(right, down, -back);
+    let r = c2w.transpose();
+    ColmapImage {
+        id,
+        qvec: colmap_qvec(r),
+        tvec: -(r * centre),
+        camera_id: 1,
+        name,
+        points2d: Vec::new(),
+    }
+}
+
+#[test]
+fn fern_as_a_colmap_text_model_matches_its_llff_poses_and_bounds() {
+    let fern = shared_data().join("llff").join("fern");
+    let dir = scratch_dir("colmap-fern");
+    let raw = read_npy(&fern.join("poses_bounds.npy")).unwrap();
+    let rows: Vec<&[f64]> = raw.data.chunks_exact(17).collect();
+    let (h, w, focal) = (rows[0][4], rows[0][9], rows[0][14]);
+    // Image ids in name order, as COLMAP gave them when it matched fern's photos.
+    let names: Vec<String> = (0..rows.len())
+        .map(|i| format!("image{i:03}.png"))
+        .collect();
+    let model = Model {
+        cameras: vec![ColmapCamera {
+            id: 1,
+            model: "PINHOLE",
+            width: w as u64,
+            height: h as u64,
+            params: vec![focal, focal, w / 2.0, h / 2.0],
+        }],
+        images: rows
+            .iter()
+            .enumerate()
+            .map(|(i, r)| llff_row_as_image(r, i as u32 + 1, names[i].clone()))
+            .collect(),
+        points: read_points3d_bin(&fern.join("sparse/0/points3D.bin")).unwrap(),
+    };
+    model
+        .write(&dir.join("sparse/0"), ModelFormat::Text)
+        .unwrap();
+    std::os::unix::fs::symlink(fern.join("images_8"), dir.join("images_8")).unwrap();
+    let colmap = load_colmap(&dir, 8).unwrap();
+    let llff = load_llff(&fern, &LlffOptions::default()).unwrap();
+    assert!(colmap.forward_facing);
+    assert_eq!(colmap.cameras.len(), llff.cameras.len());
+    for (i, (a, b)) in colmap.cameras.iter().zip(&llff.cameras).enumerate() {
+        assert_eq!(a.image, dir.join("images_8").join(&names[i]));
+        assert_eq!((a.width, a.height), (b.width, b.height));
+        assert!(
+            (a.fx - b.fx).abs() < 1e-9 && (a.cx - b.cx).abs() < 1e-9,
+            "view {i}"
+        );
+        let (ba, bb) = (a.bounds.unwrap(), b.bounds.unwrap());
+        assert!(
+            (ba.0 - bb.0).abs() < 1e-9 * bb.0 && (ba.1 - bb.1).abs() < 1e-9 * bb.1,
+            "view {i}: bounds {ba:?} from the points, {bb:?} in poses_bounds.npy"
+        );
+        assert!(
+            a.c2w.abs_diff_eq(b.c2w, 1e-9),
+            "view {i}: {:?} vs {:?}",
+            a.c2w,
+            b.c2w
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn err(dir: &Path) -> String {
+    load_colmap(dir, 1).unwrap_err().to_string()
+}
+
+#[test]
+fn malformed_colmap_models_are_errors_naming_the_file_and_field() {
+    let dir = scratch_dir("colmap-bad");
+    let model = colmap_model(&colmap_rig(5));
+    let fresh = |name: &str, format: ModelFormat| {
+        let d = dir.join(name);
+        write_colmap_capture(&d, &model, format);
+        d
+    };
+    // Truncated binary files.
+    let d = fresh("truncated", ModelFormat::Binary);
+    let images = d.join("sparse/0/images.bin");
+    let bytes = std::fs::read(&images).unwrap();
+    std::fs::write(&images, &bytes[..bytes.len() - 5]).unwrap();
+    let e = err(&d);
+    assert!(e.contains("images.bin") && e.contains("truncated"), "{e}");
+    // A count that the rest of the file cannot hold.
+    let mut huge = bytes.clone();
+    huge[..8].copy_from_slice(&u64::MAX.to_le_bytes());
+    std::fs::write(&images, &huge).unwrap();
+    let e = err(&d);
+    assert!(e.contains("images.bin") && e.contains("image count"), "{e}");
+    // Text: a camera with the wrong number of parameters, an unknown model, a distorted one,
+    // a fisheye; an image of a camera the model lacks; a 2-D point line that is not triples.
+    let text = |name: &str, file: &str, from: &str, to: &str| {
+        let d = fresh(name, ModelFormat::Text);
+        let p = d.join("sparse/0").join(file);
+        let t = std::fs::read_to_string(&p).unwrap();
+        assert!(t.contains(from), "{from} not in {file}");
+        std::fs::write(&p, t.replacen(from, to, 1)).unwrap();
+        err(&d)
+    };
+    let e = text(
+        "count",
+        "cameras.txt",
+        "60.0 58.0 32.5 23.75",
+        "60.0 58.0 32.5",
+    );
+    assert!(
+        e.contains("cameras.txt")
+            && e.contains("line 2")
+            && e.contains("PINHOLE has 4 parameters, the line gives 3"),
+        "{e}"
+    );
+    let e = text("unknown", "cameras.txt", "PINHOLE", "PINHOLISH");
+    assert!(
+        e.contains("cameras.txt") && e.contains("unknown model `PINHOLISH`"),
+        "{e}"
+    );
+    let e = text(
+        "distorted",
+        "cameras.txt",
+        "55.0 31.0 24.0 0.0",
+        "55.0 31.0 24.0 0.01",
+    );
+    assert!(
+        e.contains("SIMPLE_RADIAL with distortion") && e.contains("image_undistorter"),
+        "{e}"
+    );
+    let e = text(
+        "fisheye",
+        "cameras.txt",
+        "7 SIMPLE_RADIAL 64 48 55.0 31.0 24.0 0.0",
+        "7 SIMPLE_RADIAL_FISHEYE 64 48 55.0 31.0 24.0 0.0",
+    );
+    assert!(
+        e.contains("SIMPLE_RADIAL_FISHEYE") && e.contains("fisheye"),
+        "{e}"
+    );
+    let e = text("camera", "images.txt", " 1 view_05.png", " 9 view_05.png");
+    assert!(
+        e.contains("images.txt") && e.contains("names camera 9"),
+        "{e}"
+    );
+    let e = text("points", "images.txt", "1.5 2.5 -1 ", "1.5 2.5 ");
+    assert!(e.contains("images.txt") && e.contains("not triples"), "{e}");
+    let e = text("number", "points3D.txt", "\n100 ", "\n1x0 ");
+    assert!(
+        e.contains("points3D.txt") && e.contains("point id `1x0`"),
+        "{e}"
+    );
+    // An image the model names that is not in the image folder.
+    let d = fresh("missing", ModelFormat::Text);
+    std::fs::remove_file(d.join("images/view_03.png")).unwrap();
+    let e = err(&d);
+    assert!(e.contains("view_03.png"), "{e}");
+    // A downscale the capture does not have.
+    let e = load_colmap(&d, 8).unwrap_err().to_string();
+    assert!(
+        e.contains("images_8") && e.contains("pass --factor 1"),
+        "{e}"
+    );
+    // No model at all.
+    let e = err(&dir.join("missing/images"));
+    assert!(e.contains("no COLMAP model"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
