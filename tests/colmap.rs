@@ -1,8 +1,10 @@
-//! COLMAP sparse models read as scenes: hand-made models written in both of COLMAP's formats
+//! Captures as COLMAP and nerfstudio leave them. COLMAP sparse models read as scenes: hand-made
+//! models written in both of COLMAP's formats
 //! (text and binary read back equal), a capture whose 3-D points project onto the pixels its
 //! images observe them at, fern converted to a COLMAP text model (its poses and bounds match
 //! `poses_bounds.npy`), and malformed models (truncated, wrong counts, unknown or distorted
-//! camera models): errors naming the file and the field.
+//! camera models): errors naming the file and the field. nerfstudio's `transforms.json`: its
+//! camera model, its applied transform, the OpenGL convention and its downscaled image folders.
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
@@ -312,5 +314,101 @@ fn malformed_colmap_models_are_errors_naming_the_file_and_field() {
     // No model at all.
     let e = err(&dir.join("missing/images"));
     assert!(e.contains("no COLMAP model"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A nerfstudio capture (`ns-process-data`'s layout): `transforms.json` with `camera_model`,
+/// intrinsics at the full size, `applied_transform`, and the images in `images/` with their
+/// half-size twins in `images_2/`.
+fn nerfstudio_capture(dir: &Path, camera_model: &str) -> std::path::PathBuf {
+    for (folder, w, h) in [("images", 64, 48), ("images_2", 32, 24)] {
+        std::fs::create_dir_all(dir.join(folder)).unwrap();
+        for k in 1..=2 {
+            extranerf_nerf::run::write_png(
+                &dir.join(folder).join(format!("frame_{k:05}.png")),
+                w,
+                h,
+                &vec![0.5; (w * h * 3) as usize],
+            )
+            .unwrap();
+        }
+    }
+    let frame = |k: usize, x: f64| {
+        serde_json::json!({
+            "file_path": format!("images/frame_{k:05}.png"),
+            "transform_matrix": [[1.0, 0.0, 0.0, x], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]],
+        })
+    };
+    let doc = serde_json::json!({
+        "camera_model": camera_model,
+        "fl_x": 60.0, "fl_y": 58.0, "cx": 32.5, "cy": 23.75, "w": 64, "h": 48,
+        "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "applied_transform": [[0.0, -1.0, 0.0, 0.5], [1.0, 0.0, 0.0, -0.25], [0.0, 0.0, 1.0, 2.0]],
+        "frames": [frame(1, 0.0), frame(2, 1.0)],
+    });
+    let path = dir.join("transforms.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&doc).unwrap()).unwrap();
+    path
+}
+
+#[test]
+fn a_nerfstudio_capture_reads_its_camera_model_transform_and_downscaled_images() {
+    use extranerf_nerf::data::transforms::load_transforms_at;
+    let dir = scratch_dir("nerfstudio");
+    let path = nerfstudio_capture(&dir.join("opencv"), "OPENCV");
+    let full = load_transforms_at(&path, 1).unwrap();
+    let c = &full.cameras[0];
+    assert_eq!((c.width, c.height, c.fx, c.fy), (64, 48, 60.0, 58.0));
+    assert!(c.image.ends_with("images/frame_00001.png"));
+    // The OpenGL convention: an unrotated camera looks along -z with +y up: the origin, 4 in
+    // front of it, lands on the principal point, a point above it higher in the image.
+    let (x, y, d) = c.project(DVec3::ZERO);
+    assert!((x - 32.5).abs() < 1e-12 && (y - 23.75).abs() < 1e-12 && (d - 4.0).abs() < 1e-12);
+    assert!(c.project(DVec3::new(0.0, 0.5, 0.0)).1 < 23.75);
+    assert!(
+        full.cameras[1].project(DVec3::ZERO).0 < 32.5,
+        "the second camera is to the right"
+    );
+    // The applied transform maps COLMAP's world (its points) into the poses' world.
+    let want = glam::DMat4::from_cols_array_2d(&[
+        [0.0, 1.0, 0.0, 0.0],
+        [-1.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.5, -0.25, 2.0, 1.0],
+    ]);
+    assert_eq!(full.world_from_source, want);
+    // A downscale reads the twins, the intrinsics scaled to their size; one the capture does
+    // not have reads the images as named.
+    let half = load_transforms_at(&path, 2).unwrap();
+    let h = &half.cameras[1];
+    assert_eq!(
+        (h.width, h.height, h.fx, h.fy, h.cx, h.cy),
+        (32, 24, 30.0, 29.0, 16.25, 11.875)
+    );
+    assert!(h.image.ends_with("images_2/frame_00002.png"));
+    let quarter = load_transforms_at(&path, 4).unwrap();
+    assert_eq!(quarter.cameras[0].width, 64);
+    // As `--scene DIR --factor 2` reads it.
+    let spec = SceneSpec {
+        dir: dir.join("opencv"),
+        split: SplitKind::All,
+        fewshot_views: 3,
+        factor: 2,
+        sparse_depth: false,
+        depth_dir: None,
+        mvs_depth: None,
+    };
+    assert_eq!(spec.load().unwrap().scene.cameras[0].width, 32);
+    // Cameras that are not perspective ones are refused, naming the model.
+    for model in ["OPENCV_FISHEYE", "EQUIRECTANGULAR"] {
+        let p = nerfstudio_capture(&dir.join(model), model);
+        let e = load_transforms_at(&p, 1).unwrap_err().to_string();
+        assert!(
+            e.contains(model)
+                && e.contains("not a perspective camera")
+                && e.contains("transforms.json"),
+            "{e}"
+        );
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::data::depth::{read_view_depth, sparse_depth, view_depth_paths};
 use crate::data::llff::{load_llff, LlffOptions};
 use crate::data::split::{Split, SplitIndices, SplitKind};
-use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms};
+use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms_at};
 use crate::data::{colmap, load_image, Camera, DataError, Scene};
 use crate::model::{ModelConfig, ParamLayout};
 use crate::mvs_depth::{CacheUse, MvsDepthSettings, ViewDepth};
@@ -255,9 +255,9 @@ impl SceneSpec {
                 },
             )?
         } else if self.dir.is_file() {
-            load_transforms(&self.dir)?
+            load_transforms_at(&self.dir, self.factor)?
         } else if self.dir.join("transforms.json").exists() {
-            load_transforms(&self.dir.join("transforms.json"))?
+            load_transforms_at(&self.dir.join("transforms.json"), self.factor)?
         } else if has_split_files(&self.dir) {
             load_split_transforms(&self.dir)?
         } else if crate::data::colmap_scene::model_dir(&self.dir).is_some() {

@@ -22,12 +22,13 @@ const BD_FACTOR: f64 = 0.75;
 /// viewing direction (LLFF rigs: under 20; a half orbit: 90).
 pub const FORWARD_FACING_DEGREES: f64 = 45.0;
 
-/// The folder of the COLMAP model of scene folder `dir`: `sparse/0`, `sparse`, or `dir` itself,
-/// the first that holds `cameras.bin` or `cameras.txt`.
+/// The folder of the COLMAP model of scene folder `dir`: `sparse/0`, `sparse`, nerfstudio's
+/// `colmap/sparse/0`, or `dir` itself, the first that holds `cameras.bin` or `cameras.txt`.
 pub fn model_dir(dir: &Path) -> Option<PathBuf> {
     [
         dir.join("sparse").join("0"),
         dir.join("sparse"),
+        dir.join("colmap").join("sparse").join("0"),
         dir.to_path_buf(),
     ]
     .into_iter()

@@ -1,6 +1,9 @@
 //! instant-ngp / nerfstudio `transforms.json` scenes (OpenGL camera convention, as written by
 //! both tools), and NeRF-synthetic's split files (`transforms_{train,val,test}.json`). Lens
-//! distortion is refused rather than ignored: undistort the images first.
+//! distortion is refused rather than ignored: undistort the images first. Of nerfstudio's
+//! fields: `camera_model` (the perspective models; fisheye and equirectangular are refused),
+//! `applied_transform` (what maps COLMAP's world, and so its points, into the poses' world) and
+//! the downscaled `images_N/` twins of `images/` that `ns-process-data` writes.
 
 use std::path::{Path, PathBuf};
 
@@ -59,8 +62,70 @@ pub fn load_split_transforms(dir: &Path) -> Result<Scene> {
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 
+/// nerfstudio's perspective camera models (its `CAMERA_MODEL_TO_TYPE`); their distortion
+/// must be zero.
+const PERSPECTIVE: [&str; 5] = [
+    "SIMPLE_PINHOLE",
+    "PINHOLE",
+    "SIMPLE_RADIAL",
+    "RADIAL",
+    "OPENCV",
+];
+
 /// Loads a `transforms.json` file; image paths are relative to its folder.
 pub fn load_transforms(path: &Path) -> Result<Scene> {
+    load_transforms_at(path, 1)
+}
+
+/// A matrix of 3 or 4 rows of 4 finite numbers (a missing last row is `0 0 0 1`).
+fn matrix(v: &Value) -> Option<DMat4> {
+    let rows: Vec<Vec<f64>> = v
+        .as_array()?
+        .iter()
+        .map(|r| {
+            r.as_array()
+                .map(|r| r.iter().filter_map(Value::as_f64).collect())
+                .unwrap_or_default()
+        })
+        .collect();
+    if !(rows.len() == 3 || rows.len() == 4)
+        || rows.iter().any(|r| r.len() != 4)
+        || rows.iter().flatten().any(|v| !v.is_finite())
+    {
+        return None;
+    }
+    let at = |r: usize, c: usize| {
+        if r < rows.len() {
+            rows[r][c]
+        } else if c == 3 {
+            1.0
+        } else {
+            0.0
+        }
+    };
+    Some(DMat4::from_cols_array_2d(&[
+        [at(0, 0), at(1, 0), at(2, 0), at(3, 0)],
+        [at(0, 1), at(1, 1), at(2, 1), at(3, 1)],
+        [at(0, 2), at(1, 2), at(2, 2), at(3, 2)],
+        [at(0, 3), at(1, 3), at(2, 3), at(3, 3)],
+    ]))
+}
+
+/// The downscaled twin of `file` for `factor` > 1: `images_{factor}/REST` for `images/REST`
+/// (nerfstudio's layout), where it exists.
+fn downscaled_twin(dir: &Path, file: &str, factor: u32) -> Option<PathBuf> {
+    if factor <= 1 {
+        return None;
+    }
+    let rest = Path::new(file).strip_prefix("images").ok()?;
+    let twin = dir.join(format!("images_{factor}")).join(rest);
+    twin.is_file().then_some(twin)
+}
+
+/// Loads a `transforms.json` file whose images have twins downscaled `factor` times in
+/// `images_{factor}/` (nerfstudio's layout): those are read where they exist, with the
+/// intrinsics scaled to their size; where they do not, the images as the file names them.
+pub fn load_transforms_at(path: &Path, factor: u32) -> Result<Scene> {
     let bytes = read_file(path)?;
     let root: Value = serde_json::from_slice(&bytes)
         .map_err(|e| DataError::malformed(path, format!("invalid JSON: {e}")))?;
@@ -86,6 +151,17 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
                     .ok_or_else(|| bad(format!("`{key}` is not a finite number"))),
             }
         };
+        let model = f.get("camera_model").or_else(|| root.get("camera_model"));
+        if let Some(m) = model {
+            let name = m.as_str().unwrap_or("");
+            if !PERSPECTIVE.contains(&name) {
+                return Err(bad(format!(
+                    "camera_model {m} is not a perspective camera this loader models ({}); \
+                     fisheye and equirectangular captures are not supported",
+                    PERSPECTIVE.join(", ")
+                )));
+            }
+        }
         for k in DISTORTION {
             if num(k)?.is_some_and(|v| v != 0.0) {
                 return Err(bad(format!(
@@ -102,41 +178,15 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
             // NeRF's synthetic scenes omit the extension.
             image = PathBuf::from(format!("{}.png", image.display()));
         }
-        let m = f
-            .get("transform_matrix")
-            .and_then(Value::as_array)
-            .ok_or_else(|| bad("no `transform_matrix`".into()))?;
-        let rows: Vec<Vec<f64>> = m
-            .iter()
-            .map(|r| {
-                r.as_array()
-                    .map(|r| r.iter().filter_map(Value::as_f64).collect())
-                    .unwrap_or_default()
-            })
-            .collect();
-        if rows.len() < 3
-            || rows.iter().take(4).any(|r| r.len() != 4)
-            || rows.iter().flatten().any(|v| !v.is_finite())
-        {
-            return Err(bad(
-                "`transform_matrix` must be 4 rows of 4 finite numbers (3 rows accepted)".into(),
-            ));
-        }
-        let at = |r: usize, c: usize| {
-            if r < rows.len() {
-                rows[r][c]
-            } else if c == 3 {
-                1.0
-            } else {
-                0.0
-            }
-        };
-        let c2w = DMat4::from_cols_array_2d(&[
-            [at(0, 0), at(1, 0), at(2, 0), at(3, 0)],
-            [at(0, 1), at(1, 1), at(2, 1), at(3, 1)],
-            [at(0, 2), at(1, 2), at(2, 2), at(3, 2)],
-            [at(0, 3), at(1, 3), at(2, 3), at(3, 3)],
-        ]);
+        let c2w =
+            f.get("transform_matrix")
+                .ok_or_else(|| bad("no `transform_matrix`".into()))
+                .and_then(|m| {
+                    matrix(m).ok_or_else(|| {
+                    bad("`transform_matrix` must be 4 rows of 4 finite numbers (3 rows accepted)"
+                        .into())
+                })
+                })?;
         if c2w.determinant().abs() < 1e-12 {
             return Err(bad("`transform_matrix` is singular".into()));
         }
@@ -185,7 +235,7 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
         }
         let cx = num("cx")?.unwrap_or(width as f64 / 2.0);
         let cy = num("cy")?.unwrap_or(height as f64 / 2.0);
-        cameras.push(Camera {
+        let mut cam = Camera {
             c2w,
             width,
             height,
@@ -195,12 +245,47 @@ pub fn load_transforms(path: &Path) -> Result<Scene> {
             cy,
             bounds: None,
             image,
-        });
+        };
+        if let Some(twin) = downscaled_twin(dir, file, factor) {
+            // The intrinsics are the full images'; the twin's own size scales them.
+            let (tw, th) = super::image_size(&twin)?;
+            let (sx, sy) = (tw as f64 / width as f64, th as f64 / height as f64);
+            if (sx - sy).abs() > 0.01 * sx.max(sy) {
+                return Err(DataError::malformed(
+                    &twin,
+                    format!("{tw}x{th} does not have the aspect of the {width}x{height} frame"),
+                ));
+            }
+            cam = Camera {
+                width: tw,
+                height: th,
+                fx: fx * sx,
+                fy: fy * sy,
+                cx: cx * sx,
+                cy: cy * sy,
+                image: twin,
+                ..cam
+            };
+        }
+        cameras.push(cam);
     }
+    // nerfstudio: what was applied to COLMAP's world to make the poses' (and so maps COLMAP's
+    // points into it).
+    let world_from_source = match root.get("applied_transform") {
+        None | Some(Value::Null) => DMat4::IDENTITY,
+        Some(m) => matrix(m)
+            .filter(|m| m.determinant().abs() > 1e-12)
+            .ok_or_else(|| {
+                DataError::malformed(
+                    path,
+                    "`applied_transform` must be 3 rows of 4 finite numbers, invertible",
+                )
+            })?,
+    };
     Ok(Scene {
         source: path.to_path_buf(),
         cameras,
-        world_from_source: DMat4::IDENTITY,
+        world_from_source,
         forward_facing: false,
         given: None,
         bounded_object: false,
