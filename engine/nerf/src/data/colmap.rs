@@ -119,6 +119,16 @@ impl Reader<'_> {
         }
         Ok(v)
     }
+    /// Refuses bytes left after the `n` records (`what`) the file said it holds.
+    fn finish(&self, n: usize, what: &str) -> Result<()> {
+        if self.at != self.bytes.len() {
+            return Err(DataError::malformed(
+                self.path,
+                format!("{} bytes left after {n} {what}", self.bytes.len() - self.at),
+            ));
+        }
+        Ok(())
+    }
     /// A count, refused when even the smallest records could not fit in the rest of the file.
     fn count(&mut self, what: &str, min_record: usize) -> Result<usize> {
         let n = self.u64(what)?;
@@ -162,12 +172,7 @@ pub fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>> {
             params,
         });
     }
-    if r.at != bytes.len() {
-        return Err(DataError::malformed(
-            path,
-            format!("{} bytes left after {n} cameras", bytes.len() - r.at),
-        ));
-    }
+    r.finish(n, "cameras")?;
     Ok(cams)
 }
 
@@ -199,12 +204,7 @@ pub fn read_points3d_bin(path: &Path) -> Result<Vec<Point3D>> {
             track,
         });
     }
-    if r.at != bytes.len() {
-        return Err(DataError::malformed(
-            path,
-            format!("{} bytes left after {n} points", bytes.len() - r.at),
-        ));
-    }
+    r.finish(n, "points")?;
     Ok(points)
 }
 
@@ -252,12 +252,7 @@ pub fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>> {
             points2d,
         });
     }
-    if r.at != bytes.len() {
-        return Err(DataError::malformed(
-            path,
-            format!("{} bytes left after {n} images", bytes.len() - r.at),
-        ));
-    }
+    r.finish(n, "images")?;
     Ok(images)
 }
 

@@ -7,6 +7,7 @@
 //! capture is forward-facing (NDC applies) or looks around a scene is read from the cameras'
 //! viewing directions.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DMat4, DQuat, DVec3};
@@ -106,16 +107,30 @@ fn percentile(v: &[f64], q: f64) -> f64 {
     }
 }
 
-/// Near and far depth of `im` from the points it observes (LLFF's `imgs2poses`: the 0.1 and
-/// 99.9 percentiles of their depths), or from every point in front of it where it observes
-/// none; None where no point lies in front of it.
-fn bounds(im: &ColmapImage, points: &[Point3D]) -> Option<(f64, f64)> {
+/// The points each image observes (indices into `points`, ascending), from the points' tracks,
+/// in one pass over them.
+fn observed(points: &[Point3D]) -> HashMap<u32, Vec<usize>> {
+    let mut by_image: HashMap<u32, Vec<usize>> = HashMap::new();
+    for (k, p) in points.iter().enumerate() {
+        let mut ids: Vec<u32> = p.track.iter().map(|t| t.0).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        for id in ids {
+            by_image.entry(id).or_default().push(k);
+        }
+    }
+    by_image
+}
+
+/// Near and far depth of `im` from the points it observes (`seen`, indices into `points`;
+/// LLFF's `imgs2poses`: the 0.1 and 99.9 percentiles of their depths), or from every point in
+/// front of it where it observes none; None where no point lies in front of it.
+fn bounds(im: &ColmapImage, points: &[Point3D], seen: &[usize]) -> Option<(f64, f64)> {
     let r = rotation(im);
     let depth = |p: &Point3D| (r * p.xyz + im.tvec).z;
-    let seen: Vec<f64> = points
+    let seen: Vec<f64> = seen
         .iter()
-        .filter(|p| p.track.iter().any(|t| t.0 == im.id))
-        .map(depth)
+        .map(|&k| depth(&points[k]))
         .filter(|z| *z > 0.0)
         .collect();
     let mut z = if seen.is_empty() {
@@ -197,6 +212,7 @@ pub fn load_colmap(dir: &Path, factor: u32) -> Result<Scene> {
     }
     let mut images: Vec<&ColmapImage> = model.images.iter().collect();
     images.sort_by(|a, b| a.name.cmp(&b.name));
+    let observers = observed(&model.points);
     let mut c2ws = Vec::with_capacity(images.len());
     let mut near_far = Vec::with_capacity(images.len());
     for im in &images {
@@ -208,7 +224,8 @@ pub fn load_colmap(dir: &Path, factor: u32) -> Result<Scene> {
             ));
         }
         c2ws.push(pose);
-        let Some(b) = bounds(im, &model.points) else {
+        let seen = observers.get(&im.id).map_or(&[][..], Vec::as_slice);
+        let Some(b) = bounds(im, &model.points, seen) else {
             return Err(DataError::malformed(
                 &file("points3D"),
                 format!(
