@@ -4,7 +4,8 @@
 //! images observe them at, fern converted to a COLMAP text model (its poses and bounds match
 //! `poses_bounds.npy`), and malformed models (truncated, wrong counts, unknown or distorted
 //! camera models): errors naming the file and the field. nerfstudio's `transforms.json`: its
-//! camera model, its applied transform, the OpenGL convention and its downscaled image folders.
+//! camera model, its applied transform, the OpenGL convention, its downscaled image folders and
+//! the depth files its frames name (millimetres; `depths_N/` twins).
 
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test, with the error in the message
 
@@ -108,6 +109,7 @@ fn a_colmap_capture_projects_its_points_onto_their_pixels() {
             sparse_depth: true,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         };
         let loaded = spec.load().unwrap();
         assert_eq!(loaded.split.train.len(), 5);
@@ -397,6 +399,7 @@ fn a_nerfstudio_capture_reads_its_camera_model_transform_and_downscaled_images()
         sparse_depth: false,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     };
     assert_eq!(spec.load().unwrap().scene.cameras[0].width, 32);
     // Cameras that are not perspective ones are refused, naming the model.
@@ -410,5 +413,287 @@ fn a_nerfstudio_capture_reads_its_camera_model_transform_and_downscaled_images()
             "{e}"
         );
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// nerfstudio's depth in millimetres at pixel `(x, y)` of a `w`-wide map (`salt` tells the
+/// maps apart); 0 at the top-left pixel, "no depth".
+fn depth_mm(x: u32, y: u32, w: u32, salt: u32) -> u16 {
+    if x == 0 && y == 0 {
+        0
+    } else {
+        (1000 + salt + x + w * y) as u16
+    }
+}
+
+#[test]
+fn a_nerfstudio_capture_reads_the_depth_files_its_frames_name() {
+    use extranerf_nerf::data::depth::read_capture_depth;
+    use extranerf_nerf::data::npy::write_npy_f64;
+    use extranerf_nerf::data::transforms::load_transforms_at;
+    use extranerf_nerf::model::{ModelConfig, Space};
+    use extranerf_nerf::run::{training_views, DepthRequest};
+    let dir = scratch_dir("nerfstudio-depth");
+    let path = nerfstudio_capture(&dir, "PINHOLE");
+    let png16 = |file: &Path, w: u32, h: u32, salt: u32| {
+        std::fs::create_dir_all(file.parent().unwrap()).unwrap();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_fn(w, h, |x, y| {
+            image::Luma([depth_mm(x, y, w, salt)])
+        })
+        .save(file)
+        .unwrap();
+    };
+    // Frame 1: a 16-bit PNG with a downscaled twin in depths_2/; frame 2: a .npy without one.
+    png16(&dir.join("depths/frame_00001.png"), 64, 48, 0);
+    png16(&dir.join("depths_2/frame_00001.png"), 32, 24, 7);
+    let npy: Vec<f64> = (0..48u32)
+        .flat_map(|y| (0..64u32).map(move |x| f64::from(depth_mm(x, y, 64, 3))))
+        .collect();
+    write_npy_f64(&dir.join("depths/frame_00002.npy"), &[48, 64], &npy).unwrap();
+    let mut doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    let with_depth = |doc: &mut serde_json::Value, files: [Option<&str>; 2]| {
+        for (f, d) in doc["frames"].as_array_mut().unwrap().iter_mut().zip(files) {
+            match d {
+                Some(d) => f["depth_file_path"] = d.into(),
+                None => {
+                    f.as_object_mut().unwrap().remove("depth_file_path");
+                }
+            }
+        }
+        std::fs::write(&path, serde_json::to_string(doc).unwrap()).unwrap();
+    };
+    with_depth(
+        &mut doc,
+        [
+            Some("depths/frame_00001.png"),
+            Some("depths/frame_00002.npy"),
+        ],
+    );
+    // Full size: millimetres to the capture's units, 0 where there is no depth.
+    let full = load_transforms_at(&path, 1).unwrap();
+    assert_eq!(full.depth_files.len(), 2);
+    assert!(full.depth_files[0].ends_with("depths/frame_00001.png"));
+    for (k, salt) in [(0, 0), (1, 3)] {
+        let d = read_capture_depth(&full.depth_files[k], &full.cameras[k]).unwrap();
+        assert_eq!(d.len(), 64 * 48);
+        for (y, x) in [(0, 0), (0, 1), (47, 63), (20, 33)] {
+            let want = f64::from(depth_mm(x, y, 64, salt)) * 1e-3;
+            assert_eq!(
+                d[(y * 64 + x) as usize],
+                want as f32,
+                "view {k} pixel ({x}, {y})"
+            );
+        }
+    }
+    // A downscale reads depths_2/ where it is there; else the full map's nearest samples.
+    let half = load_transforms_at(&path, 2).unwrap();
+    assert!(half.depth_files[0].ends_with("depths_2/frame_00001.png"));
+    let d0 = read_capture_depth(&half.depth_files[0], &half.cameras[0]).unwrap();
+    assert_eq!(
+        d0[32 * 5 + 9],
+        (f64::from(depth_mm(9, 5, 32, 7)) * 1e-3) as f32
+    );
+    let d1 = read_capture_depth(&half.depth_files[1], &half.cameras[1]).unwrap();
+    assert_eq!(d1.len(), 32 * 24);
+    for (x, y) in [(0, 0), (9, 5), (31, 23)] {
+        assert_eq!(
+            d1[(y * 32 + x) as usize],
+            (f64::from(depth_mm(2 * x + 1, 2 * y + 1, 64, 3)) * 1e-3) as f32,
+            "pixel ({x}, {y}) of the resampled map"
+        );
+    }
+    // Training reads them by default (auto) and as asked (capture): view depth targets, in
+    // world space, equal to the files' with confidence 1.
+    let mut spec = SceneSpec {
+        dir: dir.clone(),
+        split: SplitKind::All,
+        fewshot_views: 3,
+        factor: 1,
+        sparse_depth: false,
+        depth_dir: None,
+        mvs_depth: None,
+        capture_depth: false,
+    };
+    let loaded = spec.load().unwrap();
+    let said = DepthRequest::Auto
+        .resolve(&mut spec, &loaded, Default::default())
+        .unwrap();
+    assert!(
+        spec.capture_depth && said.contains("depth_file_path"),
+        "{said}"
+    );
+    let model = ModelConfig {
+        space: Space::World,
+        ..ModelConfig::default()
+    };
+    let views = training_views(&spec, &loaded, &model).unwrap();
+    for (k, salt) in [(0usize, 0), (1, 3)] {
+        let depth = views[k].depth.as_ref().unwrap();
+        assert_eq!(depth[0], [0.0, 0.0], "no depth at the top-left pixel");
+        let want = (f64::from(depth_mm(5, 7, 64, salt)) * 1e-3) as f32;
+        assert_eq!(depth[7 * 64 + 5], [want, 1.0], "view {k}");
+    }
+    DepthRequest::Capture
+        .resolve(&mut spec, &loaded, Default::default())
+        .unwrap();
+    assert!(spec.capture_depth);
+    // A scene whose frames name no depth file: `capture` says so; auto does not pick it.
+    let plain = nerfstudio_capture(&dir.join("plain"), "PINHOLE");
+    let mut plain_spec = SceneSpec {
+        dir: plain.parent().unwrap().to_path_buf(),
+        ..spec.clone()
+    };
+    let plain_loaded = plain_spec.load().unwrap();
+    let e = DepthRequest::Capture
+        .resolve(&mut plain_spec, &plain_loaded, Default::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("depth_file_path"), "{e}");
+    DepthRequest::Auto
+        .resolve(&mut plain_spec, &plain_loaded, Default::default())
+        .unwrap();
+    assert!(!plain_spec.capture_depth);
+    // Malformed: a frame without a depth file where the one before has one, and the reverse;
+    // a file that is not there; a colour PNG; a map of another aspect; another format.
+    let err = |doc: &mut serde_json::Value, files: [Option<&str>; 2]| {
+        with_depth(doc, files);
+        load_transforms_at(&path, 1).unwrap_err().to_string()
+    };
+    let e = err(&mut doc, [Some("depths/frame_00001.png"), None]);
+    assert!(
+        e.contains("frame 1") && e.contains("depth_file_path"),
+        "{e}"
+    );
+    let e = err(&mut doc, [None, Some("depths/frame_00002.npy")]);
+    assert!(e.contains("frame 1") && e.contains("lack"), "{e}");
+    let e = err(
+        &mut doc,
+        [Some("depths/missing.png"), Some("depths/frame_00002.npy")],
+    );
+    assert!(
+        e.contains("depths/missing.png") && e.contains("no such file"),
+        "{e}"
+    );
+    let read_err = |file: &Path| {
+        read_capture_depth(file, &full.cameras[0])
+            .unwrap_err()
+            .to_string()
+    };
+    let rgb = dir.join("images/frame_00001.png");
+    let e = read_err(&rgb);
+    assert!(
+        e.contains("frame_00001.png") && e.contains("one grey channel"),
+        "{e}"
+    );
+    let square = dir.join("depths/square.npy");
+    write_npy_f64(&square, &[30, 30], &[1000.0; 900]).unwrap();
+    let e = read_err(&square);
+    assert!(e.contains("square.npy") && e.contains("aspect"), "{e}");
+    let e = read_err(&dir.join("transforms.json"));
+    assert!(e.contains(".png") && e.contains(".npy"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `a` and `b` are the same scene: cameras (poses to 1e-9, intrinsics, bounds, image names)
+/// and the transform from the source's world.
+fn assert_same_scene(a: &extranerf_nerf::data::Scene, b: &extranerf_nerf::data::Scene) {
+    assert_eq!(a.cameras.len(), b.cameras.len());
+    assert_eq!(a.forward_facing, b.forward_facing);
+    assert!(
+        a.world_from_source.abs_diff_eq(b.world_from_source, 1e-9),
+        "{:?} vs {:?}",
+        a.world_from_source,
+        b.world_from_source
+    );
+    for (i, (p, q)) in a.cameras.iter().zip(&b.cameras).enumerate() {
+        assert_eq!(p.image.file_name(), q.image.file_name(), "view {i}");
+        assert_eq!((p.width, p.height), (q.width, q.height), "view {i}");
+        for (u, v) in [(p.fx, q.fx), (p.fy, q.fy), (p.cx, q.cx), (p.cy, q.cy)] {
+            assert!((u - v).abs() < 1e-9, "view {i}: intrinsics {u} vs {v}");
+        }
+        assert!(
+            p.c2w.abs_diff_eq(q.c2w, 1e-9),
+            "view {i}: {:?} vs {:?}",
+            p.c2w,
+            q.c2w
+        );
+        let (bp, bq) = (p.bounds.unwrap(), q.bounds.unwrap());
+        assert!(
+            (bp.0 - bq.0).abs() < 1e-9 * bq.0 && (bp.1 - bq.1).abs() < 1e-9 * bq.1,
+            "view {i}: bounds {bp:?} vs {bq:?}"
+        );
+    }
+}
+
+#[test]
+fn export_writes_a_colmap_capture_that_reads_back_as_the_same_scene() {
+    use extranerf_nerf::data::colmap_scene::{export_colmap, sparse_of};
+    let dir = scratch_dir("colmap-export");
+    // A COLMAP capture (image ids out of name order) exported in the other format.
+    let src = dir.join("capture");
+    write_colmap_capture(&src, &colmap_model(&colmap_rig(5)), ModelFormat::Text);
+    let scene = load_colmap(&src, 1).unwrap();
+    let (points, ids) = sparse_of(&src).unwrap();
+    assert_eq!(ids.len(), 5);
+    let out = dir.join("exported");
+    let done = export_colmap(&scene, &points, &ids, &out, ModelFormat::Binary).unwrap();
+    assert_eq!((done.views, done.points), (5, points.len()));
+    assert!(out.join("sparse/0/images.bin").is_file());
+    let back = load_colmap(&out, 1).unwrap();
+    assert_same_scene(&back, &scene);
+    // The model is consistent as COLMAP reads it: the ids are the capture's, every track entry
+    // names a 2-D point of its image that names the point back, at the point's projection.
+    let model = Model::read(&out.join("sparse/0")).unwrap();
+    let world = back.transform_points(&model.points);
+    let mut observations = 0;
+    for (k, p) in model.points.iter().enumerate() {
+        for &(image_id, idx) in &p.track {
+            let im = model.images.iter().find(|im| im.id == image_id).unwrap();
+            assert_eq!(ids[&im.name], image_id);
+            let (xy, id) = im.points2d[idx as usize];
+            assert_eq!(id, Some(p.id));
+            let cam = back
+                .cameras
+                .iter()
+                .find(|c| c.image.ends_with(&im.name))
+                .unwrap();
+            let (x, y, _) = cam.project(world[k]);
+            assert!((x - xy[0]).abs() < 1e-9 && (y - xy[1]).abs() < 1e-9);
+            observations += 1;
+        }
+    }
+    let written: usize = model.images.iter().map(|im| im.points2d.len()).sum();
+    assert!(observations > 0 && observations == written);
+    // fern, an LLFF scene, as a COLMAP text model: the COLMAP loader reads what the LLFF
+    // loader did (its point tracks name images in name order, as imgs2poses numbered them).
+    let fern = shared_data().join("llff").join("fern");
+    let llff = load_llff(&fern, &LlffOptions::default()).unwrap();
+    let (points, ids) = sparse_of(&fern).unwrap();
+    assert!(ids.is_empty() && !points.is_empty());
+    let out = dir.join("fern");
+    export_colmap(&llff, &points, &ids, &out, ModelFormat::Text).unwrap();
+    assert_same_scene(&load_colmap(&out, 1).unwrap(), &llff);
+    // Never into a folder that holds something; never without points (nothing gives bounds).
+    let e = export_colmap(&llff, &points, &ids, &out, ModelFormat::Text)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("fern") && e.contains("not empty"), "{e}");
+    let ns = nerfstudio_capture(&dir.join("ns"), "PINHOLE");
+    let ns_scene = extranerf_nerf::data::transforms::load_transforms_at(&ns, 1).unwrap();
+    let (none, ns_ids) = sparse_of(ns.parent().unwrap()).unwrap();
+    let e = export_colmap(
+        &ns_scene,
+        &none,
+        &ns_ids,
+        &dir.join("ns_out"),
+        ModelFormat::Text,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("transforms.json") && e.contains("no sparse points"),
+        "{e}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -641,6 +641,7 @@ fn nerf_synthetic_layout_loads_with_its_split_alpha_and_centre() {
         sparse_depth: true,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     };
     let loaded = spec(SplitKind::Given).load().unwrap();
     assert_eq!(loaded.scene.cameras.len(), 13);
@@ -712,6 +713,7 @@ fn bad_split_files_give_errors_naming_the_file() {
         sparse_depth: false,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     };
     let load = |dir: &Path, split| spec(dir, split).load().map(|_| ()).unwrap_err().to_string();
     let test_file = dir.join("transforms_test.json");

@@ -25,6 +25,7 @@ use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_extrapolate::ExtrapolateError;
 use extranerf_nerf::cameras::Trajectory;
 use extranerf_nerf::data::load_image;
+use extranerf_nerf::data::split::SplitKind;
 use extranerf_nerf::image_ops::unsharp;
 use extranerf_nerf::model::{ModelConfig, ProposalConfig, Sampler};
 use extranerf_nerf::run::training_views;
@@ -205,12 +206,25 @@ fn small_base_sampled(
     dir: &Path,
     sampler: Sampler,
 ) -> (std::path::PathBuf, std::path::PathBuf) {
+    small_base_of(ctx, dir, sampler, SplitKind::Extrapolation)
+}
+
+/// [`small_base_sampled`] trained on the demo scene's views of `split`.
+fn small_base_of(
+    ctx: &extranerf_gpu::Context,
+    dir: &Path,
+    sampler: Sampler,
+    split: SplitKind,
+) -> (std::path::PathBuf, std::path::PathBuf) {
     let scene_dir = dir.join("scene");
     extranerf_nerf::demo::write_demo_scene(&scene_dir, 48, 36).unwrap();
     // A small BaseNeRF.
     let base = dir.join("base");
     let cfg = RunConfig {
-        scene: demo_scene_spec(scene_dir.to_path_buf()),
+        scene: extranerf_nerf::run::SceneSpec {
+            split,
+            ..demo_scene_spec(scene_dir.to_path_buf())
+        },
         model: ModelConfig {
             levels: 6,
             log2_table: 12,
@@ -716,6 +730,71 @@ fn the_pipeline_runs_on_a_proposal_base() {
     assert!(
         vis_psnr > 24.0,
         "the visible region moved: {vis_psnr:.2} dB"
+    );
+    assert_no_validation_messages(ctx);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A run whose split holds no view out (`--split all`): the visibility stage and every variant
+/// render the training views (`train_NNN`), `eval` scores them saying that none is held out,
+/// and the report shows them beside their photos.
+#[test]
+fn a_run_that_holds_no_view_out_shows_and_scores_its_training_views() {
+    use extranerf_extrapolate::eval::{compare, report::write_report};
+    let e = engine();
+    let ctx = &e.ctx;
+    let dir = scratch_dir("extrapolate-split-all");
+    let (scene_dir, base) = small_base_of(ctx, &dir, Sampler::Uniform, SplitKind::All);
+    let run = dir.join("run");
+    let m = extrapolate(ctx, &options(&run, &base), &mut Record::default()).unwrap();
+    assert!(m.stages.iter().all(|s| s.done));
+    let loaded = extranerf_nerf::run::SceneSpec {
+        split: SplitKind::All,
+        ..demo_scene_spec(scene_dir)
+    }
+    .load()
+    .unwrap();
+    assert!(loaded.split.test.is_empty());
+    let views = loaded.split.train.clone();
+    assert!(views.len() >= 6, "{views:?}");
+    for &i in &views {
+        for f in [
+            format!("visibility/train_{i:03}_base.png"),
+            format!("visibility/train_{i:03}_mask.png"),
+            format!("stage2-harmonic/train_{i:03}.png"),
+        ] {
+            assert!(run.join(&f).is_file(), "{f} missing");
+        }
+    }
+    let names: Vec<String> = std::fs::read_dir(run.join("stage2-harmonic"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(!names.iter().any(|n| n.starts_with("test_")), "{names:?}");
+    let t = compare(&run, None, None, None, &mut Record::default()).unwrap();
+    assert!(!t.held_out);
+    assert_eq!(t.views, views);
+    assert_eq!(t.rows.len(), 2, "base and stage2-harmonic");
+    for r in &t.rows {
+        // A field fitted to these very views renders them well above chance.
+        assert!(
+            r.psnr.is_finite() && r.psnr > 15.0,
+            "{}: {}",
+            r.variant,
+            r.psnr
+        );
+    }
+    assert!(
+        t.notes.iter().any(|n| n.contains("No held-out view")),
+        "{:?}",
+        t.notes
+    );
+    let html = std::fs::read_to_string(write_report(&run, Some(&t)).unwrap()).unwrap();
+    assert!(html.contains("<h2>Training views</h2>") && !html.contains("Held-out views"));
+    assert_eq!(html.matches("<h3>view ").count(), views.len());
+    assert!(
+        !html.contains("missing</div>"),
+        "a render is missing from the report"
     );
     assert_no_validation_messages(ctx);
     let _ = std::fs::remove_dir_all(&dir);

@@ -552,6 +552,7 @@ fn checkpoints_and_run_configs() {
             sparse_depth: true,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         },
         train: Default::default(),
         model: model.clone(),

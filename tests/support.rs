@@ -173,6 +173,7 @@ pub fn demo_scene_spec(dir: PathBuf) -> extranerf_nerf::run::SceneSpec {
         sparse_depth: false,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     }
 }
 

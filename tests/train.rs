@@ -24,6 +24,7 @@ fn scene_spec(
         sparse_depth,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     }
 }
 
@@ -279,6 +280,7 @@ fn checkpoints_round_trip_and_bad_ones_are_refused() {
                 sparse_depth: false,
                 depth_dir: None,
                 mvs_depth: None,
+                capture_depth: false,
             },
             model,
             train: TrainConfig::default(),

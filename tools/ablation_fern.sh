@@ -39,7 +39,8 @@ steps="${PRIOR_STEPS:-1000}"
 prior=runs/prior_fern_s$steps
 if [ ! -f "$prior/model/model_index.json" ]; then
     /usr/bin/time -f "diffusion prior wall %e s" \
-        "$bin" diffusion prior --scene "$data/llff/fern" --out "$prior" --steps "$steps" \
+        "$bin" diffusion prior --scene "$data/llff/fern" --split extrapolation --out "$prior" \
+        --steps "$steps" \
         2>&1 | tee "$prior.log" >&2
 fi
 masks=runs/trainmasks_fernx
@@ -51,7 +52,7 @@ lsteps="${LORA_STEPS:-500}"
 lora=runs/lora_fern_s$lsteps
 if [ ! -f "$lora/pytorch_lora_weights.safetensors" ]; then
     /usr/bin/time -f "diffusion finetune wall %e s" \
-        "$bin" diffusion finetune --model "$prior/model" --scene "$data/llff/fern" \
+        "$bin" diffusion finetune --model "$prior/model" --scene "$data/llff/fern" --split extrapolation \
         --masks "$masks" --out "$lora" --steps "$lsteps" --diffusion-backend cpu \
         2>&1 | tee "$lora.log" >&2
 fi

@@ -6,6 +6,8 @@
 #
 # Usage: tools/curve.sh SCENE NAME EVAL_EVERY [train flags...]
 #   SCENE: fern17 (fern 8x, few-shot 17: the standard LLFF hold-out of views 0, 8, 16),
+#          fern17colmap (the same views of fern 8x exported as a COLMAP capture by
+#                 `extranerf export`, under runs/fern_colmap, read by the COLMAP loader),
 #          fernx  (fern 8x, extrapolation split: 6 central views, 8 farthest held out),
 #          demo   (the demo's procedural scene: 6-camera rig, 8 views outside it).
 #   The flags go to `extranerf train` after the scene's own (for example --budget 900, or
@@ -18,7 +20,7 @@ set -euo pipefail
 # One brace group, read whole before it runs: editing this file during a run cannot change it.
 {
 cd "$(dirname "$0")/.."
-[ $# -ge 3 ] || { sed -n 2,15p "$0"; exit 2; }
+[ $# -ge 3 ] || { sed -n 2,18p "$0"; exit 2; }
 scene="$1"; name="$2"; every="$3"; shift 3
 data="${EXTRANERF_DATA:-../shared/data}"
 # EXTRANERF_BIN: a binary to use instead of building the release one.
@@ -26,6 +28,13 @@ bin="${EXTRANERF_BIN:-${CARGO_TARGET_DIR:-target}/release/extranerf}"
 [ -n "${EXTRANERF_BIN:-}" ] || cargo build --release -p extranerf >&2
 case "$scene" in
     fern17) args=(--scene "$data/llff/fern" --split fewshot --fewshot-views 17); depth=sparse ;;
+    fern17colmap)
+        if [ ! -f runs/fern_colmap/sparse/0/cameras.txt ]; then
+            rm -rf runs/fern_colmap
+            "$bin" export --scene "$data/llff/fern" --factor 8 --out runs/fern_colmap >&2
+        fi
+        args=(--scene runs/fern_colmap --factor 1 --split fewshot --fewshot-views 17)
+        depth=sparse ;;
     fernx) args=(--scene "$data/llff/fern" --split extrapolation); depth=sparse ;;
     synth2) args=(--scene "$data/synth2" --split extrapolation); depth=none ;;
     demo)
@@ -34,7 +43,7 @@ case "$scene" in
             "$bin" demo --out runs/curve_demo_scene --width 96 --stop-after scene >&2
         fi
         args=(--scene runs/curve_demo_scene/scene --split extrapolation --factor 1); depth=none ;;
-    *) echo "unknown scene $scene: use fern17, fernx, synth2 or demo" >&2; exit 2 ;;
+    *) echo "unknown scene $scene: use fern17, fern17colmap, fernx, synth2 or demo" >&2; exit 2 ;;
 esac
 case " $* " in
     *" --depth "*|*" --depth="*|*" --depth-dir "*|*" --depth-dir="*) ;;

@@ -36,7 +36,8 @@ prior=runs/prior_fern_s$steps
 inp=(--inpainter harmonic,exemplar,diffusion --diffusion-model "$prior/model")
 for a in "$@"; do [ "$a" = --inpainter ] && inp=(); done
 if [ ${#inp[@]} -gt 0 ] && [ ! -f "$prior/model/model_index.json" ]; then
-    "$bin" diffusion prior --scene "$data/llff/fern" --out "$prior" --steps "$steps" \
+    "$bin" diffusion prior --scene "$data/llff/fern" --split extrapolation --out "$prior" \
+        --steps "$steps" \
         2>&1 | tee "$prior.log" >&2
 fi
 run="${RUN:-runs/extrapolate_fern}"

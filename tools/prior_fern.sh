@@ -16,7 +16,7 @@ out="results/prior_fern_${name}"
 cargo build --release -p extranerf
 mkdir -p runs
 rm -rf "$run"
-./target/release/extranerf diffusion prior --scene ../shared/data/llff/fern --out "$run" \
+./target/release/extranerf diffusion prior --scene ../shared/data/llff/fern --split extrapolation --out "$run" \
     --steps "$steps" "$@" 2>&1 | tee "$run.log"
 mkdir -p "$out"
 cp "$run/prior_eval.json" "$run/loss.csv" "$run/loss.svg" "$out/"

@@ -178,6 +178,7 @@ impl SplitArgs {
             sparse_depth,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         }
     }
 }

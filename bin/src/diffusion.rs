@@ -83,9 +83,11 @@ pub struct PriorArgs {
     /// Output folder: model/, loss.csv, loss.svg, prior_eval.json, eval/*.png.
     #[arg(long)]
     pub out: PathBuf,
-    /// Which views train the prior: the training views of this split.
-    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
-    pub split: SplitKind,
+    /// Which views train the prior: the training views of this split (as `train --split`;
+    /// ExtraNeRF's benchmark is `extrapolation`) [default: given when the scene has
+    /// transforms_train.json, else holdout].
+    #[arg(long, value_enum)]
+    pub split: Option<SplitKind>,
     /// LLFF image folder factor (images_N).
     #[arg(long, default_value_t = 8)]
     pub factor: u32,
@@ -235,9 +237,10 @@ pub struct FinetuneArgs {
     /// Output folder for the adapters, loss.csv and loss.svg.
     #[arg(long)]
     pub out: PathBuf,
-    /// Views of this split's training set.
-    #[arg(long, value_enum, default_value_t = SplitKind::Extrapolation)]
-    pub split: SplitKind,
+    /// Views of this split's training set (as `train --split`; ExtraNeRF's benchmark is
+    /// `extrapolation`) [default: given when the scene has transforms_train.json, else holdout].
+    #[arg(long, value_enum)]
+    pub split: Option<SplitKind>,
     /// LLFF image folder factor.
     #[arg(long, default_value_t = 8)]
     pub factor: u32,
@@ -420,6 +423,7 @@ fn load_view_sets(
         sparse_depth: false,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     };
     let loaded = spec
         .load()
@@ -715,7 +719,8 @@ fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     }
     let lpips = extranerf_nerf::train::lpips_alex(a.lpips.as_deref())?;
     let (backend, dev) = a.backend.device(ctx)?;
-    let (views, test_views) = load_view_sets(&a.scene, a.split, a.factor, a.downscale)?;
+    let split = a.split.unwrap_or_else(|| SplitKind::default_for(&a.scene));
+    let (views, test_views) = load_view_sets(&a.scene, split, a.factor, a.downscale)?;
     std::fs::create_dir_all(a.out.join("eval"))
         .with_context(|| format!("creating {}", a.out.display()))?;
     let cfg = match &a.model {
@@ -1238,7 +1243,8 @@ fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
     if a.rank == 0 {
         bail!("--rank must be at least 1");
     }
-    let views = load_views(&a.scene, a.split, a.factor, a.downscale)?;
+    let split = a.split.unwrap_or_else(|| SplitKind::default_for(&a.scene));
+    let views = load_views(&a.scene, split, a.factor, a.downscale)?;
     let m = pipe.model.size_multiple();
     if a.crop == 0 || !a.crop.is_multiple_of(m) {
         bail!(

@@ -62,10 +62,11 @@ pub struct ExtrapolateArgs {
     /// its scene and split are used.
     #[arg(long, value_name = "RUN")]
     base: Option<PathBuf>,
-    /// Depth targets of a new BaseNeRF: auto, sparse, mvs, none or a folder of dense maps, as
+    /// Depth targets of a new BaseNeRF: auto, sparse, mvs, capture, none or a folder of dense
+    /// maps, as
     /// `train --depth` (MVS depth is cached in RUN/base/depth_mvs and read again by the stages
     /// that train on the captured views) [default: auto].
-    #[arg(long, value_name = "auto|sparse|mvs|none|DIR", conflicts_with_all = ["depth_dir", "base"])]
+    #[arg(long, value_name = "auto|sparse|mvs|capture|none|DIR", conflicts_with_all = ["depth_dir", "base"])]
     depth: Option<extranerf_nerf::run::DepthRequest>,
     /// The same as --depth DIR.
     #[arg(long, value_name = "DIR", conflicts_with = "base")]
@@ -303,6 +304,7 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
                 spec.sparse_depth = r.sparse_depth;
                 spec.depth_dir = r.depth_dir.clone();
                 spec.mvs_depth = r.mvs_depth.clone();
+                spec.capture_depth = r.capture_depth;
             } else {
                 let loaded = spec.load()?;
                 let line = crate::args::depth_request(&a.depth, &a.depth_dir).resolve(
@@ -564,7 +566,12 @@ pub fn eval_run(
         &mut rep,
     )?;
     let report = extranerf_extrapolate::eval::write_table(run, &t)?;
-    println!("held-out views {:?}\n\n{}", t.views, t.markdown());
+    let views = if t.held_out {
+        "held-out views"
+    } else {
+        "no held-out view (the split trains on every view); scored: the training views"
+    };
+    println!("{views} {:?}\n\n{}", t.views, t.markdown());
     eprintln!(
         "wrote {}, eval.md and {}",
         run.join("eval.json").display(),

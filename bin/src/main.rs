@@ -81,6 +81,13 @@ enum Command {
     /// Virtual cameras beyond the input rig (outward translation, a widened spiral, or rotation
     /// past the captured yaw), written as transforms.json for rendering and visibility.
     Cameras(nerf::CamerasArgs),
+    /// Write a scene (LLFF, transforms.json or COLMAP, as `train` reads it) as a COLMAP
+    /// capture: a sparse model (PINHOLE cameras, poses and the scene's sparse points in the
+    /// source's world) under OUT/sparse/0 and the images it loaded under OUT/images, which
+    /// `train --scene OUT --factor 1` reads back as the same scene.
+    ///
+    /// Example: `extranerf export --scene ../shared/data/llff/fern --out runs/fern_colmap`.
+    Export(nerf::ExportArgs),
     /// ExtraNeRF: train (or reuse, --base) a BaseNeRF, find what no two training cameras saw
     /// in virtual views beyond the rig, train the field further on those views inpainted
     /// (stage 2; one variant per --inpainter), then on them enhanced by a model trained on the
@@ -205,6 +212,7 @@ fn run(cli: &Cli) -> anyhow::Result<()> {
         Command::Extrapolate(a) => extrapolate::extrapolate(&context_with(cli, a.needs_wgpu())?, a),
         Command::Demo(a) => nerf::demo(&context(cli)?, a),
         Command::Cameras(a) => nerf::cameras(a),
+        Command::Export(a) => nerf::export(a),
         Command::Turntable(a) => nerf::turntable(a),
         Command::Visibility(a) => visibility::visibility(&context(cli)?, a),
         Command::Mvs(a) => mvs::mvs(&context(cli)?, a),

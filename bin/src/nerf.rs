@@ -96,16 +96,17 @@ pub struct TrainArgs {
     /// of 4, and a device with shaderFloat16 and 16-bit storage).
     #[arg(long, value_enum)]
     precision: Option<Precision>,
-    /// Depth targets of the training views. auto: the dense maps the scene ships (a depth/
-    /// folder), else multi-view stereo depth of the training views (`extranerf mvs` at half
+    /// Depth targets of the training views. auto: the depth files the capture's frames name
+    /// (nerfstudio's depth_file_path: 16-bit PNG or .npy, millimetres), else the dense maps the
+    /// scene ships (a depth/ folder), else multi-view stereo depth of the training views (`extranerf mvs` at half
     /// resolution, 64 planes; computed once and cached in RUN/depth_mvs; its confidence weights
     /// each pixel) plus COLMAP's sparse points where the scene has them (they win where they
     /// fall). sparse: the COLMAP points only (the default before 2026-12-06). mvs: the MVS
-    /// depth only. none: no depth loss. DIR: dense maps `<image stem>.npy` or `.exr`, view
-    /// depth in the capture's units [default: auto].
+    /// depth only. capture: the capture's depth files only. none: no depth loss. DIR: dense
+    /// maps `<image stem>.npy` or `.exr`, view depth in the capture's units [default: auto].
     #[arg(
         long,
-        value_name = "auto|sparse|mvs|none|DIR",
+        value_name = "auto|sparse|mvs|capture|none|DIR",
         conflicts_with = "depth_dir"
     )]
     depth: Option<DepthRequest>,
@@ -363,6 +364,7 @@ fn train_run(ctx: &Context, a: &TrainArgs) -> anyhow::Result<()> {
             sparse_depth: false,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         };
         let loaded = scene.load()?;
         let mvs = MvsDepthSettings {
@@ -971,6 +973,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         sparse_depth: true,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     };
     let loaded = spec.load()?;
     let mut model = model_for_scene(&loaded.scene);
@@ -1482,6 +1485,53 @@ pub fn cameras(a: &CamerasArgs) -> anyhow::Result<()> {
         a.range,
         rig.len(),
         spec.split,
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// Arguments of `extranerf export`.
+#[derive(clap::Args, Debug)]
+pub struct ExportArgs {
+    /// Scene: an LLFF folder, a transforms.json scene or a COLMAP capture.
+    #[arg(long, value_name = "DIR")]
+    scene: PathBuf,
+    /// Downsampling factor the scene is read at (images_N); the export holds those images.
+    #[arg(long, default_value_t = 8)]
+    factor: u32,
+    /// The model's format: text (cameras.txt, images.txt, points3D.txt) or binary (.bin).
+    #[arg(long, value_enum, default_value = "text")]
+    format: extranerf_nerf::data::colmap::ModelFormat,
+    /// Output folder (new or empty).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+/// `extranerf export`: a scene as a COLMAP capture.
+pub fn export(a: &ExportArgs) -> anyhow::Result<()> {
+    use extranerf_nerf::data::colmap_scene::{export_colmap, sparse_of};
+    let spec = SceneSpec {
+        dir: a.scene.clone(),
+        split: extranerf_nerf::data::split::SplitKind::All,
+        fewshot_views: 0,
+        factor: a.factor,
+        sparse_depth: false,
+        depth_dir: None,
+        mvs_depth: None,
+        capture_depth: false,
+    };
+    let loaded = spec.load()?;
+    let (points, ids) = sparse_of(&a.scene)?;
+    let done = export_colmap(&loaded.scene, &points, &ids, &a.out, a.format)?;
+    eprintln!(
+        "{} views ({} camera(s), {} points) of {} written as a COLMAP capture: model {}, \
+         images {}; read it with `--scene {} --factor 1`",
+        done.views,
+        done.cameras,
+        done.points,
+        a.scene.display(),
+        done.model.display(),
+        done.images.display(),
         a.out.display()
     );
     Ok(())

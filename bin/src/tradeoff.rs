@@ -350,6 +350,7 @@ pub fn tradeoff(ctx: &Context, a: &TradeoffArgs) -> anyhow::Result<()> {
         sparse_depth: true,
         depth_dir: None,
         mvs_depth: None,
+        capture_depth: false,
     };
     let loaded = spec.load()?;
     let lpips = extranerf_nerf::train::lpips_alex(a.lpips.as_deref())?;

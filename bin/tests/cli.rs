@@ -662,7 +662,7 @@ fn scored_test_views(run: &std::path::Path) -> Vec<u64> {
 /// A COLMAP capture (a text model in `sparse/0`, its images in `images/`) trains with one
 /// command: by default every 8th view is held out and the others train; `--split all` trains on
 /// every view and `eval` says there is no held-out view; a benchmark split the capture is too
-/// small for says what to pass.
+/// small for says what to pass; `export` writes it again as a COLMAP capture that trains.
 #[test]
 fn a_colmap_capture_trains_on_its_views() {
     let dir = std::env::temp_dir().join(format!("extranerf-cli-colmap-{}", std::process::id()));
@@ -719,6 +719,44 @@ fn a_colmap_capture_trains_on_its_views() {
             && err.contains("--split all"),
         "{err}"
     );
+    // `export` writes it again as a COLMAP capture in binary, which trains; never over a
+    // folder that holds something.
+    let copy = dir.join("exported");
+    let export = || {
+        extranerf(&[
+            "export",
+            "--scene",
+            cap_s,
+            "--factor",
+            "1",
+            "--format",
+            "binary",
+            "--out",
+            copy.to_str().unwrap(),
+        ])
+    };
+    let (ok, _, err) = export();
+    assert!(
+        ok && err.contains("9 views") && err.contains("--factor 1"),
+        "{err}"
+    );
+    assert!(copy.join("sparse/0/images.bin").is_file());
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        copy.to_str().unwrap(),
+        "--factor",
+        "1",
+        "--steps",
+        "4",
+        "--depth",
+        "sparse",
+        "--out",
+        dir.join("from_export").to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let (ok, _, err) = export();
+    assert!(!ok && err.contains("not empty"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -1475,7 +1513,10 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
     let lpips = extranerf_tests::shared_data().join("../models/lpips");
     let prior = dir.join("prior");
     let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+    // The benchmark split these tests were written for (the demo scene's 6-camera rig).
     let common = [
+        "--split",
+        "extrapolation",
         "--factor",
         "1",
         "--downscale",
@@ -1577,6 +1618,8 @@ fn diffusion_prior_inpaint_finetune_init_and_bench() {
             "2",
             "--lpips",
             &s(&lpips),
+            "--split",
+            "extrapolation",
             "--factor",
             "1",
             "--downscale",
@@ -2204,6 +2247,8 @@ fn diffusion_training_survives_sigkill_and_resumes() {
     let common = [
         "--scene".to_string(),
         s(&scene),
+        "--split".into(),
+        "extrapolation".into(),
         "--steps".into(),
         steps.to_string(),
         "--checkpoint-every".into(),

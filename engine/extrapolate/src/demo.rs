@@ -131,6 +131,7 @@ pub fn base_config(scene: &Path, steps: u32) -> RunConfig {
             sparse_depth: false,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         },
         model: ModelConfig {
             levels: 8,

@@ -37,6 +37,7 @@ pub mod inpaint;
 pub mod manifest;
 pub mod rounds;
 pub mod run;
+pub mod shown;
 pub mod stage;
 pub mod stage3;
 pub mod stages;

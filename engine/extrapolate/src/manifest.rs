@@ -300,6 +300,7 @@ mod tests {
             sparse_depth: true,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         }
     }
 

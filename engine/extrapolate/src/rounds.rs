@@ -251,7 +251,8 @@ pub(crate) fn train_steps(
     Ok(last)
 }
 
-/// The held-out views rendered from `nerf` into `out/test_NNN.png` (what `eval` scores).
+/// The held-out views rendered from `nerf` into `out/test_NNN.png` (what `eval` scores), or
+/// where the split holds none out the training views into `out/train_NNN.png`.
 pub(crate) fn write_test_renders(
     ctx: &Context,
     nerf: &Nerf,
@@ -259,11 +260,12 @@ pub(crate) fn write_test_renders(
     samples: u32,
     out: &Path,
 ) -> Result<()> {
-    for &i in &loaded.split.test {
+    let shown = crate::shown::Shown::of(&loaded.split);
+    for &i in &shown.views {
         let cam = &loaded.scene.cameras[i];
         let (rgb, _, _) = render(ctx, nerf, cam, samples)?;
         write_png(
-            &out.join(format!("test_{i:03}.png")),
+            &out.join(format!("{}.png", shown.name(i))),
             cam.width,
             cam.height,
             &rgb,

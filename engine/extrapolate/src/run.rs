@@ -340,6 +340,7 @@ mod tests {
             sparse_depth: false,
             depth_dir: None,
             mvs_depth: None,
+            capture_depth: false,
         };
         let mut names = Vec::new();
         for enhance in [Stage3Enhancer::Diffusion, Stage3Enhancer::Unsharp] {

@@ -625,6 +625,7 @@ mod tests {
             forward_facing: true,
             given: None,
             bounded_object: false,
+            depth_files: Vec::new(),
         };
         let a = auto_model(&scene, &[0, 1, 2]);
         assert_eq!(a.model.space, Space::Ndc);
@@ -911,6 +912,7 @@ mod tests {
             forward_facing: false,
             given: None,
             bounded_object: false,
+            depth_files: Vec::new(),
         };
         let m = model_for_scene(&scene);
         assert!(DVec3::from(m.center.map(f64::from)).distance(target) < 1e-5);
@@ -972,6 +974,7 @@ mod tests {
             forward_facing: false,
             given: None,
             bounded_object: false,
+            depth_files: Vec::new(),
         };
         let a = auto_model(&scene, &[0, 1, 2, 3, 4, 5, 6, 7]);
         assert_eq!(a.model.space, Space::World);

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
-use crate::data::depth::{read_view_depth, sparse_depth, view_depth_paths};
+use crate::data::depth::{read_capture_depth, read_view_depth, sparse_depth, view_depth_paths};
 use crate::data::llff::{load_llff, LlffOptions};
 use crate::data::split::{Split, SplitIndices, SplitKind};
 use crate::data::transforms::{has_split_files, load_split_transforms, load_transforms_at};
@@ -49,13 +49,19 @@ pub struct SceneSpec {
     /// fall. Absent in runs from before issue 52.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mvs_depth: Option<MvsDepthSettings>,
+    /// Dense depth from the files the capture's frames name (nerfstudio's `depth_file_path`,
+    /// millimetres); they replace the sparse targets and the MVS maps. Absent in runs from
+    /// before it was read.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub capture_depth: bool,
 }
 
 /// `train --depth`: where a run's depth targets come from, before it is resolved into a
 /// [`SceneSpec`]'s depth fields ([`DepthRequest::resolve`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum DepthRequest {
-    /// The dense maps the scene ships (`depth/` beside its images), else MVS depth of the
+    /// The depth files the capture's frames name (nerfstudio's `depth_file_path`), else the
+    /// dense maps the scene ships (`depth/` beside its images), else MVS depth of the
     /// training views plus COLMAP's sparse points where the scene has them, else the sparse
     /// points alone (when the views cannot be matched: no depth bounds, or views of several
     /// sizes).
@@ -66,6 +72,8 @@ pub enum DepthRequest {
     Mvs,
     /// No depth target.
     None,
+    /// The depth files the capture's frames name (nerfstudio's `depth_file_path`).
+    Capture,
     /// Dense maps from this folder (`<image stem>.npy` or `.exr`, view depth in the capture's
     /// units).
     Dir(PathBuf),
@@ -74,13 +82,14 @@ pub enum DepthRequest {
 impl std::str::FromStr for DepthRequest {
     type Err = std::convert::Infallible;
 
-    /// `auto`, `sparse`, `mvs`, `none`, or any other text as a folder.
+    /// `auto`, `sparse`, `mvs`, `none`, `capture`, or any other text as a folder.
     fn from_str(s: &str) -> std::result::Result<Self, Self::Err> {
         Ok(match s {
             "auto" => DepthRequest::Auto,
             "sparse" => DepthRequest::Sparse,
             "mvs" => DepthRequest::Mvs,
             "none" => DepthRequest::None,
+            "capture" => DepthRequest::Capture,
             dir => DepthRequest::Dir(PathBuf::from(dir)),
         })
     }
@@ -138,8 +147,22 @@ impl DepthRequest {
         spec.sparse_depth = false;
         spec.depth_dir = None;
         spec.mvs_depth = None;
+        spec.capture_depth = false;
+        let capture = !loaded.scene.depth_files.is_empty();
         match self {
             DepthRequest::None => {}
+            DepthRequest::Capture => {
+                if !capture {
+                    return Err(DataError::Malformed {
+                        path: spec.dir.clone(),
+                        problem: "--depth capture: the scene's frames name no depth file \
+                                  (depth_file_path)"
+                            .into(),
+                    }
+                    .into());
+                }
+                spec.capture_depth = true;
+            }
             DepthRequest::Sparse => {
                 if !has_points {
                     return Err(DataError::Malformed {
@@ -173,7 +196,9 @@ impl DepthRequest {
             }
             DepthRequest::Auto => {
                 let shipped = shipped_depth_dir(&spec.dir);
-                if shipped.is_dir() {
+                if capture {
+                    spec.capture_depth = true;
+                } else if shipped.is_dir() {
                     spec.depth_dir = Some(shipped);
                 } else {
                     spec.sparse_depth = has_points;
@@ -230,6 +255,9 @@ impl SceneSpec {
                 s.downscale, s.planes
             )
         };
+        if self.capture_depth {
+            return "the capture's depth files (depth_file_path, millimetres)".into();
+        }
         match (&self.depth_dir, &self.mvs_depth, points) {
             (Some(d), _, _) => format!("dense maps from {}", d.display()),
             (None, Some(s), true) => format!("{} and COLMAP sparse points", mvs(s)),
@@ -389,7 +417,22 @@ pub fn training_views_from(
             (pw.z < -1.0).then(|| (1.0 + 1.0 / pw.z) as f32)
         };
         let mut d = vec![[0f32; 2]; cam.width as usize * cam.height as usize];
-        let depth = if let Some(dir) = &spec.depth_dir {
+        let dense = if spec.capture_depth {
+            let Some(file) = loaded.scene.depth_files.get(i) else {
+                return Err(DataError::Malformed {
+                    path: spec.dir.clone(),
+                    problem: format!(
+                        "the run reads the capture's depth files, but view {i} names none \
+                         (depth_file_path)"
+                    ),
+                }
+                .into());
+            };
+            // In the units of the frames' poses, which the transforms loader keeps as the
+            // scene's (its `world_from_source` scale is COLMAP's to theirs, not theirs to the
+            // scene's).
+            Some((read_capture_depth(file, &cam)?, 1.0))
+        } else if let Some(dir) = &spec.depth_dir {
             let Some(map) = read_view_depth(dir, &cam)? else {
                 let [npy, exr] = view_depth_paths(dir, &cam);
                 return Err(DataError::Malformed {
@@ -402,6 +445,11 @@ pub fn training_views_from(
                 }
                 .into());
             };
+            Some((map, scale))
+        } else {
+            None
+        };
+        let depth = if let Some((map, scale)) = dense {
             for (k, &z) in map.iter().enumerate() {
                 if z > 0.0 {
                     let (x, y) = (k as u32 % cam.width, k as u32 / cam.width);
@@ -575,6 +623,7 @@ mod tests {
                 sparse_depth: true,
                 depth_dir: None,
                 mvs_depth: None,
+                capture_depth: false,
             },
             model: ModelConfig {
                 space: Space::World,

@@ -37,6 +37,7 @@ use extranerf_nerf::run::LoadedScene;
 use extranerf_nerf::safetensors::SafeTensors;
 
 use crate::manifest::Manifest;
+use crate::shown::Shown;
 use crate::stage::{DATA_STAGE, ENHANCER_STAGE};
 use crate::stages::VisibilityStage;
 use crate::visibility::{load_map, VisSettings, MAPS_FILE};
@@ -109,9 +110,18 @@ pub fn compare(
         return Err(ExtrapolateError::incomplete(dir, "no extrapolate manifest"));
     };
     let loaded = manifest.scene.load()?;
-    let (variants, notes) = variants(dir, &manifest);
-    let views = loaded.split.test.clone();
-    let truths = held_out(dir, &manifest, &loaded)?;
+    let (variants, mut notes) = variants(dir, &manifest);
+    let shown = Shown::of(&loaded.split);
+    if !shown.held_out {
+        notes.push(
+            "No held-out view: the run's split trains on every view, so the table scores the \
+             training views, which says how well each field keeps what the cameras saw, not \
+             how it renders a view it has not seen."
+                .into(),
+        );
+    }
+    let views = shown.views.clone();
+    let truths = held_out(dir, &manifest, &loaded, &shown)?;
     let (exact, truth_report) = exact_masks(truth_masks, &truths)?;
     let sizes: Vec<(usize, usize)> = truths
         .iter()
@@ -131,7 +141,8 @@ pub fn compare(
     };
     let mut rows = Vec::new();
     for (name, folder, suffix) in variants {
-        let (mut row, renders) = score_variant(&name, &folder, suffix, &truths, &exact, lpips)?;
+        let (mut row, renders) =
+            score_variant(&name, &folder, suffix, &shown, &truths, &exact, lpips)?;
         if let (Some(k), Some(r)) = (kid_eval, &kid_ref) {
             let imgs: Vec<&[f32]> = renders.iter().map(Vec::as_slice).collect();
             let (frame, patch) = k.score(r, &imgs, &sizes, &name, rep)?;
@@ -144,6 +155,7 @@ pub fn compare(
     }
     Ok(Table {
         views,
+        held_out: shown.held_out,
         rows,
         kid: kid_ref.map(|r| r.report),
         notes,
@@ -175,8 +187,13 @@ fn variants(
     (variants, notes)
 }
 
-/// The held-out views with their photos and the visibility stage's masks.
-fn held_out(dir: &Path, manifest: &Manifest, loaded: &LoadedScene) -> Result<Vec<HeldOut>> {
+/// The views `eval` scores ([`Shown`]) with their photos and the visibility stage's masks.
+fn held_out(
+    dir: &Path,
+    manifest: &Manifest,
+    loaded: &LoadedScene,
+    shown: &Shown,
+) -> Result<Vec<HeldOut>> {
     let vis_rec = manifest
         .stages
         .iter()
@@ -195,10 +212,10 @@ fn held_out(dir: &Path, manifest: &Manifest, loaded: &LoadedScene) -> Result<Vec
     let maps_path = dir.join("visibility").join(MAPS_FILE);
     let st = SafeTensors::read(&maps_path)?;
     let mut truths = Vec::new();
-    for &i in &loaded.split.test {
+    for &i in &shown.views {
         let cam = &loaded.scene.cameras[i];
         let img = load_image(&cam.image)?;
-        let m = load_map(&st, &maps_path, &format!("test_{i:03}"))?;
+        let m = load_map(&st, &maps_path, &shown.name(i))?;
         let mask: Vec<bool> = resize_mask(
             &settings.mask(&m),
             m.width as usize,
@@ -259,12 +276,13 @@ fn exact_masks(
     Ok((exact, Some(report)))
 }
 
-/// One field's row (without KID) from its held-out renders `folder/test_NNN{suffix}.png`,
-/// and the renders.
+/// One field's row (without KID) from its renders of the scored views,
+/// `folder/test_NNN{suffix}.png` (or `train_NNN`, [`Shown::name`]), and the renders.
 fn score_variant(
     name: &str,
     folder: &Path,
     suffix: &str,
+    shown: &Shown,
     truths: &[HeldOut],
     exact: &[Option<Vec<bool>>],
     lpips: Option<&Lpips>,
@@ -274,12 +292,12 @@ fn score_variant(
     let (mut pn_exact, mut pv_exact) = (vec![], vec![]);
     let mut renders = Vec::new();
     for ((i, cam, truth, mask), seen) in truths.iter().zip(exact) {
-        let path = folder.join(format!("test_{i:03}{suffix}.png"));
+        let path = folder.join(format!("{}{suffix}.png", shown.name(*i)));
         let r = load_image(&path)?;
         if (r.width, r.height) != (cam.width, cam.height) {
             return Err(ExtrapolateError::malformed(
                 &path,
-                format!("not the size of held-out view {i} (variant {name})"),
+                format!("not the size of view {i} (variant {name})"),
             ));
         }
         let (w, h) = (cam.width as usize, cam.height as usize);

@@ -131,7 +131,13 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> Result<PathBuf> {
         h,
         "<tr><th>all</th><td></td><th>{total:.1}</th></tr></table>"
     );
-    h += "<h2>Held-out views</h2>\n";
+    let shown = crate::shown::Shown::of(&loaded.split);
+    if shown.held_out {
+        h += "<h2>Held-out views</h2>\n";
+    } else {
+        h += "<h2>Training views</h2>\n<p>The run's split holds no view out: below are its \
+              training views beside the fields' renders at their cameras.</p>\n";
+    }
     match table {
         Some(t) => {
             let _ = writeln!(
@@ -158,8 +164,9 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> Result<PathBuf> {
     }
     let fin = final_field(&m);
     let vis = dir.join("visibility");
-    for &i in &loaded.split.test {
+    for &i in &shown.views {
         let cam = &loaded.scene.cameras[i];
+        let name = shown.name(i);
         let _ = writeln!(h, "<h3>view {i}</h3><div>");
         let mut fig = |path: &Path, caption: &str| -> Result<()> {
             let _ = writeln!(
@@ -171,15 +178,12 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> Result<PathBuf> {
             Ok(())
         };
         fig(&cam.image, "ground truth")?;
-        fig(&vis.join(format!("test_{i:03}_base.png")), "BaseNeRF")?;
+        fig(&vis.join(format!("{name}_base.png")), "BaseNeRF")?;
         if let Some(f) = &fin {
-            fig(&dir.join(f).join(format!("test_{i:03}.png")), f)?;
+            fig(&dir.join(f).join(format!("{name}.png")), f)?;
         }
-        fig(&vis.join(format!("test_{i:03}_vis.png")), "visibility")?;
-        fig(
-            &vis.join(format!("test_{i:03}_mask.png")),
-            "not-visible mask",
-        )?;
+        fig(&vis.join(format!("{name}_vis.png")), "visibility")?;
+        fig(&vis.join(format!("{name}_mask.png")), "not-visible mask")?;
         h += "</div>\n";
     }
     let fly = dir.join("flythrough");

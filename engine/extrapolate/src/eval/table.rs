@@ -33,7 +33,10 @@ pub struct Row {
 /// The table of an extrapolate run.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Table {
+    /// The scored views: the held-out ones, or the training views where none is held out.
     pub views: Vec<usize>,
+    /// Whether `views` are held out ([`crate::shown::Shown`]).
+    pub held_out: bool,
     pub rows: Vec<Row>,
     /// How KID was measured (absent when it was not).
     pub kid: Option<KidReport>,

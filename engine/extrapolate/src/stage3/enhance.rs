@@ -313,14 +313,15 @@ impl EnhanceStage {
     }
 }
 
-/// A skipped stage 3: the stage-2 field and its held-out renders, copied from `from` to `out`
+/// A skipped stage 3: the stage-2 field and its renders of the views `eval` scores, copied from `from` to `out`
 /// (what the fly-through and `eval` read).
 fn keep_stage2(from: &Path, out: &Path) -> Result<()> {
     let entries = std::fs::read_dir(from).map_err(|e| ExtrapolateError::io("reading", from, e))?;
     for e in entries {
         let e = e.map_err(|e| ExtrapolateError::io("reading", from, e))?;
         let name = e.file_name().to_string_lossy().into_owned();
-        let test = name.starts_with("test_") && name.ends_with(".png");
+        let test =
+            (name.starts_with("test_") || name.starts_with("train_")) && name.ends_with(".png");
         if test
             || name == extranerf_nerf::run::CHECKPOINT_FILE
             || name == extranerf_nerf::run::CONFIG_FILE

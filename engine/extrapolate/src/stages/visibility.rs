@@ -68,17 +68,19 @@ impl Stage for VisibilityStage {
         let fv = FieldVisibility::new(ctx, &base.nerf, &train, &self.vis)?;
         let volume_s = t.elapsed().as_secs_f64();
         let all = mask_all_but(train.len(), None);
-        // Virtual views, and the held-out views (mapped at the virtual views' scale, their
-        // BaseNeRF renders at full size for `eval`).
+        // Virtual views, and the held-out views (the training views where the split holds
+        // none out; mapped at the virtual views' scale, their BaseNeRF renders at full size for
+        // `eval`).
         let mut views: Vec<(String, Camera, Camera)> = virt
             .iter()
             .enumerate()
             .map(|(i, c)| (format!("virtual_{i:03}"), c.clone(), c.clone()))
             .collect();
-        for &i in &base.loaded.split.test {
+        let shown = crate::shown::Shown::of(&base.loaded.split);
+        for &i in &shown.views {
             let full = base.loaded.scene.cameras[i].clone();
             let c = full.downscaled(self.virt.downscale);
-            views.push((format!("test_{i:03}"), c, full));
+            views.push((shown.name(i), c, full));
         }
         let mut maps = Vec::new();
         let mut rows = Vec::new();

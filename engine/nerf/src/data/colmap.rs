@@ -453,6 +453,7 @@ pub struct Model {
 
 /// The two formats COLMAP writes a model in.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum ModelFormat {
     /// `cameras.bin`, `images.bin`, `points3D.bin`.
     Binary,

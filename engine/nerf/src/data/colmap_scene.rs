@@ -296,5 +296,206 @@ pub fn load_colmap(dir: &Path, factor: u32) -> Result<Scene> {
         world_from_source,
         given: None,
         bounded_object: false,
+        depth_files: Vec::new(),
     })
+}
+
+/// What [`export_colmap`] wrote.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Exported {
+    /// The model's folder (`OUT/sparse/0`).
+    pub model: PathBuf,
+    /// The images' folder (`OUT/images`).
+    pub images: PathBuf,
+    /// Views written.
+    pub views: usize,
+    /// Distinct pinhole cameras.
+    pub cameras: usize,
+    /// 3-D points written.
+    pub points: usize,
+}
+
+/// The rotation of `m`'s linear part, where that is a rotation times a uniform scale.
+fn similarity_rotation(m: &DMat4) -> Option<DMat3> {
+    let a = DMat3::from_mat4(*m);
+    let s = a.determinant().cbrt();
+    if !(s.is_finite() && s > 0.0) {
+        return None;
+    }
+    let r = a * (1.0 / s);
+    (r.transpose() * r)
+        .abs_diff_eq(DMat3::IDENTITY, 1e-6)
+        .then_some(r)
+}
+
+/// Writes `scene` as a COLMAP capture in `out`: a model in `format` under `out/sparse/0` and
+/// the images it loaded, copied into `out/images` (so it reads back with `--factor 1` at the
+/// size it was loaded at). Poses and points are in the source's world (COLMAP's, for an LLFF
+/// or COLMAP scene), as COLMAP would have written them, so loading the copy normalises it as
+/// the original was. Each view is a PINHOLE camera (one per distinct size and intrinsics).
+///
+/// The points are the scene's sparse points (`points`, from `points_file`); their tracks name
+/// image ids, which are the scene's own where it has a COLMAP images file (`source_ids`: image
+/// name to id), else ids 1, 2, ... in view order, the order LLFF's `imgs2poses` gives them.
+/// Track entries of images the scene lacks are dropped, and every image's 2-D points are the
+/// projections of the points it observes, so the model is consistent as COLMAP reads it.
+/// `out` must not exist or be empty: nothing of another capture is mixed in.
+pub fn export_colmap(
+    scene: &Scene,
+    points: &[Point3D],
+    source_ids: &HashMap<String, u32>,
+    out: &Path,
+    format: ModelFormat,
+) -> Result<Exported> {
+    if points.is_empty() {
+        return Err(DataError::malformed(
+            &scene.source,
+            "the scene has no sparse points (sparse/0/points3D.bin or .txt): a COLMAP model \
+             takes each view's near and far bounds from them",
+        ));
+    }
+    if out.exists()
+        && std::fs::read_dir(out)
+            .map_err(|e| DataError::io(out, e))?
+            .next()
+            .is_some()
+    {
+        return Err(DataError::malformed(
+            out,
+            "the folder exists and is not empty: export into a new folder",
+        ));
+    }
+    let Some(rot) = similarity_rotation(&scene.world_from_source) else {
+        return Err(DataError::malformed(
+            &scene.source,
+            "the scene's transform from its source world is not a rotation, translation and \
+             uniform scale, so its poses cannot be written in the source's world",
+        ));
+    };
+    let source_from_world = scene.world_from_source.inverse();
+    let images_dir = out.join("images");
+    std::fs::create_dir_all(&images_dir).map_err(|e| DataError::io(&images_dir, e))?;
+    let mut cameras: Vec<ColmapCamera> = Vec::new();
+    let mut images: Vec<ColmapImage> = Vec::with_capacity(scene.cameras.len());
+    let mut names = std::collections::HashSet::new();
+    for (i, cam) in scene.cameras.iter().enumerate() {
+        let Some(name) = cam.image.file_name().and_then(|n| n.to_str()) else {
+            return Err(DataError::malformed(
+                &cam.image,
+                "not a file name COLMAP can hold",
+            ));
+        };
+        if !names.insert(name.to_string()) {
+            return Err(DataError::malformed(
+                &cam.image,
+                format!("two views are named {name}: COLMAP names each image once"),
+            ));
+        }
+        let params = vec![cam.fx, cam.fy, cam.cx, cam.cy];
+        let (w, h) = (u64::from(cam.width), u64::from(cam.height));
+        let camera_id = match cameras
+            .iter()
+            .find(|c| c.params == params && (c.width, c.height) == (w, h))
+        {
+            Some(c) => c.id,
+            None => {
+                let id = cameras.len() as u32 + 1;
+                cameras.push(ColmapCamera {
+                    id,
+                    model: "PINHOLE",
+                    width: w,
+                    height: h,
+                    params,
+                });
+                id
+            }
+        };
+        // OpenGL camera axes (x right, y up, z back) in the source world, then COLMAP's
+        // (x right, y down, z forward) world -> camera.
+        let gl = rot.transpose() * DMat3::from_mat4(cam.c2w);
+        let c2w_cv = DMat3::from_cols(gl.x_axis, -gl.y_axis, -gl.z_axis);
+        let r = c2w_cv.transpose();
+        let centre = source_from_world.transform_point3(cam.c2w.w_axis.truncate());
+        let q = DQuat::from_mat3(&r).normalize();
+        let id = source_ids.get(name).copied().unwrap_or(i as u32 + 1);
+        images.push(ColmapImage {
+            id,
+            qvec: [q.w, q.x, q.y, q.z],
+            tvec: -(r * centre),
+            camera_id,
+            name: name.to_string(),
+            points2d: Vec::new(),
+        });
+        let dst = images_dir.join(name);
+        std::fs::copy(&cam.image, &dst).map_err(|e| DataError::io(&cam.image, e))?;
+    }
+    let index: HashMap<u32, usize> = images
+        .iter()
+        .enumerate()
+        .map(|(k, im)| (im.id, k))
+        .collect();
+    if index.len() != images.len() {
+        return Err(DataError::malformed(
+            &scene.source,
+            "two views map to one COLMAP image id",
+        ));
+    }
+    let mut written = Vec::with_capacity(points.len());
+    for p in points {
+        let mut track = Vec::new();
+        for &(image_id, _) in &p.track {
+            let Some(&k) = index.get(&image_id) else {
+                continue;
+            };
+            if track.iter().any(|t: &(u32, u32)| t.0 == image_id) {
+                continue;
+            }
+            let im = &mut images[k];
+            let cam = &cameras[im.camera_id as usize - 1];
+            let x = rotation(im) * p.xyz + im.tvec;
+            let uv = [
+                cam.params[0] * x.x / x.z + cam.params[2],
+                cam.params[1] * x.y / x.z + cam.params[3],
+            ];
+            track.push((image_id, im.points2d.len() as u32));
+            im.points2d.push((uv, Some(p.id)));
+        }
+        written.push(Point3D { track, ..p.clone() });
+    }
+    let model = Model {
+        cameras,
+        images,
+        points: written,
+    };
+    let model_dir = out.join("sparse").join("0");
+    model.write(&model_dir, format)?;
+    Ok(Exported {
+        model: model_dir,
+        images: images_dir,
+        views: model.images.len(),
+        cameras: model.cameras.len(),
+        points: model.points.len(),
+    })
+}
+
+/// The sparse points of the scene folder `dir` and the ids of its COLMAP images by name (empty
+/// where it has no images file, as an LLFF folder has none): what [`export_colmap`] writes.
+pub fn sparse_of(dir: &Path) -> Result<(Vec<Point3D>, HashMap<String, u32>)> {
+    let Some(mdir) = model_dir(dir) else {
+        return Ok((Vec::new(), HashMap::new()));
+    };
+    let points = match super::colmap::points_file(&mdir) {
+        Some(p) => super::colmap::read_points3d(&p)?,
+        None => Vec::new(),
+    };
+    let ids = match ModelFormat::of(&mdir) {
+        Some(ModelFormat::Binary) if mdir.join("images.bin").is_file() => {
+            super::colmap::read_images_bin(&mdir.join("images.bin"))?
+        }
+        Some(ModelFormat::Text) if mdir.join("images.txt").is_file() => {
+            super::colmap::read_images_txt(&mdir.join("images.txt"))?
+        }
+        _ => Vec::new(),
+    };
+    Ok((points, ids.into_iter().map(|im| (im.name, im.id)).collect()))
 }

@@ -113,6 +113,95 @@ pub fn read_view_depth(dir: &Path, cam: &Camera) -> Result<Option<Vec<f32>>> {
     }
 }
 
+/// The unit of nerfstudio's depth files: millimetres (its `depth_unit_scale_factor`, 1e-3,
+/// which it applies to `.png` and `.npy` files alike).
+pub const NERFSTUDIO_DEPTH_UNIT: f64 = 1e-3;
+
+/// Reads a depth file a capture names for `cam` (nerfstudio's `depth_file_path`): a greyscale
+/// PNG of 16 (or 8) bits or a `.npy` array of shape (H, W) or (H, W, 1), both in millimetres
+/// as nerfstudio reads them, returned in the capture's units ([`NERFSTUDIO_DEPTH_UNIT`]). A map
+/// of another size with the view's aspect is resampled to it (the nearest sample, as
+/// nerfstudio does); 0, non-finite and negative values mean "no depth".
+pub fn read_capture_depth(path: &Path, cam: &Camera) -> Result<Vec<f32>> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    let (w, h, mm): (usize, usize, Vec<f64>) = match ext.as_deref() {
+        Some("png") => {
+            let bytes = std::fs::read(path).map_err(|e| DataError::io(path, e))?;
+            let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+                .map_err(|e| DataError::Image {
+                    path: path.to_path_buf(),
+                    problem: e.to_string(),
+                })?;
+            let (w, h) = (img.width() as usize, img.height() as usize);
+            let v = match img {
+                image::DynamicImage::ImageLuma16(g) => {
+                    g.into_raw().into_iter().map(f64::from).collect()
+                }
+                image::DynamicImage::ImageLuma8(g) => {
+                    g.into_raw().into_iter().map(f64::from).collect()
+                }
+                other => {
+                    return Err(DataError::malformed(
+                        path,
+                        format!(
+                            "a depth PNG holds one grey channel (millimetres, 16 bits); this \
+                             one is {:?}",
+                            other.color()
+                        ),
+                    ))
+                }
+            };
+            (w, h, v)
+        }
+        Some("npy") => {
+            let a = read_npy(path)?;
+            match a.shape.as_slice() {
+                [h, w] | [h, w, 1] => (*w, *h, a.data),
+                s => {
+                    return Err(DataError::malformed(
+                        path,
+                        format!("depth map shape {s:?}: expected (H, W) or (H, W, 1)"),
+                    ))
+                }
+            }
+        }
+        _ => {
+            return Err(DataError::malformed(
+                path,
+                "a capture's depth file is a .png (16-bit millimetres) or a .npy",
+            ))
+        }
+    };
+    let (vw, vh) = (cam.width as usize, cam.height as usize);
+    let values: Vec<f32> = if (w, h) == (vw, vh) {
+        mm.iter()
+            .map(|&v| (v * NERFSTUDIO_DEPTH_UNIT) as f32)
+            .collect()
+    } else {
+        let (sx, sy) = (w as f64 / vw as f64, h as f64 / vh as f64);
+        if w == 0 || h == 0 || (sx - sy).abs() > 0.01 * sx.max(sy) {
+            return Err(DataError::malformed(
+                path,
+                format!(
+                    "depth map is {w}x{h}, which does not have the aspect of its {vw}x{vh} view"
+                ),
+            ));
+        }
+        let mut out = Vec::with_capacity(vw * vh);
+        for y in 0..vh {
+            let sy_i = (((y as f64 + 0.5) * sy) as usize).min(h - 1);
+            for x in 0..vw {
+                let sx_i = (((x as f64 + 0.5) * sx) as usize).min(w - 1);
+                out.push((mm[sy_i * w + sx_i] * NERFSTUDIO_DEPTH_UNIT) as f32);
+            }
+        }
+        out
+    };
+    depth_for_view(path, cam, (vw, vh), values.into_iter())
+}
+
 /// Channel names taken as depth, in order of preference.
 const DEPTH_CHANNELS: [&str; 6] = ["Z", "depth", "Depth", "D", "Y", "R"];
 

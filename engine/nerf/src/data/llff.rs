@@ -194,6 +194,7 @@ pub fn load_llff(dir: &Path, opts: &LlffOptions) -> Result<Scene> {
         forward_facing: true,
         given: None,
         bounded_object: false,
+        depth_files: Vec::new(),
     })
 }
 

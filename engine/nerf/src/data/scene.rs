@@ -32,6 +32,10 @@ pub struct Scene {
     /// An object on a transparent background (NeRF-synthetic): nothing lies beyond what the
     /// views frame around the rig's centre, so rays need sampling only there.
     pub bounded_object: bool,
+    /// The depth file each view names (nerfstudio's `depth_file_path`, read by
+    /// [`super::depth::read_capture_depth`]): one per camera, or empty where the capture names
+    /// none.
+    pub depth_files: Vec<PathBuf>,
 }
 
 impl Scene {

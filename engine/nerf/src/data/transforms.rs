@@ -46,7 +46,28 @@ pub fn load_split_transforms(dir: &Path) -> Result<Scene> {
         }
         let part = load_transforms(&path)?;
         let first = scene.cameras.len();
+        if scene.depth_files.is_empty() != part.depth_files.is_empty() {
+            return Err(DataError::malformed(
+                &path,
+                format!(
+                    "its frames {} depth_file_path and those of {} {}: give it in every \
+                     split file or in none",
+                    if part.depth_files.is_empty() {
+                        "lack"
+                    } else {
+                        "give"
+                    },
+                    SPLIT_FILES[0],
+                    if scene.depth_files.is_empty() {
+                        "do not"
+                    } else {
+                        "do"
+                    },
+                ),
+            ));
+        }
         scene.cameras.extend(part.cameras);
+        scene.depth_files.extend(part.depth_files);
         if k == 2 {
             test = (first..scene.cameras.len()).collect();
         }
@@ -111,14 +132,14 @@ fn matrix(v: &Value) -> Option<DMat4> {
     ]))
 }
 
-/// The downscaled twin of `file` for `factor` > 1: `images_{factor}/REST` for `images/REST`
-/// (nerfstudio's layout), where it exists.
-fn downscaled_twin(dir: &Path, file: &str, factor: u32) -> Option<PathBuf> {
+/// The downscaled twin of `file` for `factor` > 1, where it exists: the file of that name in
+/// `{prefix}_{factor}/` (nerfstudio's layout and lookup: `images_2/`, `depths_2/`).
+fn downscaled_twin(dir: &Path, file: &str, prefix: &str, factor: u32) -> Option<PathBuf> {
     if factor <= 1 {
         return None;
     }
-    let rest = Path::new(file).strip_prefix("images").ok()?;
-    let twin = dir.join(format!("images_{factor}")).join(rest);
+    let name = Path::new(file).file_name()?;
+    let twin = dir.join(format!("{prefix}_{factor}")).join(name);
     twin.is_file().then_some(twin)
 }
 
@@ -138,6 +159,7 @@ pub fn load_transforms_at(path: &Path, factor: u32) -> Result<Scene> {
         return Err(DataError::malformed(path, "`frames` is empty"));
     }
     let mut cameras = Vec::with_capacity(frames.len());
+    let mut depth_files = Vec::new();
     for (i, f) in frames.iter().enumerate() {
         let bad = |p: String| DataError::malformed(path, format!("frame {i}: {p}"));
         // Per-frame intrinsics override the top-level ones (nerfstudio allows both).
@@ -246,7 +268,41 @@ pub fn load_transforms_at(path: &Path, factor: u32) -> Result<Scene> {
             bounds: None,
             image,
         };
-        if let Some(twin) = downscaled_twin(dir, file, factor) {
+        // nerfstudio's depth_file_path: every frame names one or none does.
+        match (f.get("depth_file_path"), depth_files.len() == i) {
+            (None | Some(Value::Null), true) if i > 0 => {
+                return Err(bad(
+                    "no depth_file_path, which the frames before it give: every frame names \
+                     its depth file or none does"
+                        .into(),
+                ))
+            }
+            (None | Some(Value::Null), _) => {}
+            (Some(Value::String(d)), true) => {
+                let full = dir.join(d);
+                let file = downscaled_twin(dir, d, "depths", factor).unwrap_or(full);
+                if !file.is_file() {
+                    return Err(bad(format!(
+                        "depth_file_path {d}: no such file ({})",
+                        file.display()
+                    )));
+                }
+                depth_files.push(file);
+            }
+            (Some(Value::String(_)), false) => {
+                return Err(bad(
+                    "depth_file_path, which the frames before it lack: every frame names its \
+                     depth file or none does"
+                        .into(),
+                ))
+            }
+            (Some(other), _) => {
+                return Err(bad(format!(
+                    "depth_file_path must be a string, not {other}"
+                )))
+            }
+        }
+        if let Some(twin) = downscaled_twin(dir, file, "images", factor) {
             // The intrinsics are the full images'; the twin's own size scales them.
             let (tw, th) = super::image_size(&twin)?;
             let (sx, sy) = (tw as f64 / width as f64, th as f64 / height as f64);
@@ -289,5 +345,6 @@ pub fn load_transforms_at(path: &Path, factor: u32) -> Result<Scene> {
         forward_facing: false,
         given: None,
         bounded_object: false,
+        depth_files,
     })
 }
