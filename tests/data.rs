@@ -892,3 +892,168 @@ fn the_grid_box_holds_every_camera_and_samples_span_the_bounds() {
         }
     }
 }
+
+/// The named camera paths against their definitions (extranerf_nerf::camera_path), on fern's
+/// rig: the spiral is LLFF's widened path; the ellipse's centres lie on its ellipse and each
+/// looks at the rig's focus; the sweep crosses the rig past both ends looking along the average
+/// axis; a line starts and ends at its two views; `--width` keeps the field of view.
+#[test]
+fn named_camera_paths_follow_their_definitions() {
+    use extranerf_nerf::camera_path::{named_path, nearest_to_axes, resized, NamedPath};
+    use extranerf_nerf::cameras::{virtual_cameras, Trajectory};
+    use glam::DVec3;
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let all = &scene.cameras;
+    let rig: Vec<_> = all.iter().take(17).cloned().collect();
+    let c2ws: Vec<_> = rig.iter().map(|c| c.c2w).collect();
+    let avg = extranerf_nerf::data::llff::average_pose(&c2ws);
+    let (x, y, z) = (
+        avg.x_axis.truncate(),
+        avg.y_axis.truncate(),
+        avg.z_axis.truncate(),
+    );
+    let centre = avg.w_axis.truncate();
+    let extent = |axis: DVec3| {
+        rig.iter()
+            .map(|c| (c.centre() - centre).dot(axis).abs())
+            .fold(0.0, f64::max)
+    };
+    let (rx, ry) = (extent(x), extent(y));
+    let looks_at = |c: &extranerf_nerf::data::Camera, p: DVec3| {
+        let d = (p - c.centre()).normalize();
+        d.dot(-c.c2w.z_axis.truncate())
+    };
+    // Spiral: LLFF's path, as the virtual cameras' spiral.
+    let spiral = named_path(&rig, all, NamedPath::Spiral, 12, 1.5).unwrap();
+    let want = virtual_cameras(&rig, Trajectory::Spiral, 12, 1.5).unwrap();
+    for (a, b) in spiral.iter().zip(&want) {
+        assert!(a.c2w.abs_diff_eq(b.c2w, 1e-12));
+    }
+    assert_eq!(spiral[3].image.to_str(), Some("frame_0003.png"));
+    // Ellipse: on range * (rx cos t, ry sin t) in the rig's plane, looking at the focus point.
+    let (near, far) = extranerf_nerf::data::depth_bounds(&rig).unwrap();
+    let focus = centre - z / (0.25 / near + 0.75 / far);
+    let ellipse = named_path(&rig, all, NamedPath::Ellipse, 8, 2.0).unwrap();
+    assert_eq!(ellipse.len(), 8);
+    for (k, c) in ellipse.iter().enumerate() {
+        let t = std::f64::consts::TAU * k as f64 / 8.0;
+        let p = centre + 2.0 * (rx * t.cos() * x + ry * t.sin() * y);
+        assert!(c.centre().abs_diff_eq(p, 1e-12), "frame {k}");
+        assert!((looks_at(c, focus) - 1.0).abs() < 1e-12, "frame {k}");
+        assert!(
+            c.c2w.y_axis.truncate().dot(y) > 0.9,
+            "frame {k} keeps the rig's up"
+        );
+    }
+    // Sweep: from -range rx to +range rx along x, looking along the average axis.
+    let sweep = named_path(&rig, all, NamedPath::Sweep, 5, 1.5).unwrap();
+    assert!(sweep[0].centre().abs_diff_eq(centre - 1.5 * rx * x, 1e-12));
+    assert!(sweep[2].centre().abs_diff_eq(centre, 1e-12));
+    assert!(sweep[4].centre().abs_diff_eq(centre + 1.5 * rx * x, 1e-12));
+    for c in &sweep {
+        assert!(c.c2w.z_axis.truncate().abs_diff_eq(z, 1e-12));
+    }
+    // A line from view 0 to view 19: both ends exact, the middle halfway.
+    let line = named_path(&rig, all, NamedPath::Line(0, 19), 5, 1.0).unwrap();
+    assert!(line[0].c2w.abs_diff_eq(all[0].c2w, 1e-9));
+    assert!(line[4].c2w.abs_diff_eq(all[19].c2w, 1e-9));
+    assert!(line[2]
+        .centre()
+        .abs_diff_eq(0.5 * (all[0].centre() + all[19].centre()), 1e-12));
+    let e = named_path(&rig, all, NamedPath::Line(0, 20), 5, 1.0).unwrap_err();
+    assert!(e.to_string().contains("views 0 to 19"), "{e}");
+    for (frames, range) in [(0, 1.0), (5, 0.0), (5, f64::NAN)] {
+        assert!(named_path(&rig, all, NamedPath::Sweep, frames, range).is_err());
+    }
+    // A width keeps the field of view and the aspect.
+    let r = resized(&all[0], 126);
+    assert_eq!((r.width, r.height), (126, 95));
+    assert!((r.fx / r.width as f64 - all[0].fx / all[0].width as f64).abs() < 1e-12);
+    // The point nearest to the axes of cameras looking at one point is that point.
+    let target = DVec3::new(0.3, -0.2, -4.0);
+    let ring = named_path(&rig, all, NamedPath::Ellipse, 6, 1.0).unwrap();
+    let aimed: Vec<_> = ring
+        .iter()
+        .map(|c| {
+            let mut c = c.clone();
+            let zc = (c.centre() - target).normalize();
+            let xc = DVec3::Y.cross(zc).normalize();
+            c.c2w = glam::DMat4::from_cols(
+                xc.extend(0.0),
+                zc.cross(xc).extend(0.0),
+                zc.extend(0.0),
+                c.centre().extend(1.0),
+            );
+            c
+        })
+        .collect();
+    assert!(nearest_to_axes(&aimed).unwrap().abs_diff_eq(target, 1e-9));
+    assert!(
+        nearest_to_axes(&sweep).is_none(),
+        "parallel axes meet nowhere"
+    );
+}
+
+/// nerfstudio's camera_path.json: written and read back (poses, size, field of view, fps),
+/// read as a path file beside the transforms.json `extranerf cameras` writes, and malformed
+/// paths refused naming the entry and field.
+#[test]
+fn camera_path_json_round_trips_and_refuses_malformed_paths() {
+    use extranerf_nerf::camera_path::{
+        named_path, read_camera_path, read_path_file, write_camera_path, NamedPath,
+    };
+    let scene = load_llff(&fern(), &LlffOptions::default()).unwrap();
+    let dir = scratch_dir("camera-path");
+    let cams = named_path(&scene.cameras, &scene.cameras, NamedPath::Spiral, 7, 1.2).unwrap();
+    let path = dir.join("camera_path.json");
+    write_camera_path(&path, &cams, 24.0).unwrap();
+    let (back, fps) = read_camera_path(&path).unwrap();
+    assert_eq!(fps, Some(24.0));
+    assert_eq!(back.len(), 7);
+    for (a, b) in back.iter().zip(&cams) {
+        assert!(a.c2w.abs_diff_eq(b.c2w, 1e-12));
+        assert_eq!((a.width, a.height), (b.width, b.height));
+        assert!((a.fy - b.fy).abs() < 1e-9 && (a.fx - b.fy).abs() < 1e-9);
+        assert_eq!((a.cx, a.cy), (b.width as f64 / 2.0, b.height as f64 / 2.0));
+    }
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    assert_eq!(doc["camera_type"], "perspective");
+    assert_eq!(doc["render_width"], 504);
+    assert!((doc["seconds"].as_f64().unwrap() - 7.0 / 24.0).abs() < 1e-12);
+    // The transforms.json of `extranerf cameras` is a path file too.
+    let t = dir.join("transforms.json");
+    extranerf_nerf::cameras::write_transforms(&t, &cams).unwrap();
+    let (from_t, none) = read_path_file(&t).unwrap();
+    assert_eq!(none, None);
+    assert!(from_t[6].c2w.abs_diff_eq(cams[6].c2w, 1e-12));
+    assert_eq!(read_path_file(&path).unwrap().0.len(), 7);
+    // Malformed.
+    let bad = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut d = doc.clone();
+        edit(&mut d);
+        let p = dir.join("bad.json");
+        std::fs::write(&p, serde_json::to_vec(&d).unwrap()).unwrap();
+        read_path_file(&p).unwrap_err().to_string()
+    };
+    let e = bad(&|d| {
+        d["camera_path"][2]["camera_to_world"]
+            .as_array_mut()
+            .unwrap()
+            .pop();
+    });
+    assert!(
+        e.contains("bad.json") && e.contains("camera_path[2].camera_to_world"),
+        "{e}"
+    );
+    let e = bad(&|d| d["camera_path"][1]["fov"] = 0.0.into());
+    assert!(e.contains("camera_path[1].fov"), "{e}");
+    let e = bad(&|d| {
+        d.as_object_mut().unwrap().remove("render_height");
+    });
+    assert!(e.contains("render_height"), "{e}");
+    let e = bad(&|d| d["camera_path"] = serde_json::json!([]));
+    assert!(e.contains("empty"), "{e}");
+    let e = bad(&|d| *d = serde_json::json!({"poses": []}));
+    assert!(e.contains("not a camera path"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

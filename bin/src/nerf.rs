@@ -26,6 +26,7 @@ use crate::args::{depth_request, KernelPath, MarchArgs, SplitArgs};
 use crate::report::Console;
 use extranerf_extrapolate::demo::{demo as run_demo, DemoSpec, DemoStop};
 use extranerf_extrapolate::rounds::Stage2Spec;
+use extranerf_nerf::camera_path::PathSource;
 
 /// Arguments of `extranerf train`.
 #[derive(clap::Args, Debug)]
@@ -547,6 +548,30 @@ pub struct RenderArgs {
     chunk: u32,
     #[command(flatten)]
     march: MarchArgs,
+    /// Render along a camera path instead of the scene's views: a named trajectory around the
+    /// training cameras (spiral: LLFF's path; ellipse: in the rig's plane, looking at its
+    /// focus; sweep: across the rig and past both ends; line:I,J: from view I to view J), or a
+    /// file: the transforms.json that `extranerf cameras` writes, or a nerfstudio
+    /// camera_path.json. Writes OUT/frame_NNNN.png and OUT/camera_path.json (the path as
+    /// rendered, for nerfstudio or another render); default OUT: RUN/path.
+    #[arg(
+        long,
+        value_name = "spiral|ellipse|sweep|line:I,J|FILE",
+        conflicts_with = "views"
+    )]
+    path: Option<PathSource>,
+    /// Frames of a named path.
+    #[arg(long, default_value_t = 120)]
+    frames: usize,
+    /// How far a named path reaches beyond the rig, as a factor of its extent (1: its edge).
+    #[arg(long, default_value_t = 1.0)]
+    range: f64,
+    /// Frame width in pixels, the height keeping the aspect [default: the path's cameras'].
+    #[arg(long)]
+    width: Option<u32>,
+    /// Frames per second of the path [default: the path file's, else 30].
+    #[arg(long)]
+    fps: Option<f64>,
 }
 
 /// A view rendered from a run, with its ground truth.
@@ -565,33 +590,23 @@ struct Rendered {
     ndc_cube: Option<(glam::DVec3, f64)>,
 }
 
-#[allow(clippy::too_many_arguments)] // each is a distinct setting
-fn render_views(
+/// A trained run's field, ready to render: its config, the field, samples per ray and march.
+struct Field {
+    cfg: RunConfig,
+    nerf: Nerf,
+    samples: u32,
+    how: March,
+}
+
+/// Loads the field of `run` for rendering with `march` (and its occupancy grid, if asked for).
+fn open_field(
     ctx: &Context,
     run: &Path,
-    which: &ViewSet,
     samples: Option<u32>,
-    chunk: u32,
     march: &MarchArgs,
-    mut each: impl FnMut(&Rendered) -> anyhow::Result<()>,
-) -> anyhow::Result<RunConfig> {
+) -> anyhow::Result<Field> {
     let ck = load_checkpoint(run)?;
     let cfg = ck.config;
-    let loaded = cfg.scene.load()?;
-    let role = |i: usize| {
-        if loaded.split.train.contains(&i) {
-            "train"
-        } else if loaded.split.test.contains(&i) {
-            "test"
-        } else {
-            "other"
-        }
-    };
-    let list: Vec<(usize, &'static str)> = which
-        .indices(&loaded.split, loaded.scene.cameras.len(), "--views")?
-        .into_iter()
-        .map(|i| (i, role(i)))
-        .collect();
     let mut nerf = Nerf::new(ctx, cfg.model.clone(), &ck.params, cfg.train.background)?;
     let mlp_path = nerf.set_mlp(ctx, march.mlp)?;
     eprintln!("MLPs: {mlp_path}");
@@ -618,6 +633,41 @@ fn render_views(
             );
         }
     }
+    Ok(Field {
+        cfg,
+        nerf,
+        samples,
+        how,
+    })
+}
+
+#[allow(clippy::too_many_arguments)] // each is a distinct setting
+fn render_views(
+    ctx: &Context,
+    run: &Path,
+    which: &ViewSet,
+    samples: Option<u32>,
+    chunk: u32,
+    march: &MarchArgs,
+    mut each: impl FnMut(&Rendered) -> anyhow::Result<()>,
+) -> anyhow::Result<RunConfig> {
+    let field = open_field(ctx, run, samples, march)?;
+    let (cfg, nerf, samples, how) = (field.cfg, field.nerf, field.samples, field.how);
+    let loaded = cfg.scene.load()?;
+    let role = |i: usize| {
+        if loaded.split.train.contains(&i) {
+            "train"
+        } else if loaded.split.test.contains(&i) {
+            "test"
+        } else {
+            "other"
+        }
+    };
+    let list: Vec<(usize, &'static str)> = which
+        .indices(&loaded.split, loaded.scene.cameras.len(), "--views")?
+        .into_iter()
+        .map(|i| (i, role(i)))
+        .collect();
     for (i, role) in list {
         let cam = &loaded.scene.cameras[i];
         let t = Instant::now();
@@ -650,8 +700,116 @@ fn render_views(
     Ok(cfg)
 }
 
+/// `extranerf render --path`: the frames of a camera path, with the time they will take said
+/// before they start (from a probe frame) and a progress bar.
+fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Result<()> {
+    use extranerf_nerf::camera_path::{
+        named_path, read_path_file, resized, write_camera_path, PathSource as P,
+    };
+    use extranerf_nerf::train::{Progress, Reporter, Unit};
+    if let Some(f) = a.fps {
+        if !(f.is_finite() && f > 0.0 && f <= 1000.0) {
+            bail!("--fps {f}: use a rate in (0, 1000]");
+        }
+    }
+    if a.width == Some(0) {
+        bail!("--width must be at least 1");
+    }
+    let field = open_field(ctx, &a.run, a.samples, &a.march)?;
+    let (cams, file_fps) = match source {
+        P::Named(n) => {
+            let loaded = field.cfg.scene.load()?;
+            let rig = loaded.train_cameras();
+            (
+                named_path(&rig, &loaded.scene.cameras, *n, a.frames, a.range)?,
+                None,
+            )
+        }
+        P::File(f) => read_path_file(f)?,
+    };
+    let cams: Vec<_> = match a.width {
+        Some(w) => cams.iter().map(|c| resized(c, w)).collect(),
+        None => cams,
+    };
+    let fps = a.fps.or(file_fps).unwrap_or(30.0);
+    let out = a.out.clone().unwrap_or_else(|| a.run.join("path"));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    // Frames of an earlier path in this folder would mix with these: they go first.
+    let mut stale = 0;
+    for e in std::fs::read_dir(&out).with_context(|| format!("reading {}", out.display()))? {
+        let p = e?.path();
+        let name = p.file_name().map(|n| n.to_string_lossy().into_owned());
+        if name.is_some_and(|n| n.starts_with("frame_") && n.ends_with(".png")) {
+            std::fs::remove_file(&p).with_context(|| format!("removing {}", p.display()))?;
+            stale += 1;
+        }
+    }
+    if stale > 0 {
+        eprintln!(
+            "removed {stale} frames of an earlier path from {}",
+            out.display()
+        );
+    }
+    write_camera_path(&out.join("camera_path.json"), &cams, fps)?;
+    // The estimate: a probe frame at a quarter of the first frame's width, per pixel.
+    let probe = resized(&cams[0], (cams[0].width / 4).max(8));
+    let t = Instant::now();
+    field
+        .nerf
+        .render_with(ctx, &probe, a.chunk, field.samples, field.how)?;
+    let per_pixel = t.elapsed().as_secs_f64() / (probe.width * probe.height) as f64;
+    let pixels: f64 = cams.iter().map(|c| (c.width * c.height) as f64).sum();
+    eprintln!(
+        "{} frames of {}x{} at {fps} fps ({:.1} s of video): about {:.0} s to render ({:.3} s for a {}x{} probe frame)",
+        cams.len(),
+        cams[0].width,
+        cams[0].height,
+        cams.len() as f64 / fps,
+        per_pixel * pixels,
+        t.elapsed().as_secs_f64(),
+        probe.width,
+        probe.height
+    );
+    let mut rep = Console::new();
+    rep.stage("render path");
+    let t = Instant::now();
+    for (k, cam) in cams.iter().enumerate() {
+        let (rgb, _, _) = field
+            .nerf
+            .render_with(ctx, cam, a.chunk, field.samples, field.how)?;
+        write_png(
+            &out.join(format!("frame_{k:04}.png")),
+            cam.width,
+            cam.height,
+            &rgb,
+        )?;
+        let secs = t.elapsed().as_secs_f64();
+        let done = (k + 1) as f64;
+        rep.progress(&Progress {
+            unit: Unit::Views,
+            step: k as u32 + 1,
+            total: cams.len() as u32,
+            loss: 0.0,
+            psnr: 0.0,
+            samples_per_s: 0.0,
+            secs,
+            eta: secs / done * (cams.len() as f64 - done),
+        });
+    }
+    rep.note(&format!(
+        "wrote {} frames and camera_path.json to {} in {:.1} s",
+        cams.len(),
+        out.display(),
+        t.elapsed().as_secs_f64()
+    ));
+    Ok(())
+}
+
 /// `extranerf render`.
 pub fn render(ctx: &Context, a: &RenderArgs) -> anyhow::Result<()> {
+    if let Some(p) = &a.path {
+        return render_path(ctx, a, p);
+    }
     let out = a.out.clone().unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     render_views(ctx, &a.run, &a.views, a.samples, a.chunk, &a.march, |r| {

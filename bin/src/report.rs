@@ -36,7 +36,10 @@ impl Reporter for Console {
         let label = self.stage.clone().unwrap_or_else(|| "step".into());
         if p.unit == Unit::Views {
             if !self.tty {
-                eprintln!("{label} view {:>3}/{}  {:.1} s", p.step, p.total, p.secs);
+                eprintln!(
+                    "{label} view {:>3}/{}  {:.1} s  ETA {:.0} s",
+                    p.step, p.total, p.secs, p.eta
+                );
                 return;
             }
         } else if p.unit == Unit::ModelSteps {
@@ -71,7 +74,7 @@ impl Reporter for Console {
                 "steps  loss {:.5}  psnr {:.2} dB  {:.2e} samples/s  {:.0} s, ETA {:.0} s",
                 p.loss, p.psnr, p.samples_per_s, p.secs, p.eta
             ),
-            Unit::Views => format!("views  {:.0} s", p.secs),
+            Unit::Views => format!("views  {:.0} s, ETA {:.0} s", p.secs, p.eta),
             Unit::ModelSteps => format!(
                 "steps  loss {:.5}  {:.0} s, ETA {:.0} s",
                 p.loss, p.secs, p.eta

@@ -438,6 +438,50 @@ fn train_resume_render_eval_on_fern() {
     assert!(!ok && err.contains("--min-weight 2"), "{err}");
     let (ok, _, err) = extranerf(&["render", run_s, "--views", "99"]);
     assert!(!ok && err.contains("view 99"), "{err}");
+    // Along a named path: the frames at the width asked for, the time said before they start,
+    // and the path as rendered, which renders again to the same frames.
+    let path_out = run.join("sweep");
+    let (ok, _, err) = extranerf(&[
+        "render",
+        run_s,
+        "--path",
+        "sweep",
+        "--frames",
+        "3",
+        "--width",
+        "48",
+        "--samples",
+        "4",
+        "--out",
+        path_out.to_str().unwrap(),
+    ]);
+    assert!(
+        ok && err.contains("3 frames of 48x36") && err.contains("to render"),
+        "{err}"
+    );
+    let frame = |dir: &std::path::Path, k: usize| {
+        image::open(dir.join(format!("frame_{k:04}.png")))
+            .unwrap()
+            .to_rgb8()
+    };
+    assert_eq!(frame(&path_out, 2).dimensions(), (48, 36));
+    let again = run.join("sweep_again");
+    let (ok, _, err) = extranerf(&[
+        "render",
+        run_s,
+        "--path",
+        path_out.join("camera_path.json").to_str().unwrap(),
+        "--samples",
+        "4",
+        "--out",
+        again.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    for k in 0..3 {
+        assert_eq!(frame(&path_out, k), frame(&again, k), "frame {k}");
+    }
+    let (ok, _, err) = extranerf(&["render", run_s, "--path", "line:0,40"]);
+    assert!(!ok && err.contains("views 0 to 19"), "{err}");
     // Evaluate one held-out view with AlexNet LPIPS.
     let lpips = fern().join("../../../models/lpips");
     let (ok, out, err) = extranerf(&[

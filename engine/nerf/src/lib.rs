@@ -22,6 +22,7 @@ macro_rules! display_by_name {
 }
 
 pub mod autoconfig;
+pub mod camera_path;
 pub mod cameras;
 pub mod data;
 pub mod demo;
