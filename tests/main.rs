@@ -28,4 +28,5 @@ mod render;
 mod split;
 mod stability;
 mod train;
+mod video;
 mod visibility;

@@ -27,6 +27,7 @@ use crate::report::Console;
 use extranerf_extrapolate::demo::{demo as run_demo, DemoSpec, DemoStop};
 use extranerf_extrapolate::rounds::Stage2Spec;
 use extranerf_nerf::camera_path::PathSource;
+use extranerf_nerf::video::VideoWriter;
 
 /// Arguments of `extranerf train`.
 #[derive(clap::Args, Debug)]
@@ -552,8 +553,10 @@ pub struct RenderArgs {
     /// training cameras (spiral: LLFF's path; ellipse: in the rig's plane, looking at its
     /// focus; sweep: across the rig and past both ends; line:I,J: from view I to view J), or a
     /// file: the transforms.json that `extranerf cameras` writes, or a nerfstudio
-    /// camera_path.json. Writes OUT/frame_NNNN.png and OUT/camera_path.json (the path as
-    /// rendered, for nerfstudio or another render); default OUT: RUN/path.
+    /// camera_path.json. Writes OUT/frame_NNNN.png, OUT/path.mp4 (H.264, which browsers
+    /// play) and OUT/camera_path.json (the path as rendered, for nerfstudio or another
+    /// render); default OUT: RUN/path. Example: `extranerf render RUN --path spiral --frames
+    /// 120 --width 252`.
     #[arg(
         long,
         value_name = "spiral|ellipse|sweep|line:I,J|FILE",
@@ -569,9 +572,13 @@ pub struct RenderArgs {
     /// Frame width in pixels, the height keeping the aspect [default: the path's cameras'].
     #[arg(long)]
     width: Option<u32>,
-    /// Frames per second of the path [default: the path file's, else 30].
+    /// Frames per second of the path and its video [default: the path file's, else 30].
     #[arg(long)]
     fps: Option<f64>,
+    /// With --path, also write OUT/depth.mp4: the field's depth along the path, near bright
+    /// (grey, scaled by the first frame's 1st and 99th percentiles for the whole video).
+    #[arg(long, requires = "path")]
+    depth_video: bool,
 }
 
 /// A view rendered from a run, with its ground truth.
@@ -751,6 +758,30 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
         );
     }
     write_camera_path(&out.join("camera_path.json"), &cams, fps)?;
+    let size = (cams[0].width, cams[0].height);
+    if let Some(c) = cams.iter().find(|c| (c.width, c.height) != size) {
+        bail!(
+            "the path's frames are not all one size ({}x{} and {}x{}): pass --width",
+            size.0,
+            size.1,
+            c.width,
+            c.height
+        );
+    }
+    let video_path = out.join("path.mp4");
+    let mut video = VideoWriter::create(&video_path, size.0, size.1, fps)?;
+    let mut depth_video = if a.depth_video {
+        Some(VideoWriter::create(
+            &out.join("depth.mp4"),
+            size.0,
+            size.1,
+            fps,
+        )?)
+    } else {
+        None
+    };
+    let mut depth_range: Option<(f32, f32)> = None;
+    let mut encode_s = 0.0;
     // The estimate: a probe frame at a quarter of the first frame's width, per pixel.
     let probe = resized(&cams[0], (cams[0].width / 4).max(8));
     let t = Instant::now();
@@ -774,15 +805,30 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
     rep.stage("render path");
     let t = Instant::now();
     for (k, cam) in cams.iter().enumerate() {
-        let (rgb, _, _) = field
-            .nerf
-            .render_with(ctx, cam, a.chunk, field.samples, field.how)?;
+        let (rgb, depth, _) =
+            field
+                .nerf
+                .render_with(ctx, cam, a.chunk, field.samples, field.how)?;
         write_png(
             &out.join(format!("frame_{k:04}.png")),
             cam.width,
             cam.height,
             &rgb,
         )?;
+        let te = Instant::now();
+        video.push(&rgb)?;
+        if let Some(v) = depth_video.as_mut() {
+            let (lo, hi) = *depth_range.get_or_insert_with(|| depth_percentiles(&depth));
+            let grey: Vec<f32> = depth
+                .iter()
+                .flat_map(|&d| {
+                    let g = ((hi - d) / (hi - lo).max(1e-6)).clamp(0.0, 1.0);
+                    [g, g, g]
+                })
+                .collect();
+            v.push(&grey)?;
+        }
+        encode_s += te.elapsed().as_secs_f64();
         let secs = t.elapsed().as_secs_f64();
         let done = (k + 1) as f64;
         rep.progress(&Progress {
@@ -796,13 +842,38 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
             eta: secs / done * (cams.len() as f64 - done),
         });
     }
+    let te = Instant::now();
+    video.finish()?;
+    if let Some(v) = depth_video {
+        v.finish()?;
+    }
+    encode_s += te.elapsed().as_secs_f64();
+    let total = t.elapsed().as_secs_f64();
     rep.note(&format!(
-        "wrote {} frames and camera_path.json to {} in {:.1} s",
+        "wrote {} frames, {} and camera_path.json to {} in {total:.1} s; the video took {encode_s:.2} s of it ({:.1}% of the rendering's {:.1} s)",
         cams.len(),
+        if a.depth_video { "path.mp4, depth.mp4" } else { "path.mp4" },
         out.display(),
-        t.elapsed().as_secs_f64()
+        100.0 * encode_s / (total - encode_s).max(1e-9),
+        total - encode_s
     ));
     Ok(())
+}
+
+/// The 1st and 99th percentiles of a frame's depths where it has any (the depth video's
+/// range), else (0, 1).
+fn depth_percentiles(depth: &[f32]) -> (f32, f32) {
+    let mut d: Vec<f32> = depth
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .collect();
+    if d.is_empty() {
+        return (0.0, 1.0);
+    }
+    d.sort_by(f32::total_cmp);
+    let at = |q: f64| d[((d.len() - 1) as f64 * q).round() as usize];
+    (at(0.01), at(0.99))
 }
 
 /// `extranerf render`.

@@ -452,6 +452,9 @@ fn train_resume_render_eval_on_fern() {
         "48",
         "--samples",
         "4",
+        "--fps",
+        "12",
+        "--depth-video",
         "--out",
         path_out.to_str().unwrap(),
     ]);
@@ -459,6 +462,26 @@ fn train_resume_render_eval_on_fern() {
         ok && err.contains("3 frames of 48x36") && err.contains("to render"),
         "{err}"
     );
+    // The video decodes to the frames, at their size and rate; the depth video beside it.
+    let video = extranerf_nerf::video::read_video(&path_out.join("path.mp4")).unwrap();
+    assert_eq!((video.width, video.height, video.frames.len()), (48, 36, 3));
+    assert!((video.fps - 12.0).abs() < 1e-9, "{} fps", video.fps);
+    let png = image::open(path_out.join("frame_0001.png"))
+        .unwrap()
+        .to_rgb8();
+    let mean_err = png
+        .as_raw()
+        .iter()
+        .zip(&video.frames[1])
+        .map(|(&a, &b)| (a as f64 - b as f64).abs())
+        .sum::<f64>()
+        / png.as_raw().len() as f64;
+    assert!(
+        mean_err < 8.0,
+        "video frame 1 is off its PNG by {mean_err}/255 on average"
+    );
+    let depth = extranerf_nerf::video::read_video(&path_out.join("depth.mp4")).unwrap();
+    assert_eq!(depth.frames.len(), 3);
     let frame = |dir: &std::path::Path, k: usize| {
         image::open(dir.join(format!("frame_{k:04}.png")))
             .unwrap()

@@ -24,8 +24,7 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use serde_json::Value;
 
-use crate::cameras::{virtual_cameras, CameraError, Trajectory};
-use crate::data::llff::average_pose;
+use crate::cameras::{frame, look_at, virtual_cameras, CameraError, RigFrame, Trajectory};
 use crate::data::{Camera, DataError};
 
 /// A named trajectory around the training cameras (see the module's documentation).
@@ -98,18 +97,6 @@ pub fn resized(cam: &Camera, width: u32) -> Camera {
     }
 }
 
-fn frame(x: DVec3, y: DVec3, z: DVec3, p: DVec3) -> DMat4 {
-    DMat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), p.extend(1.0))
-}
-
-/// A camera at `p` looking at `target` (OpenGL: along -z), `up` kept as close as possible.
-fn look_at(p: DVec3, target: DVec3, up: DVec3) -> DMat4 {
-    let z = (p - target).normalize();
-    let x = up.cross(z).normalize();
-    let y = z.cross(x);
-    frame(x, y, z, p)
-}
-
 /// The point nearest (least squares) to every camera's viewing axis; None where the axes are
 /// (nearly) parallel.
 pub fn nearest_to_axes(cameras: &[Camera]) -> Option<DVec3> {
@@ -145,22 +132,15 @@ pub fn named_path(
     if !(range.is_finite() && range > 0.0 && range <= 100.0) {
         return bad(format!("range {range}: use a factor in (0, 100]"));
     }
-    let c2ws: Vec<DMat4> = train.iter().map(|c| c.c2w).collect();
-    let avg = average_pose(&c2ws);
-    let (x, y, z) = (
-        avg.x_axis.truncate(),
-        avg.y_axis.truncate(),
-        avg.z_axis.truncate(),
-    );
-    let centre = avg.w_axis.truncate();
-    let rx = train
-        .iter()
-        .map(|c| (c.centre() - centre).dot(x).abs())
-        .fold(0.0, f64::max);
-    let ry = train
-        .iter()
-        .map(|c| (c.centre() - centre).dot(y).abs())
-        .fold(0.0, f64::max);
+    let RigFrame {
+        x,
+        y,
+        z,
+        centre,
+        rx,
+        ry,
+        ..
+    } = RigFrame::of(train)?;
     let first = &train[0];
     let named = |k: usize, c2w: DMat4| Camera {
         c2w,

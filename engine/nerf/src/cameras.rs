@@ -68,24 +68,15 @@ pub fn virtual_cameras(
     if !(range.is_finite() && range > 0.0 && range <= 100.0) {
         return bad(format!("range {range}: use a factor in (0, 100]"));
     }
-    let c2ws: Vec<DMat4> = train.iter().map(|c| c.c2w).collect();
-    if c2ws.iter().any(|m| !m.is_finite()) {
-        return bad("a training pose is not finite".into());
-    }
-    let avg = average_pose(&c2ws);
-    let (x, y, z) = (
-        avg.x_axis.truncate(),
-        avg.y_axis.truncate(),
-        avg.z_axis.truncate(),
-    );
-    let centre = avg.w_axis.truncate();
-    let extent = |axis: DVec3| {
-        train
-            .iter()
-            .map(|c| (c.centre() - centre).dot(axis).abs())
-            .fold(0.0, f64::max)
-    };
-    let (rx, ry, rz) = (extent(x), extent(y), extent(z));
+    let RigFrame {
+        x,
+        y,
+        z,
+        centre,
+        rx,
+        ry,
+        rz,
+    } = RigFrame::of(train)?;
     let tau = std::f64::consts::TAU;
     let mut out = Vec::with_capacity(count);
     for k in 0..count {
@@ -141,13 +132,57 @@ pub fn virtual_cameras(
     Ok(out)
 }
 
-fn frame(x: DVec3, y: DVec3, z: DVec3, p: DVec3) -> DMat4 {
+/// The frame of a rig's average pose (NeRF's `poses_avg`): its axes and centre, and the
+/// largest offsets of the cameras' centres from it along each axis.
+pub(crate) struct RigFrame {
+    pub x: DVec3,
+    pub y: DVec3,
+    pub z: DVec3,
+    pub centre: DVec3,
+    pub rx: f64,
+    pub ry: f64,
+    pub rz: f64,
+}
+
+impl RigFrame {
+    /// The frame of `train` (not empty), refusing poses that are not finite.
+    pub fn of(train: &[Camera]) -> Result<RigFrame, CameraError> {
+        let c2ws: Vec<DMat4> = train.iter().map(|c| c.c2w).collect();
+        if c2ws.iter().any(|m| !m.is_finite()) {
+            return Err(CameraError("a training pose is not finite".into()));
+        }
+        let avg = average_pose(&c2ws);
+        let (x, y, z) = (
+            avg.x_axis.truncate(),
+            avg.y_axis.truncate(),
+            avg.z_axis.truncate(),
+        );
+        let centre = avg.w_axis.truncate();
+        let extent = |axis: DVec3| {
+            train
+                .iter()
+                .map(|c| (c.centre() - centre).dot(axis).abs())
+                .fold(0.0, f64::max)
+        };
+        Ok(RigFrame {
+            x,
+            y,
+            z,
+            centre,
+            rx: extent(x),
+            ry: extent(y),
+            rz: extent(z),
+        })
+    }
+}
+
+pub(crate) fn frame(x: DVec3, y: DVec3, z: DVec3, p: DVec3) -> DMat4 {
     DMat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), p.extend(1.0))
 }
 
 /// A camera at `p` looking at `target` (OpenGL: looking along -z), with `up` kept as close as
 /// possible.
-fn look_at(p: DVec3, target: DVec3, up: DVec3) -> DMat4 {
+pub(crate) fn look_at(p: DVec3, target: DVec3, up: DVec3) -> DMat4 {
     let z = (p - target).normalize();
     let x = up.cross(z).normalize();
     let y = z.cross(x);

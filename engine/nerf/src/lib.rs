@@ -42,6 +42,7 @@ pub mod run_error;
 pub mod safetensors;
 pub mod train;
 pub mod trainer;
+pub mod video;
 pub mod views;
 pub mod write;
 
