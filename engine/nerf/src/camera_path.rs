@@ -123,14 +123,8 @@ pub fn named_path(
     range: f64,
 ) -> Result<Vec<Camera>, CameraError> {
     let bad = |m: String| Err(CameraError(m));
-    if train.is_empty() {
-        return bad("no training cameras".into());
-    }
     if frames == 0 || frames > 100_000 {
         return bad(format!("{frames} frames: use 1 to 100000"));
-    }
-    if !(range.is_finite() && range > 0.0 && range <= 100.0) {
-        return bad(format!("range {range}: use a factor in (0, 100]"));
     }
     let RigFrame {
         x,
@@ -140,7 +134,7 @@ pub fn named_path(
         rx,
         ry,
         ..
-    } = RigFrame::of(train)?;
+    } = RigFrame::beyond(train, range)?;
     let first = &train[0];
     let named = |k: usize, c2w: DMat4| Camera {
         c2w,

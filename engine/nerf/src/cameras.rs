@@ -59,14 +59,8 @@ pub fn virtual_cameras(
     range: f64,
 ) -> Result<Vec<Camera>, CameraError> {
     let bad = |m: String| Err(CameraError(m));
-    if train.is_empty() {
-        return bad("no training cameras".into());
-    }
     if count == 0 || count > 10_000 {
         return bad(format!("count {count}: use 1 to 10000"));
-    }
-    if !(range.is_finite() && range > 0.0 && range <= 100.0) {
-        return bad(format!("range {range}: use a factor in (0, 100]"));
     }
     let RigFrame {
         x,
@@ -76,7 +70,7 @@ pub fn virtual_cameras(
         rx,
         ry,
         rz,
-    } = RigFrame::of(train)?;
+    } = RigFrame::beyond(train, range)?;
     let tau = std::f64::consts::TAU;
     let mut out = Vec::with_capacity(count);
     for k in 0..count {
@@ -145,8 +139,17 @@ pub(crate) struct RigFrame {
 }
 
 impl RigFrame {
-    /// The frame of `train` (not empty), refusing poses that are not finite.
-    pub fn of(train: &[Camera]) -> Result<RigFrame, CameraError> {
+    /// The frame of `train` for a trajectory `range` times beyond it, refusing no cameras,
+    /// poses that are not finite and a range outside (0, 100].
+    pub fn beyond(train: &[Camera], range: f64) -> Result<RigFrame, CameraError> {
+        if train.is_empty() {
+            return Err(CameraError("no training cameras".into()));
+        }
+        if !(range.is_finite() && range > 0.0 && range <= 100.0) {
+            return Err(CameraError(format!(
+                "range {range}: use a factor in (0, 100]"
+            )));
+        }
         let c2ws: Vec<DMat4> = train.iter().map(|c| c.c2w).collect();
         if c2ws.iter().any(|m| !m.is_finite()) {
             return Err(CameraError("a training pose is not finite".into()));
