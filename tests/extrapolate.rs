@@ -20,7 +20,7 @@ use extranerf_extrapolate::stage3::{
     check_triplets, collector_views, EnhancerCheck, Stage3Enhancer, Stage3Gate, Stage3Spec,
     Triplets, CHECK_FILE,
 };
-use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec};
+use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec, FrameSize};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_extrapolate::ExtrapolateError;
 use extranerf_nerf::cameras::Trajectory;
@@ -124,8 +124,8 @@ fn options(out: &Path, base: &Path) -> Options {
         diffusion: None,
         flythrough: FlythroughSpec {
             frames: 3,
-            downscale: 2,
-            delay_ms: 100,
+            size: FrameSize::Downscale(2),
+            fps: 12.0,
         },
         stage3: None,
         resume: false,
@@ -273,7 +273,8 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
             "visibility",
             "stage2-harmonic",
             "flythrough-base",
-            "flythrough-stage2-harmonic"
+            "flythrough-stage2-harmonic",
+            "flythrough-video"
         ]
     );
     assert!(m.stages.iter().all(|s| s.done));
@@ -288,22 +289,60 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     ] {
         assert!(a.join(f).exists(), "{f} missing");
     }
-    // The fly-through: one looping animation per field, frames at half the virtual size, and
-    // the variant's differs from the BaseNeRF's.
-    let gif = |name: &str| {
-        use image::AnimationDecoder;
-        let f = std::fs::File::open(a.join(format!("flythrough/{name}.gif"))).unwrap();
-        image::codecs::gif::GifDecoder::new(std::io::BufReader::new(f))
+    // The fly-through: each field's frames at half the virtual size, the variant's unlike the
+    // BaseNeRF's, and the video of the two side by side under their labels, at its rate.
+    let frame = |name: &str, k: usize| {
+        image::open(a.join(format!("flythrough/{name}/frame_{k:03}.png")))
             .unwrap()
-            .into_frames()
-            .collect_frames()
-            .unwrap()
+            .to_rgb8()
     };
-    let (fb, fs) = (gif("base"), gif("stage2-harmonic"));
-    assert_eq!(fb.len(), 3);
-    assert_eq!(fs.len(), 3);
-    assert_eq!(fb[0].buffer().dimensions(), (24, 18));
-    assert_ne!(fb[2].buffer().as_raw(), fs[2].buffer().as_raw());
+    let (fb, fs) = (frame("base", 2), frame("stage2-harmonic", 2));
+    assert_eq!(fb.dimensions(), (24, 18));
+    assert_ne!(fb.as_raw(), fs.as_raw());
+    let video = extranerf_nerf::video::read_video(&a.join("flythrough/flythrough.mp4")).unwrap();
+    let layout = extranerf_extrapolate::montage::Layout::new(2, 24, 18).unwrap();
+    assert_eq!((video.width, video.height), layout.size());
+    assert_eq!(video.frames.len(), 3);
+    assert!((video.fps - 12.0).abs() < 1e-9, "{} fps", video.fps);
+    for (t, name) in ["base", "stage2-harmonic"].iter().enumerate() {
+        let (x0, y0) = layout.origin(t);
+        for k in 0..3 {
+            let png = frame(name, k);
+            // The frame's mean error against the video's tile shifted by (dx, dy).
+            let err = |dx: i32, dy: i32| {
+                let mut e = 0.0;
+                for y in 1..17u32 {
+                    for x in 1..23u32 {
+                        let vx = (x0 + x) as i32 + dx;
+                        let vy = (y0 + layout.band + y) as i32 + dy;
+                        let o = ((vy as u32 * video.width + vx as u32) * 3) as usize;
+                        for c in 0..3 {
+                            let v = video.frames[k][o + c] as f64;
+                            e += (v - png.get_pixel(x, y)[c] as f64).abs();
+                        }
+                    }
+                }
+                e / (22.0 * 16.0 * 3.0)
+            };
+            let here = err(0, 0);
+            eprintln!("{name} frame {k}: {here:.2}/255 from its PNG in the video");
+            assert!(here < 16.0, "{name} frame {k}: {here}/255 from its PNG");
+            for (dx, dy) in [(1, 0), (-1, 0), (0, 1), (0, -1)] {
+                assert!(
+                    here < err(dx, dy),
+                    "{name} frame {k} fits the video better shifted by ({dx}, {dy})"
+                );
+            }
+        }
+        // Its label: light pixels in the band above it.
+        let lit = (0..layout.band)
+            .flat_map(|y| (0..24).map(move |x| (x, y)))
+            .filter(|&(x, y)| {
+                video.frames[0][(((y0 + y) * video.width + x0 + x) * 3) as usize] > 128
+            })
+            .count();
+        assert!(lit > 5, "{name}'s label: {lit} light pixels");
+    }
     // The masks against the demo's exact visibility.
     let vis: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(a.join("visibility/visibility.json")).unwrap(),
@@ -349,6 +388,9 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
     // not resumed, the fly-through that reads it runs again, and the result is the same.
     let b = dir.join("b");
     copy_dir(&a, &b);
+    // A frame the fly-through to redo made earlier goes with it.
+    let stale = b.join("flythrough/stage2-harmonic/frame_099.png");
+    std::fs::copy(b.join("flythrough/stage2-harmonic/frame_000.png"), &stale).unwrap();
     let o = Options {
         resume: true,
         redo: vec!["stage2-harmonic".into()],
@@ -368,8 +410,18 @@ fn the_pipeline_runs_resumes_and_refuses_other_scenes_and_settings() {
         "{:?}",
         rec.notes
     );
+    assert!(
+        has("stage flythrough-video: runs again after flythrough-stage2-harmonic"),
+        "{:?}",
+        rec.notes
+    );
     assert!(!has("resuming after round"), "{:?}", rec.notes);
     assert!(has("flythrough-base: done, skipped"), "{:?}", rec.notes);
+    assert!(
+        !stale.exists(),
+        "the redone fly-through kept an earlier frame"
+    );
+    assert!(b.join("flythrough/stage2-harmonic/frame_002.png").is_file());
     let same = agreement(&a, &b, &loaded.split.test);
     eprintln!("resumed at the boundary: {same:.2} dB from the uninterrupted run");
     assert!(
@@ -837,8 +889,8 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
         stage3: Some(stage3_spec()),
         flythrough: FlythroughSpec {
             frames: 2,
-            downscale: 2,
-            delay_ms: 100,
+            size: FrameSize::Width(30),
+            fps: 10.0,
         },
         ..options(out, &base)
     };
@@ -856,7 +908,8 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
             "stage3-harmonic",
             "flythrough-base",
             "flythrough-stage2-harmonic",
-            "flythrough-stage3-harmonic"
+            "flythrough-stage3-harmonic",
+            "flythrough-video"
         ]
     );
     for f in [
@@ -866,7 +919,8 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
         "stage3-enhancer/model/model_index.json",
         "stage3-harmonic/round_01/virtual_002.png",
         "stage3-harmonic/checkpoint.safetensors",
-        "flythrough/stage3-harmonic.gif",
+        "flythrough/stage3-harmonic/frame_001.png",
+        "flythrough/flythrough.mp4",
     ] {
         assert!(a.join(f).exists(), "{f} missing");
     }
@@ -1161,7 +1215,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     assert!(t.markdown().contains("patch KID"));
 
     // The report: self-contained (every image inlined, nothing fetched), the stages, the table,
-    // five images per held-out view and the three fly-throughs.
+    // five images per held-out view and the fly-through video of the three fields.
     let page = extranerf_extrapolate::eval::report::write_report(&a, Some(&t)).unwrap();
     let html = std::fs::read_to_string(&page).unwrap();
     for want in [
@@ -1169,7 +1223,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
         "<td>stage3-harmonic</td>",
         "LPIPS-alex",
         "patch KID",
-        "Fly-throughs",
+        "Fly-through",
     ] {
         assert!(html.contains(want), "{want} missing from the report");
     }
@@ -1178,7 +1232,9 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
     let images = html.matches("<img ").count();
     let inlined = html.matches("src=\"data:image/").count();
     assert_eq!(images, inlined);
-    assert_eq!(images, 5 * loaded.split.test.len() + 3);
+    assert_eq!(images, 5 * loaded.split.test.len());
+    assert_eq!(html.matches("<video ").count(), 1);
+    assert_eq!(html.matches("src=\"data:video/mp4;base64,").count(), 1);
 
     // The gate (--stage3-gate check), on a copy with stage 3 redone: the check enhances one
     // triplet per training view (the sources in turn) and scores it against the photo (the
@@ -1239,7 +1295,7 @@ fn stage_three_enhances_resumes_and_keeps_the_visible_region_in_this_process() {
             for &i in &loaded.split.test {
                 assert!(same(&format!("test_{i:03}.png")), "test view {i}");
             }
-            assert!(g.join("flythrough/stage3-harmonic.gif").is_file());
+            assert!(g.join("flythrough/stage3-harmonic/frame_001.png").is_file());
             assert_eq!(row("stage3-harmonic"), row("stage2-harmonic"));
             assert_eq!(
                 t.notes,

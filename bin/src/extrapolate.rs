@@ -13,7 +13,8 @@ use extranerf_extrapolate::rounds::Stage2Spec;
 use extranerf_extrapolate::run::{extrapolate as run_pipeline, Options};
 use extranerf_extrapolate::stage::VirtualSpec;
 use extranerf_extrapolate::stage3::{Stage3Enhancer, Stage3Gate, Stage3Spec};
-use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec};
+use extranerf_extrapolate::stages::flythrough::DEFAULT_DOWNSCALE;
+use extranerf_extrapolate::stages::{BaseSpec, FlythroughSpec, FrameSize};
 use extranerf_extrapolate::visibility::VisSettings;
 use extranerf_gpu::Context;
 use extranerf_nerf::cameras::Trajectory;
@@ -136,12 +137,20 @@ pub struct ExtrapolateArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Frames of the fly-through along the virtual trajectory, rendered from the BaseNeRF and
-    /// each variant into RUN/flythrough (PNG frames and a looping GIF); 0: none.
+    /// each variant into RUN/flythrough/NAME (PNG frames), then put side by side, each
+    /// labelled, into RUN/flythrough/flythrough.mp4 (H.264, which browsers play); 0: none.
     #[arg(long, default_value_t = FlythroughSpec::default().frames, value_name = "FRAMES")]
     flythrough: u32,
-    /// Divide the virtual views' resolution by this for the fly-through frames.
-    #[arg(long, default_value_t = FlythroughSpec::default().downscale)]
+    /// Divide the virtual views' resolution by this for each field's fly-through frames.
+    #[arg(long, default_value_t = DEFAULT_DOWNSCALE)]
     flythrough_downscale: u32,
+    /// Each field's fly-through frames this many pixels wide instead (the height keeps the
+    /// views' aspect); the video is the fields side by side, at most 4 to a row.
+    #[arg(long, value_name = "PIXELS", conflicts_with = "flythrough_downscale")]
+    flythrough_width: Option<u32>,
+    /// Frames per second of the fly-through video.
+    #[arg(long, default_value_t = FlythroughSpec::default().fps)]
+    flythrough_fps: f64,
     /// Stop after stage 2 (no enhancer, no stage 3).
     #[arg(long)]
     no_stage3: bool,
@@ -366,8 +375,11 @@ pub fn extrapolate(ctx: &Context, a: &ExtrapolateArgs) -> anyhow::Result<()> {
         }),
         flythrough: FlythroughSpec {
             frames: a.flythrough,
-            downscale: a.flythrough_downscale,
-            ..FlythroughSpec::default()
+            size: match a.flythrough_width {
+                Some(w) => FrameSize::Width(w),
+                None => FrameSize::Downscale(a.flythrough_downscale),
+            },
+            fps: a.flythrough_fps,
         },
         stage3: (!a.no_stage3).then(|| Stage3Spec {
             data_rounds: a.data_rounds,

@@ -26,6 +26,7 @@ use crate::args::{depth_request, KernelPath, MarchArgs, SplitArgs};
 use crate::report::Console;
 use extranerf_extrapolate::demo::{demo as run_demo, DemoSpec, DemoStop};
 use extranerf_extrapolate::rounds::Stage2Spec;
+use extranerf_extrapolate::visibility::{FieldVisibility, VisSettings};
 use extranerf_nerf::camera_path::PathSource;
 use extranerf_nerf::video::VideoWriter;
 
@@ -579,6 +580,12 @@ pub struct RenderArgs {
     /// (grey, scaled by the first frame's 1st and 99th percentiles for the whole video).
     #[arg(long, requires = "path")]
     depth_video: bool,
+    /// With --path, also write OUT/visibility.mp4: how much of what each pixel shows the
+    /// training cameras saw (grey, white: seen), as the extrapolate pipeline's visibility
+    /// stage computes it by default (the second largest transmittance toward the training
+    /// cameras, through their transmittance volumes; at most 32 training views).
+    #[arg(long, requires = "path")]
+    visibility_video: bool,
 }
 
 /// A view rendered from a run, with its ground truth.
@@ -780,6 +787,28 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
     } else {
         None
     };
+    let mut vis_video = if a.visibility_video {
+        let t = Instant::now();
+        let train = field.cfg.scene.load()?.train_cameras();
+        let settings = VisSettings::default();
+        let vis = FieldVisibility::new(ctx, &field.nerf, &train, &settings)?;
+        let cfg = settings.config(settings.rank, field.samples)?;
+        eprintln!(
+            "visibility against {} training cameras: transmittance volumes built in {:.1} s",
+            train.len(),
+            t.elapsed().as_secs_f64()
+        );
+        let mask = extranerf_nerf::render::visibility::mask_all_but(train.len(), None);
+        Some((
+            vis,
+            cfg,
+            settings.chunk,
+            mask,
+            VideoWriter::create(&out.join("visibility.mp4"), size.0, size.1, fps)?,
+        ))
+    } else {
+        None
+    };
     let mut depth_range: Option<(f32, f32)> = None;
     let mut encode_s = 0.0;
     // The estimate: a probe frame at a quarter of the first frame's width, per pixel.
@@ -829,6 +858,13 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
             v.push(&grey)?;
         }
         encode_s += te.elapsed().as_secs_f64();
+        if let Some((vis, cfg, chunk, mask, v)) = vis_video.as_mut() {
+            let m = vis.map(ctx, &field.nerf, cam, *mask, cfg, *chunk)?;
+            let grey: Vec<f32> = m.visibility.iter().flat_map(|&g| [g, g, g]).collect();
+            let te = Instant::now();
+            v.push(&grey)?;
+            encode_s += te.elapsed().as_secs_f64();
+        }
         let secs = t.elapsed().as_secs_f64();
         let done = (k + 1) as f64;
         rep.progress(&Progress {
@@ -847,12 +883,23 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
     if let Some(v) = depth_video {
         v.finish()?;
     }
+    if let Some((.., v)) = vis_video {
+        v.finish()?;
+    }
     encode_s += te.elapsed().as_secs_f64();
     let total = t.elapsed().as_secs_f64();
     rep.note(&format!(
         "wrote {} frames, {} and camera_path.json to {} in {total:.1} s; the video took {encode_s:.2} s of it ({:.1}% of the rendering's {:.1} s)",
         cams.len(),
-        if a.depth_video { "path.mp4, depth.mp4" } else { "path.mp4" },
+        [
+            Some("path.mp4"),
+            a.depth_video.then_some("depth.mp4"),
+            a.visibility_video.then_some("visibility.mp4"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect::<Vec<_>>()
+        .join(", "),
         out.display(),
         100.0 * encode_s / (total - encode_s).max(1e-9),
         total - encode_s

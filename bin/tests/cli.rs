@@ -455,11 +455,14 @@ fn train_resume_render_eval_on_fern() {
         "--fps",
         "12",
         "--depth-video",
+        "--visibility-video",
         "--out",
         path_out.to_str().unwrap(),
     ]);
     assert!(
-        ok && err.contains("3 frames of 48x36") && err.contains("to render"),
+        ok && err.contains("3 frames of 48x36")
+            && err.contains("to render")
+            && err.contains("path.mp4, depth.mp4, visibility.mp4"),
         "{err}"
     );
     // The video decodes to the frames, at their size and rate; the depth video beside it.
@@ -482,6 +485,23 @@ fn train_resume_render_eval_on_fern() {
     );
     let depth = extranerf_nerf::video::read_video(&path_out.join("depth.mp4")).unwrap();
     assert_eq!(depth.frames.len(), 3);
+    // The visibility video: grey, and the sweep's middle frame, inside the rig, mostly seen
+    // by the training cameras.
+    let vis = extranerf_nerf::video::read_video(&path_out.join("visibility.mp4")).unwrap();
+    assert_eq!((vis.width, vis.height, vis.frames.len()), (48, 36, 3));
+    let mean = |f: &[u8]| f.iter().map(|&v| v as f64).sum::<f64>() / f.len() as f64;
+    let seen = mean(&vis.frames[1]);
+    eprintln!("visibility video: mean {seen:.1}/255 in the middle frame");
+    assert!(
+        seen > 128.0,
+        "the middle frame is seen at {seen:.1}/255 on average"
+    );
+    let chroma = vis.frames[1]
+        .chunks_exact(3)
+        .map(|p| (p[0] as i32 - p[2] as i32).abs())
+        .max()
+        .unwrap();
+    assert!(chroma <= 8, "the visibility video is not grey: {chroma}");
     let frame = |dir: &std::path::Path, k: usize| {
         image::open(dir.join(format!("frame_{k:04}.png")))
             .unwrap()
@@ -959,6 +979,27 @@ fn old_run_folders_resume() {
             .map(|s| s["name"].as_str().unwrap().to_string())
             .collect();
         assert!(stages.len() >= 7, "{name}: {stages:?}");
+        // Those builds wrote each field's fly-through frames (beside a GIF, gone since): the
+        // video stage that came after them reads those frames, made here as they were left.
+        let old: serde_json::Value = serde_json::from_slice(&before).unwrap();
+        let mut fields = Vec::new();
+        for s in old["stages"].as_array().unwrap() {
+            let Some(field) = s["name"].as_str().unwrap().strip_prefix("flythrough-") else {
+                continue;
+            };
+            let r = &s["report"];
+            let (w, h) = (r["width"].as_u64().unwrap(), r["height"].as_u64().unwrap());
+            let folder = out.join("flythrough").join(field);
+            std::fs::create_dir_all(&folder).unwrap();
+            for k in 0..r["frames"].as_u64().unwrap() {
+                image::RgbImage::from_pixel(w as u32, h as u32, image::Rgb([40, 90, 160]))
+                    .save(folder.join(format!("frame_{k:03}.png")))
+                    .unwrap();
+            }
+            fields.push(field.to_string());
+        }
+        assert_eq!(fields.len(), 3, "{name}: {stages:?}");
+        let mut after: Option<Vec<u8>> = None;
         for extra in [&[][..], free] {
             let args: Vec<&str> = common
                 .iter()
@@ -976,7 +1017,35 @@ fn old_run_folders_resume() {
                     "{name} {extra:?}: {s} not skipped:\n{err}"
                 );
             }
-            assert_eq!(std::fs::read(&manifest).unwrap(), before, "{name}");
+            // The first resume adds the video of the old frames, and leaves the old records
+            // as they were; the second runs nothing.
+            let now = std::fs::read(&manifest).unwrap();
+            match &after {
+                None => {
+                    let m: serde_json::Value = serde_json::from_slice(&now).unwrap();
+                    let recs = m["stages"].as_array().unwrap();
+                    assert_eq!(
+                        &recs[..stages.len()],
+                        &old["stages"].as_array().unwrap()[..]
+                    );
+                    let video = &recs[stages.len()];
+                    assert_eq!(video["name"], "flythrough-video", "{name}");
+                    assert_eq!(video["report"]["frames"], 2, "{name}");
+                    let v = extranerf_nerf::video::read_video(
+                        &out.join("flythrough").join("flythrough.mp4"),
+                    )
+                    .unwrap();
+                    assert_eq!((v.frames.len(), v.width), (2, 3 * 16 + 2 * 2), "{name}");
+                    after = Some(now);
+                }
+                Some(a) => {
+                    assert!(
+                        err.contains("stage flythrough-video: done, skipped"),
+                        "{err}"
+                    );
+                    assert_eq!(&now, a, "{name}");
+                }
+            }
         }
         let args: Vec<&str> = common
             .iter()

@@ -12,6 +12,7 @@ use extranerf_nerf::data::DataError;
 use extranerf_nerf::metrics::MetricsError;
 use extranerf_nerf::run::RunError;
 use extranerf_nerf::train::TrainError;
+use extranerf_nerf::video::VideoError;
 
 use crate::inpaint::InpaintError;
 
@@ -90,6 +91,9 @@ pub enum ExtrapolateError {
     /// Inception network run on.
     #[error(transparent)]
     Diffusion(#[from] DiffusionError),
+    /// A video (the fly-through) could not be written.
+    #[error(transparent)]
+    Video(#[from] VideoError),
 }
 
 impl From<DeviceError> for ExtrapolateError {

@@ -17,7 +17,7 @@
 //! - [`eval`]: the comparison table of an extrapolate run, KID on Inception features, and the
 //!   self-contained HTML report;
 //! - [`demo`]: `extranerf demo`, the whole pipeline on the procedural demo scene;
-//! - [`anim`]: looping GIFs of rendered frames (the fly-through);
+//! - [`montage`]: fields' frames side by side under labels (the fly-through video's frames);
 //! - [`error`]: [`ExtrapolateError`], the error of every fallible public function here (a
 //!   record that does not read as a stage's settings says why in a string, which
 //!   [`manifest::Recorded::check`] turns into one).
@@ -28,13 +28,13 @@
 // Pixel loops index several images and channels by the same index; iterators would hide it.
 #![allow(clippy::needless_range_loop)]
 
-pub mod anim;
 pub mod base;
 pub mod demo;
 pub mod error;
 pub mod eval;
 pub mod inpaint;
 pub mod manifest;
+pub mod montage;
 pub mod rounds;
 pub mod run;
 pub mod shown;

@@ -10,8 +10,9 @@
 //! - stage 3 ([`crate::stage3`]): the enhancer's training data (`RUN/stage3-data`), the
 //!   enhancer (`RUN/stage3-enhancer`), and per stage-2 variant the enhancement loop
 //!   (`RUN/stage3-NAME`);
-//! - [`FlythroughStage`]: frames along the virtual trajectory and a looping GIF, for the
-//!   BaseNeRF and each variant (`RUN/flythrough`).
+//! - [`FlythroughStage`]: frames along the virtual trajectory, for the BaseNeRF and each
+//!   variant (`RUN/flythrough/NAME`), then [`FlythroughVideoStage`]: the video of them side by
+//!   side, each labelled (`RUN/flythrough/flythrough.mp4`).
 //!
 //! Each stage records its resolved configuration in `extrapolate.json` ([`Manifest`]); a
 //! resumed run skips the stages done, refuses one asked for with other settings, and continues
@@ -31,8 +32,8 @@ use crate::rounds::Stage2Spec;
 use crate::stage::{FieldRef, RunDir, Stage, VirtualSpec};
 use crate::stage3::{EnhanceStage, EnhancerDataStage, EnhancerStage, Stage3Enhancer, Stage3Spec};
 use crate::stages::{
-    BaseSpec, BaseStage, FlythroughConfig, FlythroughSpec, FlythroughStage, InpaintSpec,
-    InpaintStage, VisibilityStage,
+    BaseSpec, BaseStage, FlythroughConfig, FlythroughSpec, FlythroughStage, FlythroughVideoStage,
+    InpaintSpec, InpaintStage, VisibilityStage,
 };
 use crate::visibility::VisSettings;
 use extranerf_nerf::train::Reporter;
@@ -174,15 +175,17 @@ fn stages(o: &Options, scene: SceneSpec) -> Result<Vec<Box<dyn Stage>>> {
         if o.stage3.is_some() {
             fields.extend(o.inpainters.iter().map(|&k| FieldRef::Stage3(k)));
         }
-        for field in fields {
+        let config = FlythroughConfig {
+            virt: o.virt.clone(),
+            spec: o.flythrough.clone(),
+        };
+        for &field in &fields {
             stages.push(Box::new(FlythroughStage {
                 field,
-                config: FlythroughConfig {
-                    virt: o.virt.clone(),
-                    spec: o.flythrough.clone(),
-                },
+                config: config.clone(),
             }));
         }
+        stages.push(Box::new(FlythroughVideoStage { fields, config }));
     }
     Ok(stages)
 }

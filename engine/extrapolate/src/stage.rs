@@ -142,6 +142,15 @@ impl FieldRef {
             FieldRef::Stage3(k) => format!("stage3-{}", k.name()),
         }
     }
+
+    /// Its label in the fly-through video.
+    pub fn label(self) -> String {
+        match self {
+            FieldRef::Base => "BaseNeRF".into(),
+            FieldRef::Stage2(k) => format!("stage 2 {}", k.name()),
+            FieldRef::Stage3(k) => format!("stage 3 {}", k.name()),
+        }
+    }
 }
 
 /// Progress of a stage over views: `step` of `total` done, `t` its start.

@@ -1,7 +1,7 @@
 //! `RUN/report.html`: one self-contained page per extrapolate run (every image inlined as a
 //! data URI, no script, nothing fetched): the stages with their wall times, `eval`'s table, and
 //! for each held-out view the ground truth, the BaseNeRF's render, the final field's render and
-//! the visibility map, then the fly-throughs.
+//! the visibility map, then the fly-through video.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -57,11 +57,10 @@ fn img(path: &Path, alt: &str) -> Result<String> {
     let mime = match ext.as_str() {
         "png" => "image/png",
         "jpg" | "jpeg" => "image/jpeg",
-        "gif" => "image/gif",
         _ => {
             return Err(ExtrapolateError::malformed(
                 path,
-                "not a PNG, JPEG or GIF image for the report",
+                "not a PNG or JPEG image for the report",
             ))
         }
     };
@@ -186,30 +185,20 @@ pub fn write_report(dir: &Path, table: Option<&Table>) -> Result<PathBuf> {
         fig(&vis.join(format!("{name}_mask.png")), "not-visible mask")?;
         h += "</div>\n";
     }
-    let fly = dir.join("flythrough");
-    let mut gifs: Vec<PathBuf> = match std::fs::read_dir(&fly) {
-        Ok(rd) => rd
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|e| e == "gif"))
-            .collect(),
-        Err(_) => Vec::new(),
-    };
-    gifs.sort();
-    if !gifs.is_empty() {
-        h += "<h2>Fly-throughs</h2><div>\n";
-        for g in &gifs {
-            let name = g
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            let _ = writeln!(
-                h,
-                "<figure>{}<figcaption>{}</figcaption></figure>",
-                img(g, &name)?,
-                escape(&name)
-            );
-        }
-        h += "</div>\n";
+    let video = dir
+        .join("flythrough")
+        .join(crate::stages::flythrough::VIDEO_FILE);
+    if video.is_file() {
+        let bytes =
+            std::fs::read(&video).map_err(|e| ExtrapolateError::io("reading", &video, e))?;
+        let _ = writeln!(
+            h,
+            "<h2>Fly-through</h2>\n<p>The BaseNeRF and each variant along the virtual \
+             trajectory, side by side ({}).</p>\n<video controls autoplay loop muted playsinline \
+             title=\"fly-through\" src=\"data:video/mp4;base64,{}\"></video>",
+            escape(&video.display().to_string()),
+            base64(&bytes)
+        );
     }
     h += "</body></html>\n";
     let path = dir.join(REPORT_FILE);

@@ -7,6 +7,8 @@ pub mod stage2;
 pub mod visibility;
 
 pub use base::{default_run_config, BaseSpec, BaseStage};
-pub use flythrough::{FlythroughConfig, FlythroughSpec, FlythroughStage};
+pub use flythrough::{
+    FlythroughConfig, FlythroughSpec, FlythroughStage, FlythroughVideoStage, FrameSize,
+};
 pub use stage2::{reproject, InpaintSpec, InpaintStage};
 pub use visibility::VisibilityStage;
