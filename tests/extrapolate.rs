@@ -654,15 +654,17 @@ fn each_error_variant_is_reached_through_the_public_api() {
         .unwrap_err();
     assert!(matches!(e, ExtrapolateError::Incomplete { .. }), "{e:?}");
 
-    // A scene that is not there: the BaseNeRF stage fails on it.
+    // A scene that is not there: refused before any stage (its cameras and images identify
+    // the run), and no run folder is left.
     let fresh = |out: &str, scene: &Path, budget: f64| Options {
         scene: Some(demo_scene_spec(scene.to_path_buf())),
         base: BaseSpec { from: None, budget },
         ..options(&dir.join(out), &base)
     };
     let e = fail(&fresh("no-scene", &dir.join("no-such-scene"), 60.0));
-    in_stage(&e, "base");
-    assert!(matches!(e.cause(), ExtrapolateError::Run(_)), "{e:?}");
+    assert_eq!(e.stage(), None, "{e}");
+    assert!(matches!(e, ExtrapolateError::Run(_)), "{e:?}");
+    assert!(!Manifest::path(&dir.join("no-scene")).exists());
     // A budget the training refuses.
     let e = fail(&fresh("no-budget", &scene_dir, 0.0));
     in_stage(&e, "base");

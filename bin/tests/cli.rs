@@ -2232,6 +2232,201 @@ fn spawn_and_kill(
     child.wait().unwrap();
 }
 
+/// Resume and redo cannot mix runs (issue 59), each finding through the command line:
+/// - a round whose checkpoint was written but not its record (killed in between, held there by
+///   EXTRANERF_CRASH_TEST_PAUSE) resumes after that round, not before it;
+/// - `--redo base` reruns the visibility and stage 2 that read it, and `--redo visibility`
+///   with another threshold reruns stage 2;
+/// - a folder whose `base` was trained on another scene is refused; `--base` is known by its
+///   checkpoint's hash (a copy may take its place; another run reruns what reads it);
+/// - the scene is known by its cameras' and images' hash: an image changed in place is refused.
+#[test]
+fn extrapolate_resume_and_redo_cannot_mix_runs() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-mix-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene = dir.join("scene");
+    extranerf_nerf::demo::write_demo_scene(&scene, 32, 24).unwrap();
+    let scene_s = scene.to_str().unwrap();
+    let common = |out: &std::path::Path| -> Vec<String> {
+        [
+            "extrapolate",
+            "--split",
+            "extrapolation",
+            "--factor",
+            "1",
+            "--virtual",
+            "2",
+            "--virtual-downscale",
+            "1",
+            "--rounds",
+            "3",
+            "--steps-per-round",
+            "10",
+            "--inpainter",
+            "harmonic",
+            "--flythrough",
+            "0",
+            "--no-stage3",
+            "--out",
+            out.to_str().unwrap(),
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let run = |args: &[String]| {
+        let argv: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (ok, _, err) = extranerf(&argv);
+        (ok, err)
+    };
+    let with = |base: Vec<String>, extra: &[&str]| -> Vec<String> {
+        base.into_iter()
+            .chain(extra.iter().map(|s| s.to_string()))
+            .collect()
+    };
+    let own =
+        |out: &std::path::Path| with(common(out), &["--scene", scene_s, "--base-budget", "6"]);
+
+    // Killed between round 2's checkpoint and its record.
+    let r = dir.join("r");
+    let stage = r.join("stage2-harmonic");
+    spawn_and_kill(&own(&r), Some("round.json:3000"), None, &|| {
+        stage.join("round.json").is_file() && writing_file(&stage, "round.json")
+    });
+    let round = std::fs::read_to_string(stage.join("round.json")).unwrap();
+    assert!(round.contains("\"rounds_done\":1"), "{round}");
+    let (ok, err) = run(&with(own(&r), &["--resume"]));
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("round 2's checkpoint was saved but not its record")
+            && err.contains("resuming after round 2")
+            && err.contains("stage2-harmonic round 3/3")
+            && !err.contains("stage2-harmonic round 2/3"),
+        "{err}"
+    );
+    assert_eq!(
+        extranerf_nerf::run::load_checkpoint(&stage).unwrap().step,
+        30
+    );
+
+    // --redo base: what reads the BaseNeRF runs again.
+    let (ok, err) = run(&with(own(&r), &["--resume", "--redo", "base"]));
+    assert!(ok, "{err}");
+    for s in [
+        "stage visibility: runs again after base",
+        "stage stage2-harmonic: runs again after base, visibility",
+    ] {
+        assert!(err.contains(s), "{s}:\n{err}");
+    }
+    // --redo visibility with another threshold: stage 2 runs again on the new masks.
+    let (ok, err) = run(&with(
+        own(&r),
+        &["--resume", "--redo", "visibility", "--threshold", "0.3"],
+    ));
+    assert!(ok, "{err}");
+    assert!(err.contains("stage base: done, skipped"), "{err}");
+    assert!(
+        err.contains("stage stage2-harmonic: runs again after visibility"),
+        "{err}"
+    );
+    // And with nothing changed, nothing runs.
+    let (ok, err) = run(&with(own(&r), &["--resume", "--threshold", "0.3"]));
+    assert!(ok, "{err}");
+    for s in ["base", "visibility", "stage2-harmonic"] {
+        assert!(
+            err.contains(&format!("stage {s}: done, skipped")),
+            "{s}:\n{err}"
+        );
+    }
+
+    // A folder whose base/ holds a BaseNeRF of another split of the scene.
+    let train = |out: &std::path::Path, seed: &str, split: &str| {
+        let (ok, _, err) = extranerf(&[
+            "train",
+            "--scene",
+            scene_s,
+            "--split",
+            split,
+            "--factor",
+            "1",
+            "--steps",
+            "30",
+            "--levels",
+            "8",
+            "--log2-table",
+            "14",
+            "--rays",
+            "256",
+            "--seed",
+            seed,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(ok, "{err}");
+    };
+    let foreign = dir.join("foreign");
+    train(&foreign.join("base"), "1", "holdout");
+    let (ok, err) = run(&own(&foreign));
+    assert!(
+        !ok && err.contains("holds a BaseNeRF of another scene or split") && err.contains("split"),
+        "{err}"
+    );
+
+    // --base by its checkpoint: a copy takes its place; another run reruns what reads it.
+    let p = dir.join("p");
+    train(&p, "1", "extrapolation");
+    let reused = dir.join("reused");
+    let (ok, err) = run(&with(common(&reused), &["--base", p.to_str().unwrap()]));
+    assert!(ok, "{err}");
+    let copy = dir.join("p-copy");
+    std::fs::create_dir_all(&copy).unwrap();
+    for e in std::fs::read_dir(&p).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_file() {
+            std::fs::copy(e.path(), copy.join(e.file_name())).unwrap();
+        }
+    }
+    let (ok, err) = run(&with(
+        common(&reused),
+        &["--resume", "--base", copy.to_str().unwrap()],
+    ));
+    assert!(ok, "{err}");
+    for s in ["base", "visibility", "stage2-harmonic"] {
+        assert!(
+            err.contains(&format!("stage {s}: done, skipped")),
+            "{s}:\n{err}"
+        );
+    }
+    let other = dir.join("p-other");
+    train(&other, "2", "extrapolation");
+    let (ok, err) = run(&with(
+        common(&reused),
+        &["--resume", "--base", other.to_str().unwrap()],
+    ));
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("stage base: its output changed since this run recorded it")
+            && err.contains("stage visibility: runs again after base")
+            && err.contains("stage stage2-harmonic: runs again after base, visibility"),
+        "{err}"
+    );
+
+    // An image of the scene changed in place.
+    let img = scene.join("images").join("view_00.png");
+    let mut px = image::open(&img).unwrap().to_rgb8();
+    px.put_pixel(0, 0, image::Rgb([255, 0, 255]));
+    px.save(&img).unwrap();
+    let (ok, err) = run(&with(
+        common(&reused),
+        &["--resume", "--base", other.to_str().unwrap()],
+    ));
+    assert!(
+        !ok && err.contains("the cameras or images of the scene") && err.contains("changed"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Crash safety of `train`: a run killed with SIGKILL during training, and one killed while it
 /// writes a checkpoint (between the synced temporary file and the rename, held open there by
 /// the EXTRANERF_CRASH_TEST_PAUSE hook), resume with --resume from their last checkpoint,
@@ -2320,6 +2515,7 @@ fn train_survives_sigkill_and_resumes() {
     let at = kill_when(&killed, None, &|| {
         last_logged_step(&killed) >= 2 * every + 5
     });
+    let killed_ck = extranerf_nerf::run::load_checkpoint(&killed).unwrap().step;
     resume(&killed, at);
     // Killed while writing the third checkpoint: the second stays intact.
     let mid = dir.join("mid-write");
@@ -2347,6 +2543,41 @@ fn train_survives_sigkill_and_resumes() {
         (ck.params, last["psnr"].as_f64().unwrap())
     };
     let (p0, psnr0) = end(&straight);
+    // Each step is logged once, in order, as in the uninterrupted run: a resume cuts the log
+    // back to its checkpoint before training again.
+    let logged = |d: &std::path::Path| -> Vec<u64> {
+        std::fs::read_to_string(d.join("progress.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| {
+                serde_json::from_str::<serde_json::Value>(l).unwrap()["step"]
+                    .as_u64()
+                    .unwrap()
+            })
+            .collect()
+    };
+    let want = logged(&straight);
+    assert_eq!(want.len(), (steps / 5) as usize);
+    // (The resume logs at `train`'s default interval from its checkpoint on.)
+    for (d, ck) in [(&killed, killed_ck), (&mid, 2 * every)] {
+        let got = logged(d);
+        let upto: Vec<u64> = want.iter().copied().filter(|&s| s <= ck as u64).collect();
+        assert_eq!(got[..upto.len()], upto[..], "{}: {got:?}", d.display());
+        assert!(
+            got.windows(2).all(|w| w[0] < w[1]),
+            "{}: {got:?}",
+            d.display()
+        );
+        assert_eq!(got.last(), Some(&(steps as u64)), "{}", d.display());
+    }
+    // A fresh run into the folder of one killed before its first checkpoint (while writing
+    // it) starts its own log.
+    let early = dir.join("early");
+    let at = kill_when(&early, Some("checkpoint.safetensors:2000"), &|| tmp(&early));
+    assert_eq!(at, every);
+    assert!(extranerf_nerf::run::load_checkpoint(&early).is_err());
+    run(&args(&early));
+    assert_eq!(logged(&early), want);
     let norm = |v: &[f32]| v.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt();
     let rel = |p: &[f32]| {
         let d: Vec<f32> = p0.iter().zip(p).map(|(a, b)| a - b).collect();

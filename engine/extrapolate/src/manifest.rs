@@ -4,6 +4,7 @@
 //! for is refused with the field that differs, so a run folder is never continued with another
 //! scene or other settings.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use extranerf_nerf::run::SceneSpec;
@@ -33,6 +34,16 @@ pub struct StageRecord {
     /// What it reported (timings, fractions, files).
     #[serde(default)]
     pub report: Value,
+    /// The fingerprints ([`Manifest::fingerprint`]) of the stages it read, as they were when
+    /// it ran: when one differs now, that stage was made again since, and this one runs again.
+    /// Absent in records of builds before fingerprints (their inputs count as unchanged).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inputs: Option<BTreeMap<String, String>>,
+    /// What identifies its output once done: a SHA-256 of the checkpoint it reads or made
+    /// where it has one ([`crate::stage::Stage::identity`]), else of its record and the moment
+    /// it finished. Absent in records of older builds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub output: Option<String>,
 }
 
 /// `extrapolate.json`.
@@ -42,6 +53,11 @@ pub struct Manifest {
     pub format: String,
     /// The scene and split every stage used.
     pub scene: SceneSpec,
+    /// The SHA-256 of the scene's cameras and images ([`extranerf_nerf::mvs_depth::views_key`]),
+    /// which a resumed run must find unchanged. Absent in manifests of older builds (a resume
+    /// records it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene_sha256: Option<String>,
     pub stages: Vec<StageRecord>,
 }
 
@@ -51,6 +67,7 @@ impl Manifest {
         Manifest {
             format: FORMAT.into(),
             scene,
+            scene_sha256: None,
             stages: Vec::new(),
         }
     }
@@ -107,6 +124,43 @@ impl Manifest {
         };
         config.check(dir, name, &r.config)?;
         Ok(Some(r))
+    }
+
+    /// Checks that the scene's cameras and images hash to `key` as when the run began, and
+    /// records it where the manifest (of an older build) has none.
+    pub fn check_scene_content(&mut self, dir: &Path, key: &str) -> Result<()> {
+        match &self.scene_sha256 {
+            Some(k) if k != key => Err(ExtrapolateError::resume(
+                dir,
+                format!(
+                    "the cameras or images of the scene {} changed since this run began \
+                     (SHA-256 {} -> {}); choose a new --out",
+                    self.scene.dir.display(),
+                    &k[..12.min(k.len())],
+                    &key[..12.min(key.len())]
+                ),
+            )),
+            Some(_) => Ok(()),
+            None => {
+                self.scene_sha256 = Some(key.to_string());
+                Ok(())
+            }
+        }
+    }
+
+    /// The fingerprint of stage `name` when it is done: its recorded output, or for a record
+    /// of an older build, the SHA-256 of the record. None when it is not done.
+    pub fn fingerprint(&self, name: &str) -> Option<String> {
+        let r = self.stages.iter().find(|s| s.name == name && s.done)?;
+        Some(r.output.clone().unwrap_or_else(|| {
+            sha256_hex(
+                json_of(&serde_json::json!({
+                    "name": r.name, "config": r.config, "report": r.report
+                }))
+                .to_string()
+                .as_bytes(),
+            )
+        }))
     }
 
     /// Records stage `name` (replacing an earlier record of it).
@@ -281,6 +335,21 @@ impl Recorded {
     }
 }
 
+/// The SHA-256 of `bytes` in hexadecimal.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// The SHA-256 of the file at `path` in hexadecimal.
+pub fn file_sha256(path: &Path) -> Result<String> {
+    let bytes = std::fs::read(path).map_err(|e| ExtrapolateError::io("reading", path, e))?;
+    Ok(sha256_hex(&bytes))
+}
+
 /// Serialises a value of this crate's types (which always serialise).
 pub(crate) fn json_of<T: Serialize>(v: &T) -> Value {
     serde_json::to_value(v).expect("the manifest's types serialise to JSON")
@@ -346,6 +415,8 @@ mod tests {
             done: true,
             seconds: 3.0,
             report: Value::Null,
+            inputs: None,
+            output: None,
         });
         m.save(&dir).unwrap();
         let back = Manifest::load(&dir).unwrap().unwrap();

@@ -134,8 +134,9 @@ pub(crate) fn load_round(out: &Path) -> Result<Option<(RoundState, Checkpoint)>>
     Ok(Some((s, load_checkpoint(out)?)))
 }
 
-/// A finished round: the checkpoint, then the state that points at it (a crash between the
-/// two redoes the round).
+/// A finished round: the checkpoint, then the state that points at it. A crash between the
+/// two leaves a checkpoint one round ahead of its record, which [`rounds_done`] reads as the
+/// round finished.
 pub(crate) fn save_round(
     out: &Path,
     cfg: &RunConfig,
@@ -161,6 +162,34 @@ pub(crate) fn save_round(
         .map_err(|e| ExtrapolateError::malformed(&path, format!("cannot serialise: {e}")))?;
     extranerf_nerf::safetensors::write_atomic(&path, json.as_bytes())?;
     Ok(())
+}
+
+/// The rounds a stage's checkpoint at `step` holds, checked against its record `state`: the
+/// recorded rounds, or one more where a crash came between the round's checkpoint and its
+/// record. Any other step is an error naming both (the folder was written by something else).
+pub(crate) fn rounds_done(
+    out: &Path,
+    name: &str,
+    state: &RoundState,
+    step: u32,
+    first_step: u32,
+    steps_per_round: u32,
+) -> Result<u32> {
+    let at = |rounds: u32| first_step as u64 + rounds as u64 * steps_per_round as u64;
+    if step as u64 == at(state.rounds_done) {
+        Ok(state.rounds_done)
+    } else if step as u64 == at(state.rounds_done + 1) {
+        Ok(state.rounds_done + 1)
+    } else {
+        Err(ExtrapolateError::malformed(
+            &out.join(ROUND_FILE),
+            format!(
+                "{} rounds done (step {}), but its checkpoint holds step {step}; run it again with --resume --redo {name}",
+                state.rounds_done,
+                at(state.rounds_done)
+            ),
+        ))
+    }
 }
 
 /// Where a stage-2 or stage-3 variant saves its rounds: its folder and the run configuration
@@ -308,9 +337,16 @@ impl Rounds {
     ) -> Result<Rounds> {
         let resumed = load_round(out)?;
         let (start, seconds) = match &resumed {
-            Some((s, _)) => {
-                rep.note(&format!("{name}: resuming after round {}", s.rounds_done));
-                (s.rounds_done, s.seconds)
+            Some((s, ck)) => {
+                let done = rounds_done(out, name, s, ck.step, first_step, steps_per_round)?;
+                if done != s.rounds_done {
+                    rep.note(&format!(
+                        "{name}: round {done}'s checkpoint was saved but not its record ({ROUND_FILE} says {} rounds); the round is kept, its time not counted",
+                        s.rounds_done
+                    ));
+                }
+                rep.note(&format!("{name}: resuming after round {done}"));
+                (done, s.seconds)
             }
             None => (0, 0.0),
         };
@@ -392,5 +428,32 @@ pub(crate) fn fill_view(
         ),
         weight: Some(mask.iter().map(|&m| weight(m)).collect()),
         kind: ViewKind::Virtual,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_checkpoint_a_round_ahead_of_its_record_counts_and_any_other_is_refused() {
+        let out = Path::new("run/stage3-harmonic");
+        let s = RoundState {
+            rounds_done: 2,
+            seconds: 5.0,
+        };
+        // Stage 3 starts at the stage-2 checkpoint's step 300, 50 steps a round.
+        let done = |step| rounds_done(out, "stage3-harmonic", &s, step, 300, 50);
+        assert_eq!(done(400).unwrap(), 2);
+        assert_eq!(done(450).unwrap(), 3);
+        for bad in [350, 500, 401, 0] {
+            let e = done(bad).unwrap_err().to_string();
+            assert!(
+                e.contains("round.json")
+                    && e.contains(&format!("holds step {bad}"))
+                    && e.contains("--redo stage3-harmonic"),
+                "{e}"
+            );
+        }
     }
 }

@@ -18,6 +18,7 @@
 //! resumed run skips the stages done, refuses one asked for with other settings, and continues
 //! an unfinished stage 2 from its last finished round.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -27,7 +28,7 @@ use serde_json::Value;
 
 use crate::error::{create_dir, ExtrapolateError, Result};
 use crate::inpaint::{DiffusionSpec, InpainterKind};
-use crate::manifest::{Manifest, StageRecord};
+use crate::manifest::{sha256_hex, Manifest, StageRecord};
 use crate::rounds::Stage2Spec;
 use crate::stage::{FieldRef, RunDir, Stage, VirtualSpec};
 use crate::stage3::{EnhanceStage, EnhancerDataStage, EnhancerStage, Stage3Enhancer, Stage3Spec};
@@ -105,6 +106,10 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> Result
         }
         None => Manifest::new(scene.clone()),
     };
+    // The scene's identity: its cameras and images, which a resumed run must find as they were.
+    let cams = scene.load()?.scene.cameras;
+    let key = extranerf_nerf::mvs_depth::views_key(&scene.dir, &cams)?;
+    manifest.check_scene_content(&o.out, &key)?;
     create_dir(&o.out)?;
     let dir = RunDir {
         root: o.out.clone(),
@@ -190,9 +195,11 @@ fn stages(o: &Options, scene: SceneSpec) -> Result<Vec<Box<dyn Stage>>> {
     Ok(stages)
 }
 
-/// Runs stage `s` unless the manifest says it is done with these settings and none of the
-/// stages it reads ran in this invocation (`ran`, which it joins when it runs); its record is
-/// saved before it runs (not done) and after.
+/// Runs stage `s` unless the manifest says it is done with these settings and the stages it
+/// reads are as they were when it ran: their fingerprints equal those its record holds, and
+/// none of them ran in this invocation (`ran`, which it joins when it runs). Its record is
+/// saved before it runs (not done, with the fingerprints of its inputs) and after (with its
+/// own).
 fn run_stage(
     ctx: &Context,
     o: &Options,
@@ -210,12 +217,54 @@ fn run_stage(
     } else {
         manifest.stage(&o.out, &name, &config)?.cloned()
     };
-    // The stages it reads that ran in this invocation: its output is stale.
-    let rerun: Vec<String> = s.inputs().into_iter().filter(|i| ran.contains(i)).collect();
+    // The fingerprints of the stages it reads, now.
+    let mut declared: Vec<String> = Vec::new();
+    for i in s.inputs() {
+        if !declared.contains(&i) {
+            declared.push(i);
+        }
+    }
+    let inputs: BTreeMap<String, String> = declared
+        .iter()
+        .filter_map(|i| manifest.fingerprint(i).map(|f| (i.clone(), f)))
+        .collect();
+    // The stages it reads that were made again since it ran (in this invocation, or in an
+    // earlier one that stopped before this stage): its output is stale.
+    let rerun: Vec<String> = declared
+        .into_iter()
+        .filter(|i| {
+            ran.contains(i)
+                || prior
+                    .as_ref()
+                    .and_then(|r| r.inputs.as_ref())
+                    .is_some_and(|rec| rec.get(i) != inputs.get(i))
+        })
+        .collect();
     let stale = !rerun.is_empty();
-    if prior.as_ref().is_some_and(|r| r.done) && !stale {
-        rep.note(&format!("stage {name}: done, skipped"));
-        return Ok(());
+    let identity = s.identity(dir)?;
+    if let Some(p) = prior.as_ref().filter(|r| r.done && !stale) {
+        match (&identity, &p.output) {
+            // Its output was replaced outside this run (the reused BaseNeRF trained on, or
+            // `--base` another run): recorded anew, and what reads it runs again.
+            (Some(now), Some(then)) if now != then => {
+                rep.note(&format!(
+                    "stage {name}: its output changed since this run recorded it (SHA-256 {} -> {}); the stages that read it run again",
+                    &then[..12.min(then.len())],
+                    &now[..12.min(now.len())]
+                ));
+                let mut rec = p.clone();
+                rec.config = config.value.clone();
+                rec.output = identity;
+                manifest.record(rec);
+                manifest.save(&o.out)?;
+                ran.push(name);
+                return Ok(());
+            }
+            _ => {
+                rep.note(&format!("stage {name}: done, skipped"));
+                return Ok(());
+            }
+        }
     }
     ran.push(name.clone());
     rep.stage(&name);
@@ -244,18 +293,40 @@ fn run_stage(
         done: false,
         seconds: before,
         report: Value::Null,
+        inputs: Some(inputs.clone()),
+        output: None,
     });
     manifest.save(&o.out)?;
     let t = Instant::now();
     let report = s.run(ctx, dir, rep).map_err(|e| e.in_stage(&name))?;
     let seconds = before + t.elapsed().as_secs_f64();
     rep.note(&format!("stage {name}: done in {seconds:.1} s"));
+    // Its output: the identity of the file that holds it, else its record and this moment
+    // (a stage made again is new output, even with the same settings).
+    let output = match s.identity(dir)? {
+        Some(id) => id,
+        None => {
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos());
+            sha256_hex(
+                serde_json::json!({
+                    "name": name, "config": config.value, "report": report,
+                    "finished": format!("{now}-{}", std::process::id())
+                })
+                .to_string()
+                .as_bytes(),
+            )
+        }
+    };
     manifest.record(StageRecord {
         name,
         config: config.value,
         done: true,
         seconds,
         report,
+        inputs: Some(inputs),
+        output: Some(output),
     });
     manifest.save(&o.out)?;
     Ok(())

@@ -83,6 +83,13 @@ pub trait Stage {
     fn inputs(&self) -> Vec<String> {
         Vec::new()
     }
+    /// What identifies its output as it is now, where a file outside the manifest holds it
+    /// (the BaseNeRF's checkpoint, which `--base` names or `RUN/base` holds): a done stage
+    /// whose identity is no longer the one recorded is recorded again, and the stages that
+    /// read it run again. None (the default): its record identifies it.
+    fn identity(&self, _dir: &RunDir) -> Result<Option<String>> {
+        Ok(None)
+    }
     /// Discards what an earlier run of it left, before it runs again from nothing (because it
     /// was asked to be redone, or a stage it reads ran again): by default its folder
     /// `RUN/NAME`, which holds its resumable state.

@@ -314,6 +314,20 @@ pub enum CacheUse {
 /// the views' paths relative to the scene, their bytes, their cameras (pose, intrinsics and
 /// depth bounds) and the settings.
 pub fn cache_key(scene_dir: &Path, cams: &[Camera], settings: &MvsDepthSettings) -> Result<String> {
+    let doc = serde_json::json!({ "views": views_doc(scene_dir, cams)?, "settings": settings });
+    Ok(hex(&Sha256::digest(doc.to_string().as_bytes())))
+}
+
+/// The SHA-256 of `cams` (whose images lie under `scene_dir`): their paths relative to the
+/// scene, their bytes, poses, intrinsics and depth bounds. A scene's identity, whatever
+/// folder it is read from.
+pub fn views_key(scene_dir: &Path, cams: &[Camera]) -> Result<String> {
+    let doc = serde_json::json!({ "views": views_doc(scene_dir, cams)? });
+    Ok(hex(&Sha256::digest(doc.to_string().as_bytes())))
+}
+
+/// Each view's image (relative path, size, SHA-256 of its bytes) and camera.
+fn views_doc(scene_dir: &Path, cams: &[Camera]) -> Result<Vec<serde_json::Value>> {
     let mut views = Vec::with_capacity(cams.len());
     for c in cams {
         let bytes = std::fs::read(&c.image).map_err(|e| DataError::io(&c.image, e))?;
@@ -328,8 +342,7 @@ pub fn cache_key(scene_dir: &Path, cams: &[Camera], settings: &MvsDepthSettings)
             "bounds": c.bounds,
         }));
     }
-    let doc = serde_json::json!({ "views": views, "settings": settings });
-    Ok(hex(&Sha256::digest(doc.to_string().as_bytes())))
+    Ok(views)
 }
 
 fn hex(bytes: &[u8]) -> String {

@@ -51,8 +51,15 @@ impl Stage for EnhanceStage {
 
     fn inputs(&self) -> Vec<String> {
         match self.spec.enhance {
-            Stage3Enhancer::Diffusion => vec![self.stage2_name(), ENHANCER_STAGE.into()],
-            Stage3Enhancer::Unsharp => vec![self.stage2_name()],
+            Stage3Enhancer::Diffusion => vec![
+                "base".into(),
+                "visibility".into(),
+                self.stage2_name(),
+                ENHANCER_STAGE.into(),
+            ],
+            Stage3Enhancer::Unsharp => {
+                vec!["base".into(), "visibility".into(), self.stage2_name()]
+            }
         }
     }
 

@@ -131,6 +131,11 @@ impl Stage for InpaintStage {
         Recorded::of(&self.spec)
     }
 
+    /// It trains on from the BaseNeRF, inpainting where the visibility stage's masks say.
+    fn inputs(&self) -> Vec<String> {
+        vec!["base".into(), "visibility".into()]
+    }
+
     fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         self.spec.stage2.validate()?;
         let out = dir.stage2(self.spec.inpainter);

@@ -54,6 +54,11 @@ impl Stage for VisibilityStage {
         Recorded::of(self)
     }
 
+    /// It measures the BaseNeRF.
+    fn inputs(&self) -> Vec<String> {
+        vec!["base".into()]
+    }
+
     fn run(&self, ctx: &Context, dir: &RunDir, rep: &mut dyn Reporter) -> Result<Value> {
         let out = dir.visibility();
         create_dir(&out)?;

@@ -63,11 +63,7 @@ pub fn train_loop(
     model_notes(cfg, &trainer, rep);
     std::fs::create_dir_all(&a.out).map_err(|e| TrainError::io("creating", &a.out, e))?;
     let log_path = a.out.join("progress.jsonl");
-    let mut log = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&log_path)
-        .map_err(|e| TrainError::io("opening", &log_path, e))?;
+    let mut log = super::open_step_log(&log_path, start)?;
     let mut curve = if a.eval_every > 0 {
         Some(HeldOut::new(
             &loaded,

@@ -68,14 +68,7 @@ impl HeldOut {
         };
         std::fs::create_dir_all(out).map_err(|e| TrainError::io("creating", out, e))?;
         let path = out.join("curve.jsonl");
-        if start == 0 && path.exists() {
-            std::fs::remove_file(&path).map_err(|e| TrainError::io("replacing", &path, e))?;
-        }
-        let log = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .map_err(|e| TrainError::io("opening", &path, e))?;
+        let log = super::open_step_log(&path, start)?;
         Ok(HeldOut {
             views,
             lpips,

@@ -13,12 +13,14 @@ pub mod budget;
 pub mod driver;
 pub mod held_out;
 pub mod report;
+pub mod step_log;
 pub mod view_set;
 
 pub use budget::{fit_budget, probe_samples_per_s, refit_budget};
 pub use driver::{train_loop, TrainRun};
 pub use held_out::{default_lpips_dir, lpips_alex, HeldOut};
 pub use report::{Progress, Quiet, Reporter, Unit};
+pub use step_log::open_step_log;
 pub use view_set::ViewSet;
 
 use std::path::{Path, PathBuf};
