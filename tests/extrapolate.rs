@@ -618,6 +618,20 @@ fn each_error_variant_is_reached_through_the_public_api() {
         matches!(&e, ExtrapolateError::Resume { dir, .. } if dir == &held),
         "{e:?}"
     );
+    // A run folder another process writes: its lock names the holder.
+    let busy = dir.join("busy");
+    let lock = extranerf_gpu::files::RunLock::acquire(&busy).unwrap();
+    let e = fail(&options(&busy, &base));
+    assert!(
+        matches!(&e, ExtrapolateError::Locked { dir, .. } if dir == &busy),
+        "{e:?}"
+    );
+    assert!(
+        e.to_string()
+            .contains(&format!("in use by process {}", std::process::id())),
+        "{e}"
+    );
+    drop(lock);
     let e = fail(&Options {
         resume: true,
         ..options(&dir.join("nothing"), &base)

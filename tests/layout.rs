@@ -770,3 +770,50 @@ fn function_lengths_count_bodies_and_skip_declarations() {
     let f = functions(&lex(src));
     assert_eq!(f, vec![("one".into(), 4, 1), ("three".into(), 5, 4)]);
 }
+
+/// Every output a user keeps goes through the one atomic-write helper
+/// (`extranerf_gpu::files::write_atomic`, or `write_atomic_with` for a streamed one): no
+/// library or command-line source writes a file in place. Allowed: the helper itself, and
+/// the video writer's `.partial` file (streamed, synced and renamed when whole). Test modules
+/// (from a file's `#[cfg(test)]` on) are left out; append-only logs open with `OpenOptions`.
+#[test]
+fn outputs_go_through_the_atomic_write_helper() {
+    let ws = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("the tests crate sits in the workspace")
+        .to_path_buf();
+    let allowed = ["engine/gpu/src/files.rs", "engine/nerf/src/video.rs"];
+    let mut in_place = Vec::new();
+    let mut files = 0;
+    for dir in ["engine", "bin/src"] {
+        for p in rust_files(&ws.join(dir)) {
+            let rel = p
+                .strip_prefix(&ws)
+                .unwrap()
+                .to_string_lossy()
+                .replace('\\', "/");
+            if !(rel.starts_with("bin/src") || rel.contains("/src/"))
+                || allowed.contains(&rel.as_str())
+            {
+                continue;
+            }
+            files += 1;
+            let src = std::fs::read_to_string(&p).expect("reading a source file");
+            let body = src.split("#[cfg(test)]").next().unwrap_or("");
+            for (k, line) in body.lines().enumerate() {
+                let code = line.split("//").next().unwrap_or("");
+                for pat in ["fs::write(", "File::create(", "fs::rename(", "fs::copy("] {
+                    if code.contains(pat) {
+                        in_place.push(format!("{rel}:{}: {}", k + 1, line.trim()));
+                    }
+                }
+            }
+        }
+    }
+    assert!(files > 100, "only {files} source files found");
+    assert!(
+        in_place.is_empty(),
+        "written in place:\n{}",
+        in_place.join("\n")
+    );
+}

@@ -600,7 +600,9 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
             r.failed.clone().unwrap_or_default().replace(',', ";")
         );
     }
-    std::fs::write(a.out.join("tradeoff.csv"), csv)?;
+    let csv_path = a.out.join("tradeoff.csv");
+    extranerf_gpu::files::write_atomic(&csv_path, csv.as_bytes())
+        .with_context(|| format!("writing {}", csv_path.display()))?;
     let json: Vec<serde_json::Value> = rows
         .iter()
         .enumerate()
@@ -629,6 +631,8 @@ fn write_outputs(a: &TradeoffArgs, rows: &[Row]) -> anyhow::Result<()> {
         .filter(|c| c.is_alphanumeric() || matches!(c, '_' | '-' | '.' | ' '))
         .collect();
     let title = format!("{name}: test PSNR against training time");
-    std::fs::write(a.out.join("tradeoff.svg"), svg(rows, &front, &title))?;
+    let svg_path = a.out.join("tradeoff.svg");
+    extranerf_gpu::files::write_atomic(&svg_path, svg(rows, &front, &title).as_bytes())
+        .with_context(|| format!("writing {}", svg_path.display()))?;
     Ok(())
 }

@@ -2232,6 +2232,247 @@ fn spawn_and_kill(
     child.wait().unwrap();
 }
 
+/// A fresh scratch folder `extranerf-cli-TAG-PID` holding the demo scene at `w` x `h` in
+/// `scene/`: (the folder, the scene).
+fn scratch_with_demo_scene(tag: &str, w: u32, h: u32) -> (std::path::PathBuf, std::path::PathBuf) {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene = dir.join("scene");
+    extranerf_nerf::demo::write_demo_scene(&scene, w, h).unwrap();
+    (dir, scene)
+}
+
+/// Crash safety of `extrapolate` (issue 60): one run folder killed with SIGKILL at each
+/// boundary (held there by EXTRANERF_CRASH_TEST_PAUSE where a file marks it), and one whose
+/// write fails as a full disk does (EXTRANERF_CRASH_TEST_FULL_DISK); each resumes with
+/// `--resume`, losing at most the round it was in, cleans what the killed writes left, and
+/// ends at a stage-3 field within the bounds of `train`'s kill test of the uninterrupted
+/// run's. While a run holds its folder, a second one into it is refused naming the holder.
+#[test]
+fn extrapolate_survives_sigkill_at_every_boundary() {
+    let (dir, scene) = scratch_with_demo_scene("xkill", 32, 24);
+    // The BaseNeRF they share, with uniform strata (see train_survives_sigkill_and_resumes).
+    let base = dir.join("base");
+    let (ok, _, err) = extranerf(&[
+        "train",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--split",
+        "extrapolation",
+        "--factor",
+        "1",
+        "--steps",
+        "200",
+        "--levels",
+        "8",
+        "--log2-table",
+        "14",
+        "--rays",
+        "256",
+        "--samples",
+        "32",
+        "--sampler",
+        "uniform",
+        "--seed",
+        "5",
+        "--out",
+        base.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let args = |out: &std::path::Path| -> Vec<String> {
+        [
+            "extrapolate",
+            "--base",
+            base.to_str().unwrap(),
+            "--virtual",
+            "2",
+            "--virtual-downscale",
+            "1",
+            "--rounds",
+            "3",
+            "--steps-per-round",
+            "20",
+            "--inpainter",
+            "harmonic",
+            "--flythrough",
+            "2",
+            "--stage3-rounds",
+            "2",
+            "--stage3-steps-per-round",
+            "10",
+            "--stage3-gate",
+            "off",
+            "--data-rounds",
+            "2",
+            "--data-steps-per-round",
+            "5",
+            "--fresh-checkpoints",
+            "5",
+            "--enhancer-channels",
+            "8,16",
+            "--enhancer-steps",
+            "60",
+            "--enhancer-batch",
+            "2",
+            "--enhancer-crop",
+            "16",
+            "--stage3-ddim-steps",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let run = |a: Vec<String>| -> String {
+        let argv: Vec<&str> = a.iter().map(String::as_str).collect();
+        let (ok, _, err) = extranerf(&argv);
+        assert!(ok, "{err}");
+        err
+    };
+    let resume = |out: &std::path::Path| -> String {
+        let mut a = args(out);
+        a.push("--resume".into());
+        let err = run(a);
+        let mut left = Vec::new();
+        let mut todo = vec![out.to_path_buf()];
+        while let Some(d) = todo.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                let n = p.file_name().unwrap().to_string_lossy().into_owned();
+                if p.is_dir() {
+                    todo.push(p);
+                } else if n.contains(".tmp") || n.ends_with(".partial") {
+                    left.push(p);
+                }
+            }
+        }
+        assert!(left.is_empty(), "left after the resume: {left:?}");
+        err
+    };
+    let straight = dir.join("straight");
+    run(args(&straight));
+    let params = |d: &std::path::Path| {
+        extranerf_nerf::run::load_checkpoint(&d.join("stage3-harmonic"))
+            .unwrap()
+            .params
+    };
+    let p0 = params(&straight);
+    let norm = |v: &[f32]| v.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt();
+    let close = |d: &std::path::Path| {
+        let p = params(d);
+        let diff: Vec<f32> = p0.iter().zip(&p).map(|(a, b)| a - b).collect();
+        let r = norm(&diff) / norm(&p0);
+        eprintln!(
+            "{}: the stage-3 field differs by {:.2}% (relative L2)",
+            d.display(),
+            100.0 * r
+        );
+        assert!(
+            r < 0.04,
+            "{}: the stage-3 field differs by {:.2}%",
+            d.display(),
+            100.0 * r
+        );
+    };
+    let files = |d: &std::path::Path, pred: &dyn Fn(&str) -> bool| {
+        std::fs::read_dir(d)
+            .map(|r| {
+                r.filter_map(Result::ok)
+                    .any(|e| pred(&e.file_name().to_string_lossy()))
+            })
+            .unwrap_or(false)
+    };
+
+    // Inside stage 2's second round, as it writes the round's fills.
+    let a = dir.join("in-round");
+    let s2 = a.join("stage2-harmonic");
+    spawn_and_kill(&args(&a), Some("virtual_001.png:3000"), None, &|| {
+        s2.join("round.json").is_file() && writing_file(&s2.join("round_01"), "virtual_001.png")
+    });
+    let err = resume(&a);
+    assert!(
+        err.contains("stage2-harmonic: resuming after round 1"),
+        "{err}"
+    );
+    assert!(err.contains("removed 1 temporary file(s)"), "{err}");
+    close(&a);
+
+    // Between round 2's checkpoint and its record; meanwhile a second run into the folder
+    // is refused, naming the first.
+    let b = dir.join("between");
+    let s2 = b.join("stage2-harmonic");
+    spawn_and_kill(&args(&b), Some("round.json:4000"), None, &|| {
+        if !(s2.join("round.json").is_file() && writing_file(&s2, "round.json")) {
+            return false;
+        }
+        let mut second = args(&b);
+        second.push("--resume".into());
+        let argv: Vec<&str> = second.iter().map(String::as_str).collect();
+        let (ok, _, err) = extranerf(&argv);
+        assert!(
+            !ok && err.contains("in use by process") && err.contains("extrapolate"),
+            "{err}"
+        );
+        true
+    });
+    let err = resume(&b);
+    assert!(
+        err.contains("round 2's checkpoint was saved but not its record")
+            && err.contains("resuming after round 2"),
+        "{err}"
+    );
+    close(&b);
+
+    // Inside a stage-3 data round: its first round's renders begun.
+    let c = dir.join("in-data");
+    let data = c.join("stage3-data");
+    spawn_and_kill(&args(&c), None, None, &|| {
+        files(&data, &|n| n.ends_with("_view000_inpainted_0.png"))
+    });
+    assert!(
+        !data.join("triplets.safetensors").exists(),
+        "the data stage ended first"
+    );
+    let err = resume(&c);
+    assert!(err.contains("stage visibility: done, skipped"), "{err}");
+    assert!(
+        err.contains("stage stage2-harmonic: done, skipped"),
+        "{err}"
+    );
+    close(&c);
+
+    // Inside the enhancer's training, as it writes its first training state.
+    let d = dir.join("in-enhancer");
+    let state = d.join("stage3-enhancer").join("train_state");
+    spawn_and_kill(&args(&d), Some("state.json:3000"), None, &|| {
+        writing_file(&state, "state.json")
+    });
+    let err = resume(&d);
+    assert!(err.contains("stage stage3-data: done, skipped"), "{err}");
+    close(&d);
+
+    // A full disk as stage 2 records its first round: a clear error naming the file; the
+    // resume starts the round again.
+    let e = dir.join("full-disk");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_extranerf"));
+    let out = cmd
+        .args(args(&e))
+        .env("EXTRANERF_CRASH_TEST_FULL_DISK", "round.json")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("round.json") && err.contains("No space left"),
+        "{err}"
+    );
+    assert!(!e.join("stage2-harmonic").join("round.json").exists());
+    let err = resume(&e);
+    assert!(!err.contains("resuming after round"), "{err}");
+    close(&e);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Resume and redo cannot mix runs (issue 59), each finding through the command line:
 /// - a round whose checkpoint was written but not its record (killed in between, held there by
 ///   EXTRANERF_CRASH_TEST_PAUSE) resumes after that round, not before it;
@@ -2242,10 +2483,7 @@ fn spawn_and_kill(
 /// - the scene is known by its cameras' and images' hash: an image changed in place is refused.
 #[test]
 fn extrapolate_resume_and_redo_cannot_mix_runs() {
-    let dir = std::env::temp_dir().join(format!("extranerf-cli-mix-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let scene = dir.join("scene");
-    extranerf_nerf::demo::write_demo_scene(&scene, 32, 24).unwrap();
+    let (dir, scene) = scratch_with_demo_scene("mix", 32, 24);
     let scene_s = scene.to_str().unwrap();
     let common = |out: &std::path::Path| -> Vec<String> {
         [
@@ -2270,9 +2508,8 @@ fn extrapolate_resume_and_redo_cannot_mix_runs() {
             "--out",
             out.to_str().unwrap(),
         ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect()
+        .map(String::from)
+        .to_vec()
     };
     let run = |args: &[String]| {
         let argv: Vec<&str> = args.iter().map(String::as_str).collect();
@@ -2435,10 +2672,7 @@ fn extrapolate_resume_and_redo_cannot_mix_runs() {
 /// for bit).
 #[test]
 fn train_survives_sigkill_and_resumes() {
-    let dir = std::env::temp_dir().join(format!("extranerf-cli-kill-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let scene = dir.join("scene");
-    extranerf_nerf::demo::write_demo_scene(&scene, 48, 36).unwrap();
+    let (dir, scene) = scratch_with_demo_scene("kill", 48, 36);
     let (steps, every) = (120u32, 20u32);
     let args = |out: &std::path::Path| -> Vec<String> {
         [
@@ -2474,9 +2708,8 @@ fn train_survives_sigkill_and_resumes() {
             "--sampler",
             "uniform",
         ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect()
+        .map(String::from)
+        .to_vec()
     };
     let run = |a: &[String]| {
         let argv: Vec<&str> = a.iter().map(String::as_str).collect();

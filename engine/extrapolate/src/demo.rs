@@ -179,7 +179,7 @@ fn claim(out: &Path) -> Result<()> {
         }
     }
     create_dir(out)?;
-    std::fs::write(
+    extranerf_gpu::files::write_atomic(
         &marker,
         b"made by extranerf demo; the next demo into this folder replaces all of it\n",
     )

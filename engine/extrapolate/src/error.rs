@@ -94,6 +94,9 @@ pub enum ExtrapolateError {
     /// A video (the fly-through) could not be written.
     #[error(transparent)]
     Video(#[from] VideoError),
+    /// The run folder is another process's: its lock names the holder.
+    #[error("{}: in use by {holder}; wait for it to finish or stop it", dir.display())]
+    Locked { dir: PathBuf, holder: String },
 }
 
 impl From<DeviceError> for ExtrapolateError {
@@ -106,6 +109,22 @@ impl From<DeviceError> for ExtrapolateError {
 impl From<CameraError> for ExtrapolateError {
     fn from(e: CameraError) -> Self {
         ExtrapolateError::Usage(e.to_string())
+    }
+}
+
+/// A run folder held by another process is [`ExtrapolateError::Locked`]; one that cannot be
+/// locked (made, opened) an I/O error creating it.
+impl From<extranerf_gpu::files::LockError> for ExtrapolateError {
+    fn from(e: extranerf_gpu::files::LockError) -> Self {
+        use extranerf_gpu::files::LockError;
+        match e {
+            LockError::Held { dir, holder } => ExtrapolateError::Locked { dir, holder },
+            LockError::Io { path, error } => ExtrapolateError::Io {
+                what: "creating",
+                path,
+                error,
+            },
+        }
     }
 }
 

@@ -22,6 +22,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use extranerf_gpu::files::{remove_stale_temporaries, RunLock};
 use extranerf_gpu::Context;
 use extranerf_nerf::run::{load_checkpoint, SceneSpec};
 use serde_json::Value;
@@ -73,6 +74,9 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> Result
         return Err(ExtrapolateError::usage("give at least one --inpainter"));
     }
     o.stage2.validate()?;
+    // The folder is this process's until it returns (a second run into it is refused, naming
+    // this one).
+    let _lock = RunLock::acquire(&o.out)?;
     let existing = Manifest::load(&o.out)?;
     if existing.is_some() && !o.resume {
         return Err(ExtrapolateError::resume(
@@ -111,6 +115,16 @@ pub fn extrapolate(ctx: &Context, o: &Options, rep: &mut dyn Reporter) -> Result
     let key = extranerf_nerf::mvs_depth::views_key(&scene.dir, &cams)?;
     manifest.check_scene_content(&o.out, &key)?;
     create_dir(&o.out)?;
+    // What writes killed before their rename left (the lock says no live writer's are here).
+    let stale = remove_stale_temporaries(&o.out)
+        .map_err(|e| ExtrapolateError::io("cleaning", &o.out, e))?;
+    if !stale.is_empty() {
+        rep.note(&format!(
+            "removed {} temporary file(s) an interrupted write left in {}",
+            stale.len(),
+            o.out.display()
+        ));
+    }
     let dir = RunDir {
         root: o.out.clone(),
         base: base_dir,

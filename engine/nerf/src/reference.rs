@@ -851,7 +851,7 @@ pub fn bin_samples(edges: &[f64], near: f32, far: f32, disparity: bool) -> Vec<[
 /// The interlevel loss of one ray in f64 (Mip-NeRF 360's, `render/proposal.wgsl`'s
 /// `interlevel`): for each bin `[a, b]` of `edges` with weight `w` (held constant), the bound
 /// is the summed weight of the source bins from the one holding a to the one holding b (see
-/// [`bin_of`]; at least the first); the loss is the sum of `max(0, w - bound)^2 / (w + eps)`.
+/// `bin_of`; at least the first); the loss is the sum of `max(0, w - bound)^2 / (w + eps)`.
 /// Returns the loss and its gradient with respect to each source weight.
 pub fn interlevel(
     src_edges: &[f64],

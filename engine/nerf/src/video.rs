@@ -257,6 +257,13 @@ impl VideoWriter {
         w.flush()
             .and_then(|_| w.get_mut().sync_all())
             .and_then(|_| std::fs::rename(&self.partial, &path))
+            .and_then(|_| {
+                extranerf_gpu::files::sync_dir(
+                    path.parent()
+                        .filter(|p| !p.as_os_str().is_empty())
+                        .unwrap_or(Path::new(".")),
+                )
+            })
             .map_err(|e| VideoError::Io { path, error: e })?;
         Ok(self.frames)
     }

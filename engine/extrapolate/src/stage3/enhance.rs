@@ -334,7 +334,8 @@ fn keep_stage2(from: &Path, out: &Path) -> Result<()> {
             || name == extranerf_nerf::run::CONFIG_FILE
         {
             let to = out.join(&name);
-            std::fs::copy(e.path(), &to).map_err(|e| ExtrapolateError::io("copying to", &to, e))?;
+            extranerf_gpu::files::copy_atomic(&e.path(), &to)
+                .map_err(|e| ExtrapolateError::io("copying to", &to, e))?;
         }
     }
     Ok(())

@@ -427,7 +427,7 @@ pub fn export_colmap(
             points2d: Vec::new(),
         });
         let dst = images_dir.join(name);
-        std::fs::copy(&cam.image, &dst).map_err(|e| DataError::io(&cam.image, e))?;
+        extranerf_gpu::files::copy_atomic(&cam.image, &dst).map_err(|e| DataError::io(&dst, e))?;
     }
     let index: HashMap<u32, usize> = images
         .iter()

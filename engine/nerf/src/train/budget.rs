@@ -37,7 +37,7 @@ const MIN_BUDGET_RAYS: f64 = 400.0 * 256.0;
 const MAX_BUDGET_STEPS: f64 = 50000.0;
 
 /// `--budget`: sets the steps to what a measured probe says fits in `budget` seconds (at most
-/// 50000). Below [`MIN_BUDGET_RAYS`], and when `shrink` (no explicit table or level flags),
+/// 50000). Below `MIN_BUDGET_RAYS`, and when `shrink` (no explicit table or level flags),
 /// the table and levels are reduced first, down to 2^15 and 8 levels.
 pub fn fit_budget(
     ctx: &Context,

@@ -5,6 +5,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use extranerf_gpu::files::{remove_stale_temporaries, RunLock};
 use extranerf_gpu::Context;
 use extranerf_prims::Prims;
 
@@ -51,6 +52,17 @@ pub fn train_loop(
     let start = a.start;
     cfg.model.validate()?;
     cfg.train.validate()?;
+    // The folder is this process's until it returns; what an interrupted write left goes.
+    let _lock = RunLock::acquire(&a.out)?;
+    let stale =
+        remove_stale_temporaries(&a.out).map_err(|e| TrainError::io("cleaning", &a.out, e))?;
+    if !stale.is_empty() {
+        rep.note(&format!(
+            "removed {} temporary file(s) an interrupted write left in {}",
+            stale.len(),
+            a.out.display()
+        ));
+    }
     let loaded = cfg.scene.load()?;
     let views = depth_and_views(ctx, cfg, &loaded, a, rep)?;
     let params = params.unwrap_or_else(|| crate::model::init_params(&cfg.model, cfg.train.seed));

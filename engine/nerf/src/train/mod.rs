@@ -49,6 +49,9 @@ pub enum TrainError {
     /// A held-out evaluation's metric.
     #[error(transparent)]
     Metrics(#[from] MetricsError),
+    /// The run folder is another process's (its lock), or cannot be locked.
+    #[error(transparent)]
+    Locked(#[from] extranerf_gpu::files::LockError),
     /// A file of the run folder (the OS error is in the message, not a separate source, so a
     /// chain does not print it twice).
     #[error("{what} {}: {error}", path.display())]
