@@ -965,6 +965,16 @@ fn named_camera_paths_follow_their_definitions() {
     for (frames, range) in [(0, 1.0), (5, 0.0), (5, f64::NAN)] {
         assert!(named_path(&rig, all, NamedPath::Sweep, frames, range).is_err());
     }
+    // Every named path takes up to the same number of frames, and says so past it in frames.
+    let most = extranerf_nerf::cameras::MAX_PATH_CAMERAS;
+    for path in [NamedPath::Spiral, NamedPath::Ellipse, NamedPath::Sweep] {
+        assert_eq!(named_path(&rig, all, path, most, 1.0).unwrap().len(), most);
+        let e = named_path(&rig, all, path, most + 1, 1.0).unwrap_err();
+        assert!(
+            e.to_string().contains(&format!("{} frames", most + 1)),
+            "{e}"
+        );
+    }
     // A width keeps the field of view and the aspect.
     let r = resized(&all[0], 126);
     assert_eq!((r.width, r.height), (126, 95));

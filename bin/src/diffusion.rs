@@ -696,9 +696,26 @@ fn refuse_to_replace(marker: &Path, out: &Path, what: &str) -> anyhow::Result<()
     Ok(())
 }
 
+/// Holds the training folder `out` for this process (a second trainer into it is refused,
+/// naming this one) and removes what killed writes left there.
+fn hold(out: &Path) -> anyhow::Result<extranerf_gpu::files::RunLock> {
+    let lock = extranerf_gpu::files::RunLock::acquire(out)?;
+    let stale = extranerf_gpu::files::remove_stale_temporaries(out)
+        .with_context(|| format!("cleaning {}", out.display()))?;
+    if !stale.is_empty() {
+        eprintln!(
+            "removed {} temporary file(s) an interrupted write left in {}",
+            stale.len(),
+            out.display()
+        );
+    }
+    Ok(lock)
+}
+
 /// `extranerf diffusion prior`.
 fn prior(ctx: &Context, a: &PriorArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    let _lock = hold(&a.out)?;
     if a.model.is_none() && !a.state.resume {
         refuse_to_replace(
             &a.out.join("model").join("model_index.json"),
@@ -1220,6 +1237,7 @@ fn enhance(ctx: &Context, a: &EnhanceArgs) -> anyhow::Result<()> {
 
 /// `extranerf diffusion finetune`.
 fn finetune(ctx: &Context, a: &FinetuneArgs) -> anyhow::Result<()> {
+    let _lock = hold(&a.out)?;
     if !a.state.resume {
         refuse_to_replace(&a.out.join(lora::LORA_CONFIG), &a.out, "LoRA adapters")?;
     }

@@ -811,24 +811,41 @@ fn render_path(ctx: &Context, a: &RenderArgs, source: &PathSource) -> anyhow::Re
     };
     let mut depth_range: Option<(f32, f32)> = None;
     let mut encode_s = 0.0;
-    // The estimate: a probe frame at a quarter of the first frame's width, per pixel.
-    let probe = resized(&cams[0], (cams[0].width / 4).max(8));
-    let t = Instant::now();
-    field
-        .nerf
-        .render_with(ctx, &probe, a.chunk, field.samples, field.how)?;
-    let per_pixel = t.elapsed().as_secs_f64() / (probe.width * probe.height) as f64;
-    let pixels: f64 = cams.iter().map(|c| (c.width * c.height) as f64).sum();
+    // The estimate: after a warm-up frame (the first dispatches), probe frames at an eighth
+    // and a quarter of the first frame's width give a cost per frame and one per pixel.
+    let render_s = |c: &extranerf_nerf::data::Camera| -> anyhow::Result<f64> {
+        let t = Instant::now();
+        field
+            .nerf
+            .render_with(ctx, c, a.chunk, field.samples, field.how)?;
+        Ok(t.elapsed().as_secs_f64())
+    };
+    let probe = |div: u32| resized(&cams[0], (cams[0].width / div).max(8));
+    let area = |c: &extranerf_nerf::data::Camera| (c.width * c.height) as f64;
+    render_s(&probe(16))?;
+    let (small, large) = (probe(8), probe(4));
+    let (ts, tl) = (render_s(&small)?, render_s(&large)?);
+    let per_pixel = ((tl - ts) / (area(&large) - area(&small)).max(1.0)).max(0.0);
+    let per_frame = (ts - per_pixel * area(&small)).max(0.0);
+    let pixels: f64 = cams.iter().map(area).sum();
     eprintln!(
-        "{} frames of {}x{} at {fps} fps ({:.1} s of video): about {:.0} s to render ({:.3} s for a {}x{} probe frame)",
+        "{} frames of {}x{} at {fps} fps ({:.1} s of video): about {:.0} s to render ({:.3} s and {:.3} s for {}x{} and {}x{} probe frames{})",
         cams.len(),
         cams[0].width,
         cams[0].height,
         cams.len() as f64 / fps,
-        per_pixel * pixels,
-        t.elapsed().as_secs_f64(),
-        probe.width,
-        probe.height
+        per_frame * cams.len() as f64 + per_pixel * pixels,
+        ts,
+        tl,
+        small.width,
+        small.height,
+        large.width,
+        large.height,
+        if a.visibility_video {
+            "; the visibility video adds its own"
+        } else {
+            ""
+        }
     );
     let mut rep = Console::new();
     rep.stage("render path");

@@ -24,7 +24,9 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use serde_json::Value;
 
-use crate::cameras::{frame, look_at, virtual_cameras, CameraError, RigFrame, Trajectory};
+use crate::cameras::{
+    frame, look_at, virtual_cameras, CameraError, RigFrame, Trajectory, MAX_PATH_CAMERAS,
+};
 use crate::data::{Camera, DataError};
 
 /// A named trajectory around the training cameras (see the module's documentation).
@@ -123,8 +125,8 @@ pub fn named_path(
     range: f64,
 ) -> Result<Vec<Camera>, CameraError> {
     let bad = |m: String| Err(CameraError(m));
-    if frames == 0 || frames > 100_000 {
-        return bad(format!("{frames} frames: use 1 to 100000"));
+    if frames == 0 || frames > MAX_PATH_CAMERAS {
+        return bad(format!("{frames} frames: use 1 to {MAX_PATH_CAMERAS}"));
     }
     let RigFrame {
         x,

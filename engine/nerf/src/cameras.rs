@@ -51,6 +51,9 @@ impl std::str::FromStr for Trajectory {
 #[error("virtual cameras: {0}")]
 pub struct CameraError(pub String);
 
+/// The most cameras a trajectory or a camera path holds.
+pub const MAX_PATH_CAMERAS: usize = 100_000;
+
 /// `count` cameras on `trajectory`, `range` times beyond the rig of `train`.
 pub fn virtual_cameras(
     train: &[Camera],
@@ -59,8 +62,8 @@ pub fn virtual_cameras(
     range: f64,
 ) -> Result<Vec<Camera>, CameraError> {
     let bad = |m: String| Err(CameraError(m));
-    if count == 0 || count > 10_000 {
-        return bad(format!("count {count}: use 1 to 10000"));
+    if count == 0 || count > MAX_PATH_CAMERAS {
+        return bad(format!("count {count}: use 1 to {MAX_PATH_CAMERAS}"));
     }
     let RigFrame {
         x,
