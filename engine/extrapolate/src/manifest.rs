@@ -7,6 +7,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use extranerf_nerf::mvs_depth::sha256_hex;
 use extranerf_nerf::run::SceneSpec;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
@@ -154,11 +155,9 @@ impl Manifest {
         let r = self.stages.iter().find(|s| s.name == name && s.done)?;
         Some(r.output.clone().unwrap_or_else(|| {
             sha256_hex(
-                json_of(&serde_json::json!({
-                    "name": r.name, "config": r.config, "report": r.report
-                }))
-                .to_string()
-                .as_bytes(),
+                serde_json::json!({"name": r.name, "config": r.config, "report": r.report})
+                    .to_string()
+                    .as_bytes(),
             )
         }))
     }
@@ -333,15 +332,6 @@ impl Recorded {
         }
         Ok(())
     }
-}
-
-/// The SHA-256 of `bytes` in hexadecimal.
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    use sha2::{Digest, Sha256};
-    Sha256::digest(bytes)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
 }
 
 /// The SHA-256 of the file at `path` in hexadecimal.

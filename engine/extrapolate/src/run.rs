@@ -29,7 +29,7 @@ use serde_json::Value;
 
 use crate::error::{create_dir, ExtrapolateError, Result};
 use crate::inpaint::{DiffusionSpec, InpainterKind};
-use crate::manifest::{sha256_hex, Manifest, StageRecord};
+use crate::manifest::{Manifest, StageRecord};
 use crate::rounds::Stage2Spec;
 use crate::stage::{FieldRef, RunDir, Stage, VirtualSpec};
 use crate::stage3::{EnhanceStage, EnhancerDataStage, EnhancerStage, Stage3Enhancer, Stage3Spec};
@@ -255,8 +255,9 @@ fn run_stage(
         })
         .collect();
     let stale = !rerun.is_empty();
-    let identity = s.identity(dir)?;
     if let Some(p) = prior.as_ref().filter(|r| r.done && !stale) {
+        // (Read only here: a stage about to run is identified once it has.)
+        let identity = s.identity(dir)?;
         match (&identity, &p.output) {
             // Its output was replaced outside this run (the reused BaseNeRF trained on, or
             // `--base` another run): recorded anew, and what reads it runs again.
@@ -323,7 +324,7 @@ fn run_stage(
             let now = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0, |d| d.as_nanos());
-            sha256_hex(
+            extranerf_nerf::mvs_depth::sha256_hex(
                 serde_json::json!({
                     "name": name, "config": config.value, "report": report,
                     "finished": format!("{now}-{}", std::process::id())

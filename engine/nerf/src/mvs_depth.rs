@@ -315,7 +315,7 @@ pub enum CacheUse {
 /// depth bounds) and the settings.
 pub fn cache_key(scene_dir: &Path, cams: &[Camera], settings: &MvsDepthSettings) -> Result<String> {
     let doc = serde_json::json!({ "views": views_doc(scene_dir, cams)?, "settings": settings });
-    Ok(hex(&Sha256::digest(doc.to_string().as_bytes())))
+    Ok(sha256_hex(doc.to_string().as_bytes()))
 }
 
 /// The SHA-256 of `cams` (whose images lie under `scene_dir`): their paths relative to the
@@ -323,7 +323,7 @@ pub fn cache_key(scene_dir: &Path, cams: &[Camera], settings: &MvsDepthSettings)
 /// folder it is read from.
 pub fn views_key(scene_dir: &Path, cams: &[Camera]) -> Result<String> {
     let doc = serde_json::json!({ "views": views_doc(scene_dir, cams)? });
-    Ok(hex(&Sha256::digest(doc.to_string().as_bytes())))
+    Ok(sha256_hex(doc.to_string().as_bytes()))
 }
 
 /// Each view's image (relative path, size, SHA-256 of its bytes) and camera.
@@ -335,7 +335,7 @@ fn views_doc(scene_dir: &Path, cams: &[Camera]) -> Result<Vec<serde_json::Value>
         views.push(serde_json::json!({
             "image": rel.to_string_lossy(),
             "size": [c.width, c.height],
-            "sha256": hex(&Sha256::digest(&bytes)),
+            "sha256": sha256_hex(&bytes),
             // The pose, intrinsics and bounds: re-registered images give other maps.
             "c2w": c.c2w.to_cols_array(),
             "intrinsics": [c.fx, c.fy, c.cx, c.cy],
@@ -345,8 +345,13 @@ fn views_doc(scene_dir: &Path, cams: &[Camera]) -> Result<Vec<serde_json::Value>
     Ok(views)
 }
 
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
+/// The SHA-256 of `bytes` in hexadecimal (the cache keys here, and the fingerprints of an
+/// extrapolate run's stages).
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 /// The cache's files for view `k`: depth and confidence.

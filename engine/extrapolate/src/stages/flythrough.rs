@@ -145,10 +145,9 @@ impl StageSpec for FlythroughConfig {
     }
 }
 
-/// The frame cameras of a fly-through for the run's training cameras `train`.
+/// The frame cameras of a fly-through (its spec checked) for the run's training cameras `train`.
 fn frame_cameras(config: &FlythroughConfig, train: &[Camera]) -> Result<Vec<Camera>> {
     let s = &config.spec;
-    s.check()?;
     Ok(virtual_cameras(
         train,
         config.virt.trajectory,
