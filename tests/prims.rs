@@ -527,3 +527,58 @@ fn back_to_back_submissions_see_each_others_writes() {
     );
     assert_no_validation_messages(&e.ctx);
 }
+
+#[test]
+fn micro_benchmarks_match_their_reference() {
+    use extranerf_prims::micro::{Micro, MicroOp, DENSE_GROUP, DENSE_WIDTH};
+    let e = engine();
+    // Two workgroups and a part (the third one's lanes past 150 return at once).
+    let (lanes, ops) = (150u32, 600u32);
+    let mut rng = Rng::new(61);
+    let w = DENSE_WIDTH as usize;
+    let weights: Vec<f32> = (0..w * (w + 1)).map(|_| rng.uniform(-0.1, 0.1)).collect();
+    let inputs: Vec<f32> = (0..lanes as usize * DENSE_GROUP as usize * w)
+        .map(|_| rng.uniform(-1.0, 1.0))
+        .collect();
+    let micro = Micro::new(&e.ctx, lanes, &weights, &inputs).unwrap();
+    for op in MicroOp::all() {
+        let mut rec = e.ctx.recorder("micro").unwrap();
+        micro.record_setup(&mut rec, op).unwrap();
+        micro.record(&mut rec, op, ops).unwrap();
+        e.ctx.run(rec).unwrap();
+        if let MicroOp::Atomic { .. } | MicroOp::AtomicPrefetched | MicroOp::AtomicU32 = op {
+            let got = micro.read_atomics().unwrap();
+            let want = r::micro_atomic_counts(op, lanes, ops);
+            let total: u64 = want.values().map(|&c| c as u64).sum();
+            assert_eq!(total, lanes as u64 * op.kernel_ops(ops) as u64);
+            for (e, &g) in got.iter().enumerate() {
+                let c = want.get(&(e as u32)).copied().unwrap_or(0);
+                let g = if op == MicroOp::AtomicU32 {
+                    g.to_bits() as f32
+                } else {
+                    g
+                };
+                assert!(g == c as f32, "{}: entry {e} is {g}, want {c}", op.name());
+            }
+            continue;
+        }
+        let got = micro.read_out().unwrap();
+        let want: Vec<f64> = (0..lanes)
+            .map(|l| r::micro_lane(op, l, ops, &weights, &inputs))
+            .collect();
+        let scale = want.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        // Exact for the memory kernels (small integers); f32 rounding for the arithmetic.
+        let tol = match op {
+            MicroOp::Fma | MicroOp::Dense1 | MicroOp::Dense4 | MicroOp::Dense4Back => 1e-4 * scale,
+            _ => 0.0,
+        };
+        for (l, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                g.is_finite() && (*g as f64 - w).abs() <= tol,
+                "{}: lane {l} wrote {g}, want {w} (tolerance {tol:e})",
+                op.name()
+            );
+        }
+    }
+    assert_no_validation_messages(&e.ctx);
+}

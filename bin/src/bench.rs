@@ -7,6 +7,7 @@ use extranerf_gpu::{Buffer, Context, GpuTimer, Recorder};
 use extranerf_nerf::field::hash_grid::{HashGrid, HashGridConfig};
 use extranerf_nerf::field::mlp::{Mlp, MlpConfig, MlpPath};
 use extranerf_nerf::optim::{Adam, AdamConfig};
+use extranerf_prims::micro::{Micro, MicroOp, DENSE_GROUP, DENSE_WIDTH};
 use extranerf_prims::reference::Rng;
 use extranerf_prims::{CompactPlan, Prims, ReducePlan, ScanPlan, ScatterMode, SortPlan};
 
@@ -25,6 +26,14 @@ pub struct KernelsArgs {
     /// Also write every measurement as JSON to FILE.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
+    /// Lanes (threads) of each microbenchmark (`micro`: the fused training step's operations
+    /// one by one); the default is the fused step's 256 rays of issue 61's configuration.
+    #[arg(long, default_value_t = 256, value_name = "N")]
+    micro_lanes: u32,
+    /// Operations per lane of each memory microbenchmark (32x as many FMAs, and one 64-wide
+    /// dense layer per 256).
+    #[arg(long, default_value_t = 4096, value_name = "N")]
+    micro_ops: u32,
 }
 
 /// One measured kernel at one size.
@@ -55,6 +64,24 @@ pub fn write_json(path: &Path, value: &serde_json::Value) -> anyhow::Result<()> 
     )
     .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
+}
+
+/// One microbenchmark (`micro`): the cost of one operation of the fused training step.
+#[derive(Debug, serde::Serialize)]
+struct MicroRow {
+    op: String,
+    unit: &'static str,
+    lanes: u32,
+    ops_per_lane: u64,
+    median_ms: f64,
+    min_ms: f64,
+    /// GPU time over every lane's operations (the throughput cost of one).
+    ns_per_op: f64,
+    /// GPU time over one lane's operations (what a lane waits per operation).
+    ns_per_lane_op: f64,
+    /// ns_per_op less the same kernel's random indexing alone (`random index` row), for the
+    /// reads and atomics.
+    net_ns_per_op: Option<f64>,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -115,6 +142,7 @@ struct Bench<'c> {
     repeats: u32,
     only: Vec<String>,
     rows: Vec<Row>,
+    micro: Vec<MicroRow>,
     notes: Vec<String>,
 }
 
@@ -152,6 +180,68 @@ impl Bench<'_> {
             row.ratio_to_copy
         );
         self.rows.push(row);
+    }
+
+    /// The microbenchmarks of the fused training step's operations, `ops` per lane.
+    fn micro(&mut self, lanes: u32, ops: u32, rng: &mut Rng) -> anyhow::Result<()> {
+        let ctx = self.ctx;
+        let reps = self.repeats;
+        let timer = GpuTimer::new(ctx, "micro timer", 2 * reps)?;
+        let w = DENSE_WIDTH as usize;
+        // Weights small enough that 16 layers neither blow up nor vanish.
+        let weights: Vec<f32> = (0..w * (w + 1)).map(|_| rng.uniform(-0.1, 0.1)).collect();
+        let inputs: Vec<f32> = (0..lanes as usize * DENSE_GROUP as usize * w)
+            .map(|_| rng.uniform(-1.0, 1.0))
+            .collect();
+        let micro = Micro::new(ctx, lanes, &weights, &inputs)?;
+        println!(
+            "\nmicrobenchmarks: the fused training step's operations, {lanes} lanes (workgroups of 64); ns/op = GPU time over all lanes' operations, per lane = over one lane's; net = less the random index's own cost"
+        );
+        println!(
+            "{:<56} {:>8} {:>10} {:>10} {:>9} {:>10} {:>9}",
+            "operation", "unit", "ops/lane", "median ms", "ns/op", "per lane", "net ns/op"
+        );
+        let mut index_ns = None;
+        for op in MicroOp::all() {
+            let t = measure(
+                ctx,
+                &timer,
+                reps,
+                |r| micro.record_setup(r, op),
+                |r| micro.record(r, op, ops),
+            )?;
+            let min_ms = t.iter().copied().fold(f64::INFINITY, f64::min);
+            let median_ms = median(t);
+            let per_lane = op.ops_per_lane(ops);
+            let ns = median_ms * 1e6 / (per_lane as f64 * lanes as f64);
+            if op == MicroOp::Index {
+                index_ns = Some(ns);
+            }
+            let row = MicroRow {
+                op: op.name(),
+                unit: op.unit(),
+                lanes,
+                ops_per_lane: per_lane,
+                median_ms,
+                min_ms,
+                ns_per_op: ns,
+                ns_per_lane_op: median_ms * 1e6 / per_lane as f64,
+                net_ns_per_op: op.baseline().and(index_ns).map(|b| ns - b),
+            };
+            println!(
+                "{:<56} {:>8} {:>10} {:>10.4} {:>9.4} {:>10.3} {:>9}",
+                row.op,
+                row.unit,
+                row.ops_per_lane,
+                row.median_ms,
+                row.ns_per_op,
+                row.ns_per_lane_op,
+                row.net_ns_per_op
+                    .map_or("-".to_string(), |n| format!("{n:.4}"))
+            );
+            self.micro.push(row);
+        }
+        Ok(())
     }
 
     fn size(&mut self, n: u64, rng: &mut Rng) -> anyhow::Result<()> {
@@ -640,6 +730,9 @@ pub fn kernels(ctx: &Context, args: &KernelsArgs) -> anyhow::Result<()> {
     if args.repeats == 0 {
         anyhow::bail!("--repeats must be at least 1");
     }
+    if args.micro_lanes == 0 || args.micro_ops == 0 {
+        anyhow::bail!("--micro-lanes and --micro-ops must be at least 1");
+    }
     let info = ctx.info();
     let limit = info.max_storage_buffer_range / 4;
     for &n in &args.sizes {
@@ -662,11 +755,15 @@ pub fn kernels(ctx: &Context, args: &KernelsArgs) -> anyhow::Result<()> {
         repeats: args.repeats,
         only: args.only.clone(),
         rows: Vec::new(),
+        micro: Vec::new(),
         notes: Vec::new(),
     };
     let mut rng = Rng::new(0x5eed);
     for &n in &args.sizes {
         bench.size(n, &mut rng)?;
+    }
+    if bench.wanted("micro") {
+        bench.micro(args.micro_lanes, args.micro_ops, &mut rng)?;
     }
     for note in &bench.notes {
         println!("{note}");
@@ -678,6 +775,7 @@ pub fn kernels(ctx: &Context, args: &KernelsArgs) -> anyhow::Result<()> {
             "repeats": args.repeats,
             "command": std::env::args().collect::<Vec<_>>().join(" "),
             "results": bench.rows,
+            "micro": bench.micro,
         });
         write_json(path, &value)?;
         println!("wrote {}", path.display());

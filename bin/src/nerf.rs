@@ -1238,14 +1238,45 @@ pub struct BenchTrainArgs {
     /// The proposal field's strata per ray (with `--sampler proposal`) [default: 32].
     #[arg(long, value_name = "N")]
     proposal_samples: Option<u32>,
+    /// Profiled steps (each with a GPU timestamp after every stage, after the timed ones); the
+    /// stage table gives each stage's median over them.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    profile_steps: u32,
     /// Also write the results as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
 }
 
+/// Each stage's median GPU milliseconds over `steps` (at least 1) profiled steps.
+fn profiled_stages(
+    ctx: &Context,
+    t: &mut Trainer,
+    prims: &Prims,
+    data: &TrainData,
+    steps: u32,
+) -> anyhow::Result<Vec<(&'static str, f64)>> {
+    let mut profiles = Vec::new();
+    for _ in 0..steps.max(1) {
+        profiles.push(t.profile_step(ctx, prims, data)?);
+    }
+    Ok(profiles[0]
+        .iter()
+        .enumerate()
+        .map(|(i, &(name, _))| {
+            let mut ms: Vec<f64> = profiles.iter().map(|p| p[i].1).collect();
+            ms.sort_by(f64::total_cmp);
+            let n = ms.len();
+            (name, 0.5 * (ms[(n - 1) / 2] + ms[n / 2]))
+        })
+        .collect())
+}
+
 /// `extranerf bench train`: samples/s of whole training steps (wall clock, one submission of
 /// `--steps` steps) and the GPU time of every stage of one profiled step.
 pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
+    if a.profile_steps == 0 {
+        bail!("--profile-steps must be at least 1");
+    }
     let scene = a.scene.clone().unwrap_or_else(|| {
         std::env::var_os("EXTRANERF_DATA")
             .map(PathBuf::from)
@@ -1331,7 +1362,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         }
         let secs = t0.elapsed().as_secs_f64();
         let sps = a.steps as f64 * t.samples_per_step() as f64 / secs;
-        let stages = t.profile_step(ctx, &prims, &data)?;
+        let stages = profiled_stages(ctx, &mut t, &prims, &data, a.profile_steps)?;
         let total: f64 = stages.iter().map(|s| s.1).sum();
         println!(
             "model: hash grid {}x{}x2^{}, MLPs {:?} + {:?}; {} rays x {} samples = {} samples/step",
@@ -1392,7 +1423,14 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
         );
         println!(
             "{:<60} {:>10} {:>7} {:>12}",
-            "stage (one profiled step)", "ms", "%", "samples/s"
+            if a.profile_steps == 1 {
+                "stage (one profiled step)".to_string()
+            } else {
+                format!("stage (median of {} profiled steps)", a.profile_steps)
+            },
+            "ms",
+            "%",
+            "samples/s"
         );
         for (name, ms) in &stages {
             println!(
@@ -1412,6 +1450,7 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             "samples_per_s": sps,
             "warmup_s": warm_s,
             "occupied_fraction": occupied,
+            "profile_steps": a.profile_steps,
             "stages_ms": stages.iter().map(|(n, ms)| serde_json::json!({"stage": n, "ms": ms})).collect::<Vec<_>>(),
         }));
     }
@@ -1433,6 +1472,9 @@ pub fn bench_train(ctx: &Context, a: &BenchTrainArgs) -> anyhow::Result<()> {
             "device": ctx.info().name,
             "driver": format!("{} {}", ctx.info().driver_name, ctx.info().driver_info),
             "model": model,
+            "mlp_dims": {"density": model.density_mlp().dims, "color": model.color_mlp().dims},
+            // Each hash-grid level: resolution, table entries, dense (1) or hashed (0).
+            "grid_levels": model.grid().level_layout().iter().map(|l| serde_json::json!({"res": l.res, "size": l.size, "dense": l.dense & 1})).collect::<Vec<_>>(),
             "rays": a.rays,
             "samples_per_ray": a.samples,
             "steps": a.steps,

@@ -71,6 +71,64 @@ fn bench_kernels_writes_a_table_and_json() {
 }
 
 #[test]
+fn bench_kernels_micro_figures_are_finite_and_positive() {
+    let dir = std::env::temp_dir().join(format!("extranerf-cli-micro-{}", std::process::id()));
+    let json = dir.join("micro.json");
+    let (ok, out, err) = extranerf(&[
+        "bench",
+        "kernels",
+        "--sizes",
+        "4096",
+        "--repeats",
+        "1",
+        "--only",
+        "micro",
+        "--micro-lanes",
+        "100",
+        "--micro-ops",
+        "256",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let rows = v["micro"].as_array().unwrap();
+    // Every operation issue 61 names, each timed.
+    for op in [
+        "random read 8 B",
+        "random read 16 B",
+        "f32 atomic add, distinct addresses",
+        "f32 atomic add, 64 lanes per address",
+        "FMA, registers",
+        "dense 64x64 layer, 4 points/lane",
+        "workgroup vec4 read-modify-write",
+        "storage vec4 read-modify-write",
+    ] {
+        assert!(
+            rows.iter().any(|r| r["op"] == op) && out.contains(op),
+            "`{op}` missing:\n{out}"
+        );
+    }
+    assert_eq!(rows.len(), 18, "{rows:?}");
+    for r in rows {
+        for key in ["median_ms", "ns_per_op", "ns_per_lane_op"] {
+            let x = r[key].as_f64().unwrap();
+            assert!(x.is_finite() && x > 0.0, "{key} of {}: {x}", r["op"]);
+        }
+        assert!(
+            r["lanes"] == 100 && r["ops_per_lane"].as_u64().unwrap() >= 256,
+            "{r}"
+        );
+        if let Some(net) = r["net_ns_per_op"].as_f64() {
+            assert!(net.is_finite(), "{r}");
+        }
+    }
+    let (ok, _, err) = extranerf(&["bench", "kernels", "--only", "micro", "--micro-ops", "0"]);
+    assert!(!ok && err.contains("--micro-ops"), "{err}");
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
 fn bad_arguments_are_clear_errors() {
     let (ok, _, err) = extranerf(&["bench", "kernels", "--sizes", "0"]);
     assert!(
@@ -244,6 +302,17 @@ fn bad_arguments_are_clear_errors() {
         "mvs",
     ]);
     assert!(!ok && err.contains("cannot be used with"), "{err}");
+    // A bad GPU wait limit is refused before any work, naming the variable.
+    let out = Command::new(env!("CARGO_BIN_EXE_extranerf"))
+        .arg("info")
+        .env("EXTRANERF_GPU_TIMEOUT_S", "ten")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("EXTRANERF_GPU_TIMEOUT_S is `ten`"),
+        "{err}"
+    );
     let _ = std::fs::remove_dir_all(dir);
 }
 

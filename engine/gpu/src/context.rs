@@ -10,8 +10,30 @@ use gpu_allocator::vulkan::{Allocation, Allocator, AllocatorCreateDesc};
 use crate::error::{GpuError, Result, VkContext};
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
-/// Longest wait on the GPU before [`GpuError::Timeout`].
+/// Longest wait on the GPU before [`GpuError::Timeout`], unless `EXTRANERF_GPU_TIMEOUT_S`
+/// says otherwise (see [`wait_timeout_s`]).
 pub(crate) const WAIT_TIMEOUT_S: u64 = 600;
+
+/// `EXTRANERF_GPU_TIMEOUT_S`: seconds, a whole number from 1 (unset: [`WAIT_TIMEOUT_S`]).
+fn timeout_from_env() -> std::result::Result<u64, String> {
+    match std::env::var("EXTRANERF_GPU_TIMEOUT_S") {
+        Err(_) => Ok(WAIT_TIMEOUT_S),
+        Ok(v) => match v.trim().parse::<u64>() {
+            Ok(s) if s >= 1 => Ok(s),
+            _ => Err(format!(
+                "EXTRANERF_GPU_TIMEOUT_S is `{v}`: give a whole number of seconds, at least 1"
+            )),
+        },
+    }
+}
+
+/// The longest wait on the GPU: `EXTRANERF_GPU_TIMEOUT_S` (for a device far slower than
+/// usual, such as lavapipe under valgrind, whose first dispatch of a large kernel compiles for
+/// many minutes), else 600 s. [`Context::new`] refuses an invalid value, so it never gets here.
+pub(crate) fn wait_timeout_s() -> u64 {
+    static SECONDS: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *SECONDS.get_or_init(|| timeout_from_env().unwrap_or(WAIT_TIMEOUT_S))
+}
 
 /// Whether to load the Khronos validation layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -411,6 +433,7 @@ pub fn list_devices() -> Result<Vec<DeviceListing>> {
 impl Context {
     /// Creates the engine's device per `desc` (see [`ContextDesc`]).
     pub fn new(desc: &ContextDesc) -> Result<Context> {
+        timeout_from_env().map_err(GpuError::Usage)?;
         let entry = load_entry()?;
         // SAFETY: plain queries on a loaded entry.
         let (loader_version, layers, inst_exts) = unsafe {

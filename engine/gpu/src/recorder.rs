@@ -6,7 +6,7 @@ use ash::vk;
 use bytemuck::Pod;
 
 use crate::buffer::{Binding, RawBuffer};
-use crate::context::{Context, Garbage, Ticket, WAIT_TIMEOUT_S};
+use crate::context::{wait_timeout_s, Context, Garbage, Ticket};
 use crate::error::{GpuError, Result, VkContext};
 use crate::kernel::Kernel;
 
@@ -198,12 +198,12 @@ impl Context {
         match unsafe {
             self.inner
                 .device
-                .wait_semaphores(&wi, WAIT_TIMEOUT_S * 1_000_000_000)
+                .wait_semaphores(&wi, wait_timeout_s().saturating_mul(1_000_000_000))
         } {
             Ok(()) => {}
             Err(vk::Result::TIMEOUT) => {
                 return Err(GpuError::Timeout {
-                    seconds: WAIT_TIMEOUT_S,
+                    seconds: wait_timeout_s(),
                 })
             }
             Err(r) => return Err(crate::error::vk_err("vkWaitSemaphores", r)),

@@ -2,9 +2,12 @@
 //! them on the device without host round trips: fill, SAXPY (vec4), reduce-sum, exclusive
 //! prefix sum over arbitrary lengths, stream compaction, key/value radix sort and f32 atomic
 //! scatter-add with subgroup pre-reduction. Scratch memory lives in plans sized once for a
-//! maximum length. [`reference`] holds the plain-Rust definitions the tests compare against.
+//! maximum length. [`micro`] holds the microbenchmarks of the fused training step's
+//! operations (`bench kernels --only micro`). [`reference`] holds the plain-Rust definitions
+//! the tests compare against.
 #![forbid(unsafe_code)]
 
+pub mod micro;
 pub mod reference;
 
 use extranerf_gpu::kernels::prims as k;

@@ -112,6 +112,154 @@ impl Rng {
     }
 }
 
+/// The microbenchmarks' random sequence (`kernels/wgsl/common/micro.wgsl`): lane `lane`'s first
+/// state with `share` lanes per sequence.
+fn micro_seed(lane: u32, share: u32) -> u32 {
+    (lane / share).wrapping_mul(2654435769) ^ 0x6d2b79f5
+}
+
+fn micro_next(s: u32) -> u32 {
+    s.wrapping_mul(1664525).wrapping_add(1013904223)
+}
+
+/// The random table indices lane `lane` of `op` visits, in order.
+pub fn micro_indices(op: crate::micro::MicroOp, lane: u32, ops: u32) -> Vec<u32> {
+    let share = match op {
+        crate::micro::MicroOp::Atomic { share } => share,
+        _ => 1,
+    };
+    let shift = 32 - op.log2_entries();
+    let mut s = micro_seed(lane, share);
+    (0..op.kernel_ops(ops))
+        .map(|_| {
+            s = micro_next(s);
+            s >> shift
+        })
+        .collect()
+}
+
+/// What lane `lane` of microbenchmark `op` writes for `ops` requested operations, in f64:
+/// `weights` (64 x 64 row-major, then 64 biases) and `inputs` (per lane 4 points x 64) as
+/// given to [`crate::micro::Micro::new`]. The atomics write no lane result: see
+/// [`micro_atomic_counts`].
+pub fn micro_lane(
+    op: crate::micro::MicroOp,
+    lane: u32,
+    ops: u32,
+    weights: &[f32],
+    inputs: &[f32],
+) -> f64 {
+    use crate::micro::{MicroOp, DENSE_GROUP, DENSE_WIDTH, FMA_C, FMA_M};
+    // The table's entry e is e mod 8, read at the op's width.
+    let entry = |e: u32| (e % 8) as f64;
+    let n = op.kernel_ops(ops);
+    let w = DENSE_WIDTH as usize;
+    let point = |q: usize| -> Vec<f64> {
+        let at = (lane as usize * DENSE_GROUP as usize + q) * w;
+        inputs[at..at + w].iter().map(|&v| v as f64).collect()
+    };
+    let layer = |a: &[f64]| -> Vec<f64> {
+        (0..w)
+            .map(|o| {
+                let z = (0..w)
+                    .map(|j| weights[o * w + j] as f64 * a[j])
+                    .sum::<f64>()
+                    + weights[w * w + o] as f64;
+                z.max(0.0)
+            })
+            .collect()
+    };
+    let back = |d: &[f64]| -> Vec<f64> {
+        (0..w)
+            .map(|j| (0..w).map(|o| weights[o * w + j] as f64 * d[o]).sum())
+            .collect()
+    };
+    match op {
+        MicroOp::Index => micro_indices(op, lane, ops)
+            .iter()
+            .map(|&i| (i & 7) as f64)
+            .sum(),
+        MicroOp::Read4 | MicroOp::Read4Near => {
+            micro_indices(op, lane, ops).iter().map(|&i| entry(i)).sum()
+        }
+        MicroOp::ReadPair | MicroOp::Read8 => micro_indices(op, lane, ops)
+            .iter()
+            .map(|&i| entry(2 * i) + 2.0 * entry(2 * i + 1))
+            .sum(),
+        MicroOp::Read16 => micro_indices(op, lane, ops)
+            .iter()
+            .map(|&i| {
+                (0..4)
+                    .map(|c| (c + 1) as f64 * entry(4 * i + c))
+                    .sum::<f64>()
+            })
+            .sum(),
+        MicroOp::SameAddress => {
+            // small[e] = e mod 5 for the 64 floats (16 vec4s), read in turn.
+            let base = (lane & 7) as f64 * 10.0;
+            base + (0..n)
+                .map(|k| {
+                    let v = k % 16;
+                    (0..4)
+                        .map(|c| (c + 1) as f64 * ((4 * v + c) % 5) as f64)
+                        .sum::<f64>()
+                })
+                .sum::<f64>()
+        }
+        // Each op adds (1, 2, 3, 4) to one of the lane's vec4s; the lane sums its region.
+        MicroOp::Workgroup | MicroOp::Storage => 10.0 * n as f64,
+        MicroOp::Atomic { .. } | MicroOp::AtomicPrefetched | MicroOp::AtomicU32 => 0.0,
+        MicroOp::Fma => {
+            let x = (lane & 63) as f64 / 64.0;
+            (0..32)
+                .map(|c| {
+                    let mut a = (x + c as f64) as f32 as f64;
+                    for _ in 0..n / 32 {
+                        a = a * FMA_M as f64 + FMA_C as f64;
+                    }
+                    a
+                })
+                .sum()
+        }
+        MicroOp::Dense1 => {
+            let mut a = point(0);
+            for _ in 0..n {
+                a = layer(&a);
+            }
+            a.iter().sum()
+        }
+        MicroOp::Dense4 | MicroOp::Dense4Back => (0..DENSE_GROUP as usize)
+            .map(|q| {
+                let mut a = point(q);
+                for _ in 0..n {
+                    a = if op == MicroOp::Dense4 {
+                        layer(&a)
+                    } else {
+                        back(&a)
+                    };
+                }
+                a.iter().sum::<f64>()
+            })
+            .sum(),
+    }
+}
+
+/// The atomics' target after one run of [`crate::micro::MicroOp::Atomic`] from zero: each
+/// entry's count of adds (entries not listed stay 0).
+pub fn micro_atomic_counts(
+    op: crate::micro::MicroOp,
+    lanes: u32,
+    ops: u32,
+) -> std::collections::BTreeMap<u32, u32> {
+    let mut counts = std::collections::BTreeMap::new();
+    for lane in 0..lanes {
+        for i in micro_indices(op, lane, ops) {
+            *counts.entry(i).or_insert(0) += 1;
+        }
+    }
+    counts
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
