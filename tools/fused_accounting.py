@@ -158,6 +158,15 @@ def ranked(per_round, rows, measured_ns):
     f32_atomic = cost("f32 atomic add, distinct addresses", "net")
     u32_atomic = cost("u32 atomic add, distinct addresses", "net")
     hot_atomic = cost("f32 atomic add, 64 lanes per address", "net")
+    pre_atomic = cost("f32 atomic add, distinct addresses, line loaded first", "net")
+    if pre_atomic is not None:
+        items.append((
+            atomics * (f32_atomic - pre_atomic),
+            "Load each corner's gradient entries with plain loads (their cache misses overlap; "
+            "a locked compare-exchange waits for its own) before the atomic adds, e.g. all 8 "
+            "corners of a level first",
+            f"{atomics} x ({f32_atomic:.2f} - {pre_atomic:.2f}) ns",
+        ))
     if u32_atomic is not None:
         items.append((
             atomics * (f32_atomic - u32_atomic),
@@ -239,6 +248,8 @@ def main():
     measured = [r[0] * 1e6 / r[1] for r in per_round]
     predicted = [sum(c * n for c, (_, n, *_) in zip(r[3], r[2])) for r in per_round]
     print(f"# Fused training step: where its time per sample goes ({len(per_round)} rounds)\n")
+    print(f"Made by `tools/fused_accounting.sh {out} {len(per_round)}` (with `BASE_BIN`, the base build's rows; "
+          "the instruction counts by `tools/callgrind_step.sh`); the findings are in `docs/kernels.md`.\n")
     print(f"Device: {train0['device']} ({train0['driver']}); micro device: {micro0['device']['name']}.")
     print(
         f"Configuration: {train0['rays']} rays x {train0['samples_per_ray']} samples = {samples} samples per step; "
@@ -263,6 +274,23 @@ def main():
     for i, (r, m, p) in enumerate(zip(per_round, measured, predicted)):
         print(f"| {i + 1} | {r[0]:.2f} | {m:.0f} | {p:.0f} | {m / p:.2f} |")
     print()
+    base = []
+    for d in rounds:
+        path = os.path.join(d, "train_base.json")
+        if os.path.exists(path):
+            b = json.load(open(path))
+            bms, brun = fused_ms(b)
+            total = sum(st["ms"] for st in brun["stages_ms"])
+            base.append((bms, total, brun["step_ms_wall"]))
+    if base:
+        mine = [(r[0], sum(st["ms"] for st in r[5]["runs"][0]["stages_ms"]), r[5]["runs"][0]["step_ms_wall"]) for r in per_round]
+        print(f"The base build (BASE_BIN, {os.environ.get('BASE_NAME', 'older build')}) in the same rounds, same configuration:\n")
+        print("| round | base fused ms | this fused ms | base step GPU ms | this step GPU ms | base wall ms/step | this wall ms/step |")
+        print("|---:|---:|---:|---:|---:|---:|---:|")
+        for i, (b, m) in enumerate(zip(base, mine)):
+            print(f"| {i + 1} | {b[0]:.2f} | {m[0]:.2f} | {b[1]:.2f} | {m[1]:.2f} | {b[2]:.1f} | {m[2]:.1f} |")
+        med = lambda xs, k: statistics.median(x[k] for x in xs)
+        print(f"| median | {med(base, 0):.2f} | {med(mine, 0):.2f} | {med(base, 1):.2f} | {med(mine, 1):.2f} | {med(base, 2):.1f} | {med(mine, 2):.1f} |\n")
     ranked(per_round, rows, med_meas)
     cg = sorted(glob.glob(os.path.join(out, "callgrind*.txt")))
     for path in cg:
