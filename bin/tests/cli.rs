@@ -109,7 +109,7 @@ fn bench_kernels_micro_figures_are_finite_and_positive() {
             "`{op}` missing:\n{out}"
         );
     }
-    assert_eq!(rows.len(), 18, "{rows:?}");
+    assert_eq!(rows.len(), 19, "{rows:?}");
     for r in rows {
         for key in ["median_ms", "ns_per_op", "ns_per_lane_op"] {
             let x = r[key].as_f64().unwrap();

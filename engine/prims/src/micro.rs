@@ -36,9 +36,11 @@ pub enum MicroOp {
     /// A random 4-byte read from the table's first 256 KiB (a coarse grid level's size, which
     /// stays in a core's L2 cache).
     Read4Near,
-    /// Two adjacent random 4-byte reads (a corner's two features, as the step reads them),
-    /// counted as one operation.
+    /// Two adjacent random 4-byte reads (a corner's two features), counted as one operation.
     ReadPair,
+    /// The same through the step's branch between a table's two bindings (`table_at`), its
+    /// condition from a storage load, as the step's is.
+    ReadPairBranch,
     /// A random 8-byte (vec2) read.
     Read8,
     /// A random 16-byte (vec4) read.
@@ -79,6 +81,7 @@ impl MicroOp {
             MicroOp::Read4,
             MicroOp::Read4Near,
             MicroOp::ReadPair,
+            MicroOp::ReadPairBranch,
             MicroOp::Read8,
             MicroOp::Read16,
             MicroOp::SameAddress,
@@ -103,6 +106,9 @@ impl MicroOp {
             MicroOp::Read4 => "random read 4 B".into(),
             MicroOp::Read4Near => "random read 4 B, 256 KiB table".into(),
             MicroOp::ReadPair => "random read 2 x 4 B adjacent (a corner)".into(),
+            MicroOp::ReadPairBranch => {
+                "random read 2 x 4 B adjacent, through a two-binding branch".into()
+            }
             MicroOp::Read8 => "random read 8 B".into(),
             MicroOp::Read16 => "random read 16 B".into(),
             MicroOp::SameAddress => "storage vec4 load, same address in all lanes".into(),
@@ -128,6 +134,7 @@ impl MicroOp {
             MicroOp::Read4
             | MicroOp::Read4Near
             | MicroOp::ReadPair
+            | MicroOp::ReadPairBranch
             | MicroOp::Read8
             | MicroOp::Read16 => "read",
             MicroOp::SameAddress => "load",
@@ -144,6 +151,7 @@ impl MicroOp {
             MicroOp::Read4
             | MicroOp::Read4Near
             | MicroOp::ReadPair
+            | MicroOp::ReadPairBranch
             | MicroOp::Read8
             | MicroOp::Read16
             | MicroOp::Atomic { .. }
@@ -161,7 +169,7 @@ impl MicroOp {
             | MicroOp::Atomic { .. }
             | MicroOp::AtomicPrefetched
             | MicroOp::AtomicU32 => TABLE_LOG2_FLOATS,
-            MicroOp::Read8 | MicroOp::ReadPair => TABLE_LOG2_FLOATS - 1,
+            MicroOp::Read8 | MicroOp::ReadPair | MicroOp::ReadPairBranch => TABLE_LOG2_FLOATS - 1,
             MicroOp::Read4Near => NEAR_LOG2_FLOATS,
             MicroOp::Read16 => TABLE_LOG2_FLOATS - 2,
             _ => 0,
@@ -205,6 +213,7 @@ pub struct Micro {
     index: Kernel,
     read4: Kernel,
     read_pair: Kernel,
+    read_pair_branch: Kernel,
     read8: Kernel,
     read16: Kernel,
     same_address: Kernel,
@@ -257,6 +266,7 @@ impl Micro {
             index: Kernel::new(ctx, &k::micro_mem::micro_index::DESC)?,
             read4: Kernel::new(ctx, &k::micro_mem::micro_read4::DESC)?,
             read_pair: Kernel::new(ctx, &k::micro_mem::micro_read_pair::DESC)?,
+            read_pair_branch: Kernel::new(ctx, &k::micro_mem::micro_read_pair_branch::DESC)?,
             read8: Kernel::new(ctx, &k::micro_mem::micro_read8::DESC)?,
             read16: Kernel::new(ctx, &k::micro_mem::micro_read16::DESC)?,
             same_address: Kernel::new(ctx, &k::micro_mem::micro_same_address::DESC)?,
@@ -350,6 +360,18 @@ impl Micro {
                 mm::micro_read_pair::Bindings {
                     table4: self.table.binding(),
                     out,
+                }
+                .into_array(),
+                &mem,
+                threads,
+            ),
+            MicroOp::ReadPairBranch => rec.dispatch(
+                &self.read_pair_branch,
+                mm::micro_read_pair_branch::Bindings {
+                    table4: self.table.binding(),
+                    small: self.small.binding(),
+                    out,
+                    table_hi: self.table.binding(),
                 }
                 .into_array(),
                 &mem,

@@ -182,10 +182,12 @@ pub fn micro_lane(
         MicroOp::Read4 | MicroOp::Read4Near => {
             micro_indices(op, lane, ops).iter().map(|&i| entry(i)).sum()
         }
-        MicroOp::ReadPair | MicroOp::Read8 => micro_indices(op, lane, ops)
-            .iter()
-            .map(|&i| entry(2 * i) + 2.0 * entry(2 * i + 1))
-            .sum(),
+        MicroOp::ReadPair | MicroOp::ReadPairBranch | MicroOp::Read8 => {
+            micro_indices(op, lane, ops)
+                .iter()
+                .map(|&i| entry(2 * i) + 2.0 * entry(2 * i + 1))
+                .sum()
+        }
         MicroOp::Read16 => micro_indices(op, lane, ops)
             .iter()
             .map(|&i| {

@@ -20,6 +20,8 @@
 @group(0) @binding(3) var<storage, read> small: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read_write> region: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read_write> out: array<f32>;
+// micro_read_pair_branch's second binding (the same table; never read).
+@group(0) @binding(6) var<storage, read> table_hi: array<f32>;
 
 // vec4s of a lane's own region (workgroup memory: 64 lanes x 32 x 16 B = 32 KiB).
 const REGION: u32 = 32u;
@@ -79,6 +81,38 @@ fn micro_read_pair(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
             s = micro_next(s);
             let e = (s >> shift) * 2u;
             acc += table4[e] + 2.0 * table4[e + 1u];
+        }
+    }
+    out[i] = acc;
+}
+
+// The same corner read through the step's branch between a table's two bindings
+// (common/field_eval.wgsl's table_at): `hi` comes from a storage load at a loop-dependent
+// address, as the step's from level_info[l], so the compiler cannot know it is the same in
+// every lane (it is always false here: `small` holds values below 5).
+@compute @workgroup_size(64)
+fn micro_read_pair_branch(@builtin(workgroup_id) wid: vec3<u32>,
+                          @builtin(num_workgroups) nwg: vec3<u32>,
+                          @builtin(local_invocation_index) lid: u32) {
+    let i = linear_group(wid, nwg) * 64u + lid;
+    if i >= params.lanes {
+        return;
+    }
+    var s = micro_seed(i);
+    let shift = 32u - params.log2_entries;
+    var acc = 0.0;
+    for (var n = 0u; n < params.ops; n += 8u) {
+        let hi = small[n & 15u].x > 100.0;
+        for (var k = 0u; k < 8u; k += 1u) {
+            s = micro_next(s);
+            let e = (s >> shift) * 2u;
+            var v = vec2<f32>(0.0);
+            if hi {
+                v = vec2<f32>(table_hi[e], table_hi[e + 1u]);
+            } else {
+                v = vec2<f32>(table4[e], table4[e + 1u]);
+            }
+            acc += v.x + 2.0 * v.y;
         }
     }
     out[i] = acc;
