@@ -3,8 +3,8 @@
 //! prefix sum over arbitrary lengths, stream compaction, key/value radix sort and f32 atomic
 //! scatter-add with subgroup pre-reduction. Scratch memory lives in plans sized once for a
 //! maximum length. [`micro`] holds the microbenchmarks of the fused training step's
-//! operations (`bench kernels --only micro`). [`reference`] holds the plain-Rust definitions
-//! the tests compare against.
+//! operations (`bench kernels --only micro`). [`reference`](mod@reference) holds the
+//! plain-Rust definitions the tests compare against.
 #![forbid(unsafe_code)]
 
 pub mod micro;
