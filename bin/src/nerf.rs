@@ -1263,10 +1263,10 @@ fn profiled_stages(
         .iter()
         .enumerate()
         .map(|(i, &(name, _))| {
-            let mut ms: Vec<f64> = profiles.iter().map(|p| p[i].1).collect();
-            ms.sort_by(f64::total_cmp);
-            let n = ms.len();
-            (name, 0.5 * (ms[(n - 1) / 2] + ms[n / 2]))
+            (
+                name,
+                crate::bench::median(profiles.iter().map(|p| p[i].1).collect()),
+            )
         })
         .collect())
 }

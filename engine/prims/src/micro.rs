@@ -15,8 +15,6 @@ pub const TABLE_LOG2_FLOATS: u32 = 22;
 pub const NEAR_LOG2_FLOATS: u32 = 16;
 /// vec4s of each lane's region in [`MicroOp::Workgroup`] and [`MicroOp::Storage`].
 pub const REGION_VEC4S: u32 = 32;
-/// Lanes per workgroup of every microbenchmark kernel.
-pub const WORKGROUP: u32 = 64;
 /// The dense layers' width (the MLPs' hidden width).
 pub const DENSE_WIDTH: u32 = 64;
 /// Points per lane of the four-point dense layers (common/mlp_block.wgsl's MLP_GROUP).
@@ -198,7 +196,8 @@ impl MicroOp {
         }
     }
 
-    fn share(self) -> u32 {
+    /// Lanes that follow one random sequence (1 but for [`MicroOp::Atomic`]).
+    pub fn share(self) -> u32 {
         match self {
             MicroOp::Atomic { share } => share,
             _ => 1,
@@ -287,11 +286,6 @@ impl Micro {
             inputs: Buffer::from_slice(ctx, "micro inputs", inputs)?,
             out: Buffer::new(ctx, "micro out", lanes as usize)?,
         })
-    }
-
-    /// Lanes each run uses.
-    pub fn lanes(&self) -> u32 {
-        self.lanes
     }
 
     /// Records what must precede each timed run of `op`: zeroing the storage region or the

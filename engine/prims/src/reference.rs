@@ -124,12 +124,8 @@ fn micro_next(s: u32) -> u32 {
 
 /// The random table indices lane `lane` of `op` visits, in order.
 pub fn micro_indices(op: crate::micro::MicroOp, lane: u32, ops: u32) -> Vec<u32> {
-    let share = match op {
-        crate::micro::MicroOp::Atomic { share } => share,
-        _ => 1,
-    };
     let shift = 32 - op.log2_entries();
-    let mut s = micro_seed(lane, share);
+    let mut s = micro_seed(lane, op.share());
     (0..op.kernel_ops(ops))
         .map(|_| {
             s = micro_next(s);
